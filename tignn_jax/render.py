@@ -1,0 +1,163 @@
+"""A software rasteriser for triangle surface meshes (z-buffer, per-vertex colours), and surface extraction.
+
+``rasterize`` draws triangles given in pixel coordinates and camera depth (the output of ``ar.project``) into a
+``width x height`` image with a z-buffer, back-face culling and perspective-correct interpolation of depth and
+colour. Colours are per vertex (already shaded with ``ar.phong``: Phong reflection evaluated at the vertices of
+the deformed surface and interpolated across each triangle). Pixel (i, j) is drawn by a triangle when its
+centre (i + 0.5, j + 0.5) lies inside it.
+
+How: every front-facing triangle's bounding box is expanded into candidate fragments laid out in one flat array
+of static length ``capacity`` (so the function compiles once); each fragment is tested with edge functions, the
+nearest fragment per pixel wins through two scatters (min depth, then the winner's index). On a 2-core CPU this
+JAX version measured faster than the same algorithm in NumPy (benchmarks/render.py). Choose ``capacity`` with
+``fragment_capacity`` outside jit, like a jax-md neighbour list; ``Raster.overflow`` says when it was too small
+(fragments beyond it are dropped) and the caller should re-size it.
+
+``surface_triangles`` extracts the outward-oriented boundary triangles of hex8 and tet4 volume meshes (VTK /
+meshio node order).
+"""
+from __future__ import annotations
+
+from functools import partial
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+Array = jax.Array
+
+# Faces of a VTK hexahedron (nodes 0-3 bottom counter-clockwise seen from above, 4-7 above them), each
+# counter-clockwise seen from outside the element.
+HEX8_FACES = np.array([
+    [0, 3, 2, 1], [4, 5, 6, 7], [0, 1, 5, 4], [1, 2, 6, 5], [2, 3, 7, 6], [3, 0, 4, 7],
+], dtype=np.int32)
+# Faces of a VTK tetrahedron with positive volume ((x1-x0) x (x2-x0) · (x3-x0) > 0), outward.
+TET4_FACES = np.array([[0, 2, 1], [0, 1, 3], [1, 2, 3], [0, 3, 2]], dtype=np.int32)
+
+_MIN_DEPTH = 1e-6
+
+
+class Raster(NamedTuple):
+    """A rasterised image: ``rgb`` [H,W,3] in [0,1] (0 where empty), ``depth`` [H,W] camera depth (inf where
+    empty), ``triangle`` [H,W] int32 id of the visible triangle (-1 where empty), ``overflow`` () bool: the
+    fragment capacity was too small and some fragments were dropped."""
+    rgb: Array
+    depth: Array
+    triangle: Array
+    overflow: Array
+
+
+@partial(jax.jit, static_argnames=("width", "height", "capacity"))
+def rasterize(pixels, depth, colours, triangles, *, width: int, height: int, capacity: int) -> Raster:
+    """Draw ``triangles`` [T,3] (int, counter-clockwise seen from the camera's side = front-facing) over
+    vertices at ``pixels`` [N,2] with camera ``depth`` [N] (``ar.project``'s output) and RGB ``colours`` [N,3].
+
+    Triangles with a vertex at depth <= 0 (behind the camera) are not drawn, nor are back faces.
+    ``width``, ``height``, ``capacity`` are static: image size and the fragment buffer length.
+    """
+    p = pixels[triangles]                  # [T,3,2]
+    w = depth[triangles]                   # [T,3]
+    x, y = p[..., 0], p[..., 1]
+    area = (x[:, 1] - x[:, 0]) * (y[:, 2] - y[:, 0]) - (x[:, 2] - x[:, 0]) * (y[:, 1] - y[:, 0])
+    # counter-clockwise in a y-up frame is clockwise in pixels (v down): front faces have area < 0
+    visible = (area < 0) & jnp.all(w > _MIN_DEPTH, axis=1)
+    i0 = jnp.clip(jnp.ceil(x.min(1) - 0.5), 0, width).astype(jnp.int32)
+    i1 = jnp.clip(jnp.floor(x.max(1) - 0.5) + 1, 0, width).astype(jnp.int32)
+    j0 = jnp.clip(jnp.ceil(y.min(1) - 0.5), 0, height).astype(jnp.int32)
+    j1 = jnp.clip(jnp.floor(y.max(1) - 0.5) + 1, 0, height).astype(jnp.int32)
+    box_w = jnp.maximum(i1 - i0, 0)
+    count = jnp.where(visible, box_w * jnp.maximum(j1 - j0, 0), 0)
+    end = jnp.cumsum(count)
+    total = end[-1]
+
+    k = jnp.arange(capacity, dtype=jnp.int32)
+    t = jnp.minimum(jnp.searchsorted(end, k, side="right"), triangles.shape[0] - 1).astype(jnp.int32)
+    local = k - (end[t] - count[t])
+    bw = jnp.maximum(box_w[t], 1)
+    px = i0[t] + local % bw
+    py = j0[t] + local // bw
+    cx, cy = px + 0.5, py + 0.5
+    xt, yt = x[t], y[t]
+    inv_area = 1.0 / area[t]
+    l0 = ((xt[:, 1] - cx) * (yt[:, 2] - cy) - (xt[:, 2] - cx) * (yt[:, 1] - cy)) * inv_area
+    l1 = ((xt[:, 2] - cx) * (yt[:, 0] - cy) - (xt[:, 0] - cx) * (yt[:, 2] - cy)) * inv_area
+    l2 = 1.0 - l0 - l1
+    inside = (k < total) & (l0 >= 0) & (l1 >= 0) & (l2 >= 0)
+    wt = w[t]
+    b = jnp.stack([l0 / wt[:, 0], l1 / wt[:, 1], l2 / wt[:, 2]], axis=1)   # perspective-correct weights
+    inv_w = b.sum(1)
+    frag_depth = jnp.where(inside, 1.0 / inv_w, jnp.inf)
+    pixel = jnp.where(inside, py * width + px, width * height)
+
+    n_pix = width * height
+    zbuf = jnp.full((n_pix,), jnp.inf, frag_depth.dtype).at[pixel].min(frag_depth, mode="drop")
+    winner = inside & (frag_depth <= zbuf[jnp.minimum(pixel, n_pix - 1)])
+    owner = jnp.full((n_pix,), -1, jnp.int32).at[jnp.where(winner, pixel, n_pix)].max(k, mode="drop")
+
+    drawn = owner >= 0
+    f = jnp.maximum(owner, 0)
+    tf = t[f]
+    weights = b[f] / inv_w[f][:, None]                                         # [P,3]
+    rgb = jnp.einsum("pk,pkc->pc", weights, colours[triangles[tf]])
+    rgb = jnp.where(drawn[:, None], rgb, 0.0).reshape(height, width, 3)
+    return Raster(rgb=rgb, depth=zbuf.reshape(height, width),
+                  triangle=jnp.where(drawn, tf, -1).reshape(height, width), overflow=total > capacity)
+
+
+def fragment_capacity(pixels, depth, triangles, width: int, height: int, headroom: float = 1.5,
+                      minimum: int = 65536) -> int:
+    """Fragment buffer length for ``rasterize``: ``headroom`` x the candidates of this frame (NumPy, not jit).
+
+    Call once on a representative frame (e.g. the first), like allocating a neighbour list; a deforming
+    mesh seen from a fixed camera needs little headroom.
+    """
+    if headroom < 1.0:
+        raise ValueError(f"headroom must be >= 1, got headroom={headroom}")
+    p = np.asarray(pixels, np.float64)[np.asarray(triangles)]
+    w = np.asarray(depth)[np.asarray(triangles)]
+    x, y = p[..., 0], p[..., 1]
+    area = (x[:, 1] - x[:, 0]) * (y[:, 2] - y[:, 0]) - (x[:, 2] - x[:, 0]) * (y[:, 1] - y[:, 0])
+    visible = (area < 0) & np.all(w > _MIN_DEPTH, axis=1)
+    box_w = np.clip(np.floor(x.max(1) - 0.5) + 1, 0, width) - np.clip(np.ceil(x.min(1) - 0.5), 0, width)
+    box_h = np.clip(np.floor(y.max(1) - 0.5) + 1, 0, height) - np.clip(np.ceil(y.min(1) - 0.5), 0, height)
+    total = int(np.sum(np.where(visible, np.maximum(box_w, 0) * np.maximum(box_h, 0), 0)))
+    return max(int(np.ceil(headroom * total)), minimum)
+
+
+def surface_triangles(cells, points) -> np.ndarray:
+    """Boundary triangles [T,3] (int32, indices into ``points``) of a hex8 [E,8] or tet4 [E,4] mesh.
+
+    cells use the VTK / meshio node order; points [N,3] are the reference coordinates, used to orient every
+    triangle counter-clockwise seen from outside (elements given with inverted orientation are handled).
+    A face is on the boundary when no other element shares it. Each boundary quad is split into two
+    triangles along its 0-2 diagonal.
+    """
+    cells = np.asarray(cells)
+    points = np.asarray(points, np.float64)
+    if cells.ndim != 2 or cells.shape[1] not in (4, 8):
+        raise ValueError(f"cells must be [E,4] (tet4) or [E,8] (hex8), got shape {cells.shape}")
+    if cells.size and (cells.min() < 0 or cells.max() >= len(points)):
+        raise ValueError(f"cells index nodes outside 0..{len(points) - 1}")
+    faces_of = HEX8_FACES if cells.shape[1] == 8 else TET4_FACES
+    faces = cells[:, faces_of]                                   # [E,F,k]
+    owner = np.repeat(np.arange(len(cells)), faces_of.shape[0])
+    faces = faces.reshape(-1, faces_of.shape[1])
+    key = np.sort(faces, axis=1)
+    _, inverse, counts = np.unique(key, axis=0, return_inverse=True, return_counts=True)
+    boundary = counts[inverse.reshape(-1)] == 1
+    faces, owner = faces[boundary], owner[boundary]
+    if faces.shape[1] == 4:
+        faces = np.concatenate([faces[:, [0, 1, 2]], faces[:, [0, 2, 3]]])
+        owner = np.concatenate([owner, owner])
+    tri = points[faces]
+    normal = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    outward = tri.mean(1) - points[cells[owner]].mean(1)
+    flip = np.einsum("ij,ij->i", normal, outward) < 0
+    faces[flip] = faces[flip][:, [0, 2, 1]]
+    return faces.astype(np.int32)
+
+
+def surface_nodes(triangles) -> np.ndarray:
+    """Sorted ids [S] of the nodes that lie on the surface ``triangles`` [T,3]."""
+    return np.unique(np.asarray(triangles)).astype(np.int32)
