@@ -1,0 +1,535 @@
+"""Total-Lagrangian explicit dynamics: central differences, lumped mass, sub-stepping between output frames.
+
+    M a = f_ext(t) − f_int(x, H) − α M v,     (α: optional Rayleigh mass damping)
+
+advanced with the velocity-Verlet form of the central-difference scheme (one internal-force evaluation per
+sub-step)::
+
+    v⁽ⁿ⁺½⁾ = vⁿ + h/2 aⁿ,   xⁿ⁺¹ = xⁿ + h v⁽ⁿ⁺½⁾,   aⁿ⁺¹ = M⁻¹(f_ext − f_int)(xⁿ⁺¹),   vⁿ⁺¹ = v⁽ⁿ⁺½⁾ + h/2 aⁿ⁺¹
+
+(with damping, the implicit mid-point form of −αv). The sub-step h = frame_dt / n_sub where n_sub is the
+smallest integer with h ≤ safety · min_e L_e / c_d, c_d = √((K0 + 4μ0/3)/ρ) the dilatational wave speed and L_e
+the element length (volume / largest face area). n_sub is fixed when the problem is set up, so a whole run is
+one `lax.scan` of frames, each a `lax.scan` of sub-steps.
+
+Gradients: reverse mode through every sub-step would store n_frames·n_sub states. With ``checkpoint=True`` (the
+default) each frame's sub-step scan is wrapped in `jax.checkpoint`, so the forward pass stores only the frame
+states and the backward pass recomputes one frame's sub-steps at a time: memory O(n_frames + n_sub) instead of
+O(n_frames · n_sub), for about one extra forward pass of compute.
+
+What a scene does not use is not traced: without Prony terms there are no internal variables and no
+dissipation integral; without damping no damping term; without pressure faces no pressure loads. These are
+Python-level (static) decisions in :class:`Config`.
+"""
+from __future__ import annotations
+
+import math
+import warnings
+from typing import NamedTuple, Optional
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from . import elements as el
+from .material import (Material, bulk_modulus, det3, inv3, isochoric_energy, isochoric_pk2, mooney_rivlin,
+                       pressure, shear_modulus, to_voigt, volumetric_energy)
+
+
+class Config(NamedTuple):
+    """Static (compile-time) description of a problem."""
+
+    cell_type: str
+    n_frames: int
+    n_sub: int
+    frame_dt: float
+    n_prony: int
+    damping: bool
+    pressure: bool
+    load_interp: str
+    checkpoint: bool
+
+
+class Arrays(NamedTuple):
+    """Array data of a problem (a pytree; passed as arguments, never closed over)."""
+
+    points: jnp.ndarray      # [N, 3] reference coordinates
+    cells: jnp.ndarray       # [K, n_per]
+    free: jnp.ndarray        # [N, 1] 1.0 for free nodes, 0.0 for clamped
+    incidence: jnp.ndarray   # [N, w] gather table into the flattened element-node array
+    geo: tuple               # HexGeometry or TetGeometry as jnp arrays
+    pressure_faces: Optional[jnp.ndarray]  # [P, 3|4] or None
+    damping_alpha: jnp.ndarray
+
+
+class Problem(NamedTuple):
+    arrays: Arrays
+    config: Config
+
+
+class Loads(NamedTuple):
+    """External loading over the run.
+
+    nodal: [n_frames, N, 3] nodal forces [force]; entry k acts during frame k (t_k → t_k+1).
+    pressure: [n_frames, P] pressure on each pressure face [force/area], positive into the body (follower).
+    v0: [N, 3] initial velocity [length/time] (zero if None).
+    With ``load_interp='step'`` the value is held within a frame; with 'linear' it ramps linearly from the
+    previous frame's value (zero before the first) to entry k at the end of frame k.
+    """
+
+    nodal: Optional[jnp.ndarray] = None
+    pressure: Optional[jnp.ndarray] = None
+    v0: Optional[jnp.ndarray] = None
+
+
+class Energies(NamedTuple):
+    """Per-frame energies [n_frames + 1]; balance: kinetic + strain + viscous + damping = external."""
+
+    kinetic: jnp.ndarray
+    strain: jnp.ndarray      # stored: hyperelastic + energy held in the viscous branches
+    viscous: jnp.ndarray     # cumulative viscous dissipation (≥ 0)
+    damping: jnp.ndarray     # cumulative Rayleigh-damping dissipation (≥ 0)
+    external: jnp.ndarray    # cumulative work of the external loads
+
+
+class Result(NamedTuple):
+    """Frame outputs of a run. t [T+1]; q, v [T+1, N, 3]; sigma [T+1, N, 6] nodal Cauchy stress (S11, S22,
+    S33, S12, S13, S23, tension positive; volume average of the adjacent elements' integration points);
+    inverted: first element with J ≤ 0 (−1 if none) and its time inversion_time (nan if none)."""
+
+    t: jnp.ndarray
+    q: jnp.ndarray
+    v: jnp.ndarray
+    sigma: jnp.ndarray
+    energies: Energies
+    inverted: jnp.ndarray
+    inversion_time: jnp.ndarray
+
+
+class State(NamedTuple):
+    """Sub-step state carried by the scan."""
+
+    x: jnp.ndarray
+    v: jnp.ndarray
+    a: jnp.ndarray
+    f_ext: jnp.ndarray
+    visco: tuple             # () without Prony terms
+    w_ext: jnp.ndarray
+    w_visc: jnp.ndarray
+    w_damp: jnp.ndarray
+    inverted: jnp.ndarray
+    inversion_time: jnp.ndarray
+
+
+class ElementInversionError(RuntimeError):
+    """Raised by :func:`check` when an element inverted (J ≤ 0) during a run."""
+
+
+# ------------------------------------------------------------------------------------------------------------
+# public API
+
+
+def setup(points, cells, *, material: Material, frame_dt: float, n_frames: int, clamped=(),
+          cell_type: Optional[str] = None, safety: float = 0.9, n_sub: Optional[int] = None, damping: float = 0.0,
+          pressure_faces=None, load_interp: str = "step", checkpoint: bool = True) -> Problem:
+    """Validate a mesh and build a :class:`Problem`.
+
+    points [N, 3] reference coordinates [length]; cells [K, 8] (hex8, VTK order) or [K, 4] (tet4);
+    material: used for the stable time step (the run itself takes the material as an argument, so it can be
+    differentiated); frame_dt [time] > 0 between output frames; clamped: node ids with fixed position;
+    safety: fraction of the element-size stability limit; n_sub: sub-steps per frame (overrides the automatic
+    choice); damping: Rayleigh mass-damping coefficient α [1/time]; pressure_faces [P, 4|3] node ids of loaded
+    faces (outward orientation).
+    """
+    pts = np.asarray(points, dtype=float)
+    cl = np.asarray(cells)
+    if pts.ndim != 2 or pts.shape[1] != 3 or not np.all(np.isfinite(pts)):
+        raise ValueError(f"points must be a finite [N, 3] array, got shape {pts.shape}")
+    if cl.ndim != 2 or cl.shape[1] not in (4, 8) or not np.issubdtype(cl.dtype, np.integer):
+        raise ValueError(f"cells must be an integer [K, 8] (hex8) or [K, 4] (tet4) array, got {cl.shape} {cl.dtype}")
+    if cl.min() < 0 or cl.max() >= len(pts):
+        raise ValueError(f"cells reference node ids outside [0, {len(pts) - 1}]: min {cl.min()}, max {cl.max()}")
+    kind = cell_type or ("hexahedron" if cl.shape[1] == 8 else "tetra")
+    if kind not in ("hexahedron", "tetra") or (kind == "hexahedron") != (cl.shape[1] == 8):
+        raise ValueError(f"cell_type {cell_type!r} does not match cells with {cl.shape[1]} nodes")
+    if not (isinstance(frame_dt, (int, float)) and frame_dt > 0 and math.isfinite(frame_dt)):
+        raise ValueError(f"frame_dt must be a positive number, got frame_dt={frame_dt!r}")
+    if int(n_frames) != n_frames or n_frames < 1:
+        raise ValueError(f"n_frames must be a positive integer, got n_frames={n_frames!r}")
+    if not 0.0 < safety <= 1.0:
+        raise ValueError(f"safety must be in (0, 1], got safety={safety!r}")
+    if damping < 0.0:
+        raise ValueError(f"damping must be non-negative, got damping={damping!r}")
+    if load_interp not in ("step", "linear"):
+        raise ValueError(f"load_interp must be 'step' or 'linear', got {load_interp!r}")
+    clamped = np.asarray(clamped, dtype=int).ravel()
+    if clamped.size and (clamped.min() < 0 or clamped.max() >= len(pts)):
+        bad = clamped[(clamped < 0) | (clamped >= len(pts))]
+        raise ValueError(f"clamped node ids out of range [0, {len(pts) - 1}]: {bad.tolist()[:10]}")
+    vol = el.element_volumes(pts, cl, kind)
+    if np.any(vol <= 0):
+        raise ValueError(f"elements with non-positive volume (inverted or mis-ordered): ids {np.where(vol <= 0)[0][:10].tolist()}")
+    if n_sub is None:
+        n_sub = int(math.ceil(frame_dt / stable_time_step(pts, cl, material, kind, safety) - 1e-9))
+    elif int(n_sub) != n_sub or n_sub < 1:
+        raise ValueError(f"n_sub must be a positive integer, got n_sub={n_sub!r}")
+    geo = el.hex_geometry(pts, cl) if kind == "hexahedron" else el.tet_geometry(pts, cl)
+    free = np.ones((len(pts), 1))
+    free[clamped] = 0.0
+    pf = None
+    if pressure_faces is not None:
+        pf = np.asarray(pressure_faces)
+        if pf.ndim != 2 or pf.shape[1] not in (3, 4) or pf.min() < 0 or pf.max() >= len(pts):
+            raise ValueError(f"pressure_faces must be [P, 3|4] node ids in range, got shape {pf.shape}")
+        pf = jnp.asarray(pf, dtype=jnp.int32)
+    arrays = Arrays(
+        points=jnp.asarray(pts), cells=jnp.asarray(cl, dtype=jnp.int32), free=jnp.asarray(free),
+        incidence=jnp.asarray(el.incidence_table(cl, len(pts))), geo=jax.tree_util.tree_map(jnp.asarray, geo),
+        pressure_faces=pf, damping_alpha=jnp.asarray(float(damping)))
+    config = Config(kind, int(n_frames), int(n_sub), float(frame_dt), material.n_prony, damping > 0.0,
+                    pf is not None, load_interp, bool(checkpoint))
+    return Problem(arrays, config)
+
+
+def stable_time_step(points, cells, material: Material, cell_type: str, safety: float = 0.9) -> float:
+    """safety · min_e L_e / c_d with c_d = √((K0 + 4μ0/3) / ρ) [time]."""
+    mu, kappa, rho = (float(x) for x in (shear_modulus(material), bulk_modulus(material), material.density))
+    c_d = math.sqrt((kappa + 4.0 * mu / 3.0) / rho)
+    return safety * float(el.characteristic_lengths(np.asarray(points, float), np.asarray(cells), cell_type).min()) / c_d
+
+
+def simulate(problem: Problem, material: Material, loads: Loads, *, on_inversion: str = "warn") -> Result:
+    """Run the explicit dynamics and return the frame outputs (jit-compiled; differentiable in material, loads).
+
+    on_inversion: 'warn' (default), 'raise' or 'ignore' — what to do, after the run, when an element inverted.
+    Validation and the inversion report happen only with concrete inputs (not under jit/vmap/grad tracing).
+    """
+    _validate_loads(problem, loads)
+    res = _simulate(problem.arrays, material, loads, problem.config)
+    if not isinstance(res.inverted, jax.core.Tracer):
+        check(res, on_inversion)
+    return res
+
+
+def simulate_batch(problem: Problem, material: Material, loads: Loads) -> Result:
+    """`simulate` vmapped over a leading load-case axis of every non-None entry of ``loads``."""
+    _validate_loads(problem, loads, batched=True)
+    return jax.vmap(lambda ld: _simulate(problem.arrays, material, ld, problem.config))(loads)
+
+
+def check(res: Result, on_inversion: str = "raise") -> None:
+    """Report element inversion recorded in a result (for batched results, every case)."""
+    if on_inversion not in ("warn", "raise", "ignore"):
+        raise ValueError(f"on_inversion must be 'warn', 'raise' or 'ignore', got {on_inversion!r}")
+    inv = np.atleast_1d(np.asarray(res.inverted))
+    if on_inversion == "ignore" or np.all(inv < 0):
+        return
+    t = np.atleast_1d(np.asarray(res.inversion_time))
+    cases = np.where(inv >= 0)[0]
+    msg = "; ".join(f"case {c}: element {int(inv[c])} inverted (J <= 0) at t = {float(t[c]):.6g}" for c in cases[:5])
+    msg = f"element inversion during the run ({msg}); results after that time are not physical"
+    if on_inversion == "raise":
+        raise ElementInversionError(msg)
+    warnings.warn(msg, RuntimeWarning, stacklevel=3)
+
+
+def internal_energy(problem: Problem, material: Material, x) -> jnp.ndarray:
+    """Instantaneous elastic energy Π_int(x) (no viscous history); its gradient is the internal force."""
+    arr, cfg = problem.arrays, problem.config
+    hg = _hourglass_stiffness(arr.geo, material) if cfg.cell_type == "hexahedron" else None
+    return _stored_energy(arr, material, x, (), hg, cfg, elastic=True)
+
+
+def internal_force(problem: Problem, material: Material, x) -> jnp.ndarray:
+    """Nodal internal forces f_int(x) [N, 3] of the hand-derived element routines (no viscous history)."""
+    arr, cfg = problem.arrays, problem.config
+    hg = _hourglass_stiffness(arr.geo, material) if cfg.cell_type == "hexahedron" else None
+    f, *_ = _internal(arr, material, hg, x, _zero_visco(arr, cfg), cfg, 1.0)
+    return f
+
+
+def lumped_mass(problem: Problem, material: Material) -> jnp.ndarray:
+    """Nodal masses [N] = ρ Σ_e V_e / n_per."""
+    arr = problem.arrays
+    n_per = arr.cells.shape[1]
+    share = jnp.repeat(arr.geo.volume / n_per, n_per)
+    return material.density * _gather_sum(arr.incidence, share)
+
+
+# ------------------------------------------------------------------------------------------------------------
+# implementation
+
+
+def _validate_loads(problem: Problem, loads: Loads, batched: bool = False):
+    cfg, n = problem.config, problem.arrays.points.shape[0]
+    lead = "[cases, " if batched else "["
+    if not isinstance(loads, Loads):
+        raise TypeError(f"loads must be a fem.Loads, got {type(loads).__name__}")
+    if loads.nodal is not None:
+        shp = np.shape(loads.nodal)[1:] if batched else np.shape(loads.nodal)
+        if shp != (cfg.n_frames, n, 3):
+            raise ValueError(f"loads.nodal must have shape {lead}{cfg.n_frames}, {n}, 3], got {np.shape(loads.nodal)}")
+        if not isinstance(loads.nodal, jax.core.Tracer) and not np.all(np.isfinite(loads.nodal)):
+            raise ValueError("loads.nodal contains NaN or Inf")
+    if loads.pressure is not None:
+        if not cfg.pressure:
+            raise ValueError("loads.pressure given but the problem was set up without pressure_faces")
+        p = problem.arrays.pressure_faces.shape[0]
+        shp = np.shape(loads.pressure)[1:] if batched else np.shape(loads.pressure)
+        if shp != (cfg.n_frames, p):
+            raise ValueError(f"loads.pressure must have shape {lead}{cfg.n_frames}, {p}], got {np.shape(loads.pressure)}")
+    if loads.v0 is not None:
+        shp = np.shape(loads.v0)[1:] if batched else np.shape(loads.v0)
+        if shp != (n, 3):
+            raise ValueError(f"loads.v0 must have shape {lead}{n}, 3], got {np.shape(loads.v0)}")
+
+
+def _gather_sum(incidence, values):
+    """Nodal sums of element-node values [K·n_per, ...] through the padded incidence table."""
+    pad = jnp.zeros((1,) + values.shape[1:], values.dtype)
+    return jnp.concatenate([values, pad])[incidence].sum(axis=1)
+
+
+def _polar_rotation(F, iterations: int = 6):
+    """Rotation of the polar decomposition F = R U by Higham's iteration R ← (R + R⁻ᵀ)/2."""
+    R = F
+    for _ in range(iterations):
+        R = 0.5 * (R + jnp.swapaxes(inv3(R), -1, -2))
+    return R
+
+
+def _hourglass_stiffness(geo, m: Material):
+    """Condensed QM6 hourglass stiffness, split into long-term and relaxing parts: (K̂_eq, ΔK̂) [K,12,12]."""
+    mu0, k0 = shear_modulus(m), bulk_modulus(m)
+    ginf = 1.0 - jnp.sum(m.g)
+
+    def condense(lam, mu):
+        kuu, kua, kaa = (lam * a + mu * b for a, b in zip(geo.hg_lam, geo.hg_mu))
+        return kuu - kua @ jnp.linalg.solve(kaa, jnp.swapaxes(kua, -1, -2))
+
+    k_inst = condense(k0 - 2.0 * mu0 / 3.0, mu0)
+    if m.n_prony == 0:
+        return k_inst, None
+    k_eq = condense(k0 - 2.0 * ginf * mu0 / 3.0, ginf * mu0)
+    return k_eq, k_inst - k_eq
+
+
+def _zero_visco(arr: Arrays, cfg: Config):
+    if cfg.n_prony == 0:
+        return ()
+    k = arr.cells.shape[0]
+    z = (jnp.zeros((cfg.n_prony, k, 3, 3)), jnp.zeros((k, 3, 3)))
+    if cfg.cell_type == "hexahedron":
+        z = z + (jnp.zeros((cfg.n_prony, k, 12)), jnp.zeros((k, 12)))
+    return z
+
+
+def _internal(arr: Arrays, m: Material, hg, x, visco, cfg: Config, h):
+    """Internal nodal forces at x, advancing the viscous variables over a sub-step h.
+
+    Returns (f_int [N,3], new visco, min J, element of min J, dissipation rate, element Cauchy stress is not
+    formed here: see `_element_stress`).
+    """
+    geo = arr.geo
+    xe = x[arr.cells]
+    F = jnp.einsum("kai,kaj->kij", xe, geo.b)
+    S0, J, Cinv = isochoric_pk2(m, F)
+    if cfg.cell_type == "hexahedron":
+        p = pressure(m, J)
+    else:
+        p = _anp_pressure(arr, m, J)
+    S = (J * p)[:, None, None] * Cinv
+    new_visco, diss = (), 0.0
+    if cfg.n_prony:
+        decay = jnp.exp(-h / m.tau)
+        coef = m.tau / h * (1.0 - decay)
+        H, S0_prev = visco[0], visco[1]
+        H = decay[:, None, None, None] * H + coef[:, None, None, None] * (S0 - S0_prev)[None]
+        ginf = 1.0 - jnp.sum(m.g)
+        S = S + ginf * S0 + jnp.einsum("p,pkij->kij", m.g, H)
+        mu0 = shear_modulus(m)
+        diss = jnp.sum(geo.volume * jnp.einsum("p,pkij->k", m.g / (2.0 * mu0 * m.tau), H * H))
+        new_visco = (H, S0)
+    else:
+        S = S + S0
+    P = F @ S
+    fe = geo.volume[:, None, None] * jnp.einsum("kij,kaj->kai", P, geo.b)
+    if cfg.cell_type == "hexahedron":
+        R = _polar_rotation(F)
+        xr = jnp.einsum("kji,kaj->kai", R, xe)
+        g = jnp.einsum("kma,kai->kmi", geo.gamma, xr).reshape(-1, 12)
+        k_eq, dk = hg
+        Q = jnp.einsum("kij,kj->ki", k_eq, g)
+        if cfg.n_prony:
+            HQ, Q0_prev = visco[2], visco[3]
+            Q0 = jnp.einsum("kij,kj->ki", dk, g)
+            HQ = decay[:, None, None] * HQ + coef[:, None, None] * (Q0 - Q0_prev)[None]
+            w = m.g / jnp.sum(m.g)
+            Q = Q + jnp.einsum("p,pki->ki", w, HQ)
+            dk_inv = jnp.linalg.inv(dk)
+            diss = diss + jnp.sum(jnp.einsum("p,pki,kij,pkj->", w / m.tau, HQ, dk_inv, HQ))
+            new_visco = new_visco + (HQ, Q0)
+        fhat = jnp.einsum("kma,kmi->kai", geo.gamma, Q.reshape(-1, 4, 3))
+        fe = fe + jnp.einsum("kij,kaj->kai", R, fhat)
+    f = _gather_sum(arr.incidence, fe.reshape(-1, 3))
+    k_min = jnp.argmin(J)
+    return f, new_visco, J[k_min], k_min, diss
+
+
+def _anp_pressure(arr: Arrays, m: Material, J):
+    """Average-nodal-pressure element pressures [K] from element Jacobians J [K] (tet4)."""
+    geo = arr.geo
+    v_share = jnp.repeat(geo.volume * J / 4.0, 4)
+    J_node = _gather_sum(arr.incidence, v_share) / geo.node_volume
+    return jnp.mean(pressure(m, J_node)[arr.cells], axis=1)
+
+
+def _element_stress(arr: Arrays, m: Material, x, visco, cfg: Config):
+    """Element Cauchy stress [K, 6] at x with the current viscous variables (no update)."""
+    F = jnp.einsum("kai,kaj->kij", x[arr.cells], arr.geo.b)
+    S0, J, Cinv = isochoric_pk2(m, F)
+    p = pressure(m, J) if cfg.cell_type == "hexahedron" else _anp_pressure(arr, m, J)
+    if cfg.n_prony:
+        S_iso = (1.0 - jnp.sum(m.g)) * S0 + jnp.einsum("p,pkij->kij", m.g, visco[0])
+    else:
+        S_iso = S0
+    sig = F @ S_iso @ jnp.swapaxes(F, -1, -2) / J[:, None, None] + p[:, None, None] * jnp.eye(3)
+    return to_voigt(sig)
+
+
+def _nodal_stress(arr: Arrays, sig_e):
+    n_per = arr.cells.shape[1]
+    w = jnp.repeat(arr.geo.volume, n_per)
+    num = _gather_sum(arr.incidence, jnp.repeat(sig_e * arr.geo.volume[:, None], n_per, axis=0))
+    return num / _gather_sum(arr.incidence, w)[:, None]
+
+
+def _stored_energy(arr: Arrays, m: Material, x, visco, hg, cfg: Config, elastic: bool = False):
+    """Stored energy: volumetric + long-term isochoric + energy held in the viscous branches."""
+    geo = arr.geo
+    F = jnp.einsum("kai,kaj->kij", x[arr.cells], geo.b)
+    ginf = 1.0 if (elastic or cfg.n_prony == 0) else 1.0 - jnp.sum(m.g)
+    if cfg.cell_type == "hexahedron":
+        e = jnp.sum(geo.volume * (ginf * isochoric_energy(m, F) + volumetric_energy(m, det3(F))))
+        R = _polar_rotation(F)
+        g = jnp.einsum("kma,kai->kmi", geo.gamma, jnp.einsum("kji,kaj->kai", R, x[arr.cells])).reshape(-1, 12)
+        k_eq, dk = hg
+        k_use = k_eq + dk if (elastic and dk is not None) else k_eq
+        e = e + 0.5 * jnp.sum(g * jnp.einsum("kij,kj->ki", k_use, g))
+    else:
+        J = det3(F)
+        J_node = _gather_sum(arr.incidence, jnp.repeat(geo.volume * J / 4.0, 4)) / geo.node_volume
+        e = jnp.sum(geo.volume * ginf * isochoric_energy(m, F)) + jnp.sum(geo.node_volume * volumetric_energy(m, J_node))
+    if cfg.n_prony and not elastic:
+        H = visco[0]
+        e = e + jnp.sum(geo.volume * jnp.einsum("p,pkij->k", m.g / (4.0 * shear_modulus(m)), H * H))
+        if cfg.cell_type == "hexahedron":
+            w = m.g / jnp.sum(m.g)
+            e = e + 0.5 * jnp.einsum("p,pki,kij,pkj->", w, visco[2], jnp.linalg.inv(hg[1]), visco[2])
+    return e
+
+
+def _external_force(arr: Arrays, loads: Loads, cfg: Config, frame, frac, x):
+    """External nodal force at time t_frame + frac·frame_dt (frac ∈ (0, 1])."""
+    n = arr.points.shape[0]
+    f = jnp.zeros((n, 3), x.dtype)
+
+    def value(series):
+        cur = series[frame]
+        if cfg.load_interp == "step":
+            return cur
+        prev = jnp.where(frame > 0, series[jnp.maximum(frame - 1, 0)], jnp.zeros_like(cur))
+        return prev + frac * (cur - prev)
+
+    if loads.nodal is not None:
+        f = f + value(loads.nodal)
+    if cfg.pressure and loads.pressure is not None:
+        pf = arr.pressure_faces
+        xf = x[pf]
+        if pf.shape[1] == 4:
+            na = 0.5 * jnp.cross(xf[:, 2] - xf[:, 0], xf[:, 3] - xf[:, 1])
+        else:
+            na = 0.5 * jnp.cross(xf[:, 1] - xf[:, 0], xf[:, 2] - xf[:, 0])
+        ff = -(value(loads.pressure)[:, None] * na) / pf.shape[1]
+        f = f.at[pf.ravel()].add(jnp.repeat(ff, pf.shape[1], axis=0))
+    return f
+
+
+def _simulate_impl(arr: Arrays, m: Material, loads: Loads, cfg: Config) -> Result:
+    h = cfg.frame_dt / cfg.n_sub
+    mass = m.density * _gather_sum(arr.incidence, jnp.repeat(arr.geo.volume / arr.cells.shape[1], arr.cells.shape[1]))
+    inv_mass = (arr.free / mass[:, None])
+    hg = _hourglass_stiffness(arr.geo, m) if cfg.cell_type == "hexahedron" else None
+    alpha = arr.damping_alpha
+    x0 = arr.points.astype(mass.dtype)
+    v0 = jnp.zeros_like(x0) if loads.v0 is None else loads.v0 * arr.free
+    visco0 = _zero_visco(arr, cfg)
+    f_ext0 = _external_force(arr, loads, cfg, 0, 0.0, x0) if cfg.load_interp == "step" else jnp.zeros_like(x0)
+    f_int0, *_ = _internal(arr, m, hg, x0, visco0, cfg, h)
+    a0 = (f_ext0 - f_int0) * inv_mass
+    zero = jnp.zeros((), mass.dtype)
+    state0 = State(x0, v0, a0, f_ext0, visco0, zero, zero, zero, jnp.array(-1, jnp.int32), jnp.array(jnp.nan, mass.dtype))
+
+    def substep(frame, s: State, j):
+        v_half = s.v + 0.5 * h * s.a
+        if cfg.damping:
+            v_half = v_half - 0.5 * h * alpha * s.v
+        x = s.x + h * v_half
+        f_ext = _external_force(arr, loads, cfg, frame, (j + 1.0) / cfg.n_sub, x)
+        f_int, visco, j_min, k_min, diss = _internal(arr, m, hg, x, s.visco, cfg, h)
+        a = (f_ext - f_int) * inv_mass
+        if cfg.damping:
+            v = (v_half + 0.5 * h * a) / (1.0 + 0.5 * h * alpha)
+            a = a - alpha * v * arr.free
+            w_damp = s.w_damp + 0.5 * h * alpha * (jnp.sum(mass[:, None] * s.v ** 2) + jnp.sum(mass[:, None] * v ** 2))
+        else:
+            v = v_half + 0.5 * h * a
+            w_damp = s.w_damp
+        w_ext = s.w_ext + 0.5 * jnp.sum((s.f_ext + f_ext) * (x - s.x))
+        t = (frame + (j + 1.0) / cfg.n_sub) * cfg.frame_dt
+        newly = (j_min <= 0.0) & (s.inverted < 0)
+        inverted = jnp.where(newly, k_min.astype(jnp.int32), s.inverted)
+        inv_t = jnp.where(newly, t, s.inversion_time)
+        return State(x, v, a, f_ext, visco, w_ext, s.w_visc + h * diss, w_damp, inverted, inv_t)
+
+    def frame_fn(s: State, frame):
+        s, _ = jax.lax.scan(lambda c, j: (substep(frame, c, j), None), s, jnp.arange(cfg.n_sub, dtype=mass.dtype))
+        return s, _outputs(s)
+
+    def _outputs(s: State):
+        sig = _nodal_stress(arr, _element_stress(arr, m, s.x, s.visco, cfg))
+        kin = 0.5 * jnp.sum(mass[:, None] * s.v ** 2)
+        stored = _stored_energy(arr, m, s.x, s.visco, hg, cfg)
+        return s.x, s.v, sig, Energies(kin, stored, s.w_visc, s.w_damp, s.w_ext)
+
+    body = jax.checkpoint(frame_fn) if cfg.checkpoint else frame_fn
+    state, outs = jax.lax.scan(body, state0, jnp.arange(cfg.n_frames))
+    first = _outputs(state0)
+    stack = lambda a, b: jnp.concatenate([a[None], b])
+    q, v, sig, en = jax.tree_util.tree_map(stack, first, outs)
+    t = jnp.arange(cfg.n_frames + 1) * cfg.frame_dt
+    return Result(t, q, v, sig, en, state.inverted, state.inversion_time)
+
+
+_simulate = jax.jit(_simulate_impl, static_argnames=("cfg",))
+
+
+def max_frequency(problem: Problem, material: Material, iterations: int = 200, seed: int = 0) -> float:
+    """Largest angular eigenfrequency ω_max [1/time] of M⁻¹K at the reference state (power iteration on the
+    tangent stiffness, matrix-free through `jax.jvp`). The central-difference scheme is stable for h < 2/ω_max."""
+    arr = problem.arrays
+    mass = lumped_mass(problem, material)[:, None]
+    x0 = arr.points
+
+    @jax.jit
+    def apply(u):
+        _, ku = jax.jvp(lambda x: internal_force(problem, material, x), (x0,), (u,))
+        return ku * arr.free / mass
+
+    u = jax.random.normal(jax.random.PRNGKey(seed), x0.shape) * arr.free
+    lam = 0.0
+    for _ in range(iterations):
+        w = apply(u)
+        lam = float(jnp.vdot(u, w) / jnp.vdot(u, u))
+        u = w / jnp.linalg.norm(w)
+    return math.sqrt(max(lam, 0.0))
