@@ -25,6 +25,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from tignn_jax import ar
+
 Array = jax.Array
 
 # Faces of a VTK hexahedron (nodes 0-3 bottom counter-clockwise seen from above, 4-7 above them), each
@@ -72,7 +74,9 @@ def rasterize(pixels, depth, colours, triangles, *, width: int, height: int, cap
     total = end[-1]
 
     k = jnp.arange(capacity, dtype=jnp.int32)
-    t = jnp.minimum(jnp.searchsorted(end, k, side="right"), triangles.shape[0] - 1).astype(jnp.int32)
+    # triangle of fragment k = number of triangles whose fragments end at or before k (a searchsorted)
+    t = jnp.cumsum(jnp.zeros((capacity,), jnp.int32).at[end].add(1, mode="drop"))
+    t = jnp.minimum(t, triangles.shape[0] - 1)
     local = k - (end[t] - count[t])
     bw = jnp.maximum(box_w[t], 1)
     px = i0[t] + local % bw
@@ -97,12 +101,29 @@ def rasterize(pixels, depth, colours, triangles, *, width: int, height: int, cap
 
     drawn = owner >= 0
     f = jnp.maximum(owner, 0)
+    corner = triangles[t]                                                       # [C,3]
+    frag_rgb = (b[:, 0:1] * colours[corner[:, 0]] + b[:, 1:2] * colours[corner[:, 1]]
+                + b[:, 2:3] * colours[corner[:, 2]]) / inv_w[:, None]
+    rgb = jnp.where(drawn[:, None], frag_rgb[f], 0.0).reshape(height, width, 3)
     tf = t[f]
-    weights = b[f] / inv_w[f][:, None]                                         # [P,3]
-    rgb = jnp.einsum("pk,pkc->pc", weights, colours[triangles[tf]])
-    rgb = jnp.where(drawn[:, None], rgb, 0.0).reshape(height, width, 3)
     return Raster(rgb=rgb, depth=zbuf.reshape(height, width),
                   triangle=jnp.where(drawn, tf, -1).reshape(height, width), overflow=total > capacity)
+
+
+@partial(jax.jit, static_argnames=("width", "height", "capacity"))
+def draw_mesh(positions, triangles, colours, view_projection, eye, light_dir, *, width: int, height: int,
+              capacity: int) -> Raster:
+    """Shade and rasterise a deformed surface: world ``positions`` [N,3], ``triangles`` [T,3] (outward,
+    counter-clockwise), base RGB ``colours`` [N,3] (e.g. ``ar.colour_map`` of a state variable).
+
+    Vertex normals of the deformed surface -> Phong reflection at the vertices (camera at ``eye`` [3],
+    directional light travelling along ``light_dir`` [3]) -> projection with ``view_projection`` = P @ V
+    [4,4] onto a full-image viewport -> ``rasterize``. Nodes on no triangle are ignored.
+    """
+    normals = ar.vertex_normals(positions, triangles)
+    shaded = ar.phong(positions, normals, colours, eye, light_dir)
+    pixels, depth = ar.project(positions, view_projection, (0.0, 0.0, float(width), float(height)))
+    return rasterize(pixels, depth, shaded, triangles, width=width, height=height, capacity=capacity)
 
 
 def fragment_capacity(pixels, depth, triangles, width: int, height: int, headroom: float = 1.5,
