@@ -139,8 +139,10 @@ def beam_reference_load(q0, sim_id: int):
 def bunny_mesh(path: str | Path | None = None):
     """The Stanford bunny as linear tetrahedra, read from ``fem/data/bunny.npz``.
 
-    Units: the scan's metres scaled by 100 (about 15 units tall); the z axis is up and the bunny
-    stands on z = 0. Built by ``scripts/make_bunny_mesh.py`` (see its docstring for the recipe and credit).
+    Non-dimensional units: the scan as shipped by pymeshfix scaled by 0.2, so the bunny is 9.9 long (x),
+    7.6 wide (y) and 9.7 tall (z, up); it stands on a flat base on z = 0 (the nodes to clamp, see
+    ``bunny_bottom_nodes``). Built by ``scripts/make_bunny_mesh.py`` (recipe, quality and credit there:
+    Stanford 3D Scanning Repository, Stanford University Computer Graphics Laboratory).
 
     Returns:
       ``(q0 [N,3] float64, cells [K,4] int32, edges [2,E] int32)``.
@@ -151,8 +153,8 @@ def bunny_mesh(path: str | Path | None = None):
     return q0, cells, mesh_edges(cells)
 
 
-def bunny_bottom_nodes(q0, tol: float = 0.05):
-    """Ids of the nodes within ``tol`` of the lowest z: the bunny's base, to be clamped."""
+def bunny_bottom_nodes(q0, tol: float = 1e-6):
+    """Ids of the nodes within ``tol`` of the lowest z: the bunny's flat base, to be clamped."""
     q0 = np.asarray(q0)
     return np.flatnonzero(q0[:, 2] <= q0[:, 2].min() + tol).astype(np.int32)
 
