@@ -35,6 +35,8 @@ from __future__ import annotations
 
 import argparse
 import hashlib
+import io
+import zipfile
 from pathlib import Path
 
 import numpy as np
@@ -64,10 +66,21 @@ def main(argv=None):
     args = parser.parse_args(argv)
     nodes, tets = build()
     args.out.parent.mkdir(parents=True, exist_ok=True)
-    np.savez_compressed(args.out, nodes=nodes, tets=tets, credit=np.array(CREDIT))
+    _save_npz(args.out, nodes=nodes, tets=tets, credit=np.array(CREDIT))
     digest = hashlib.sha256(nodes.tobytes() + tets.tobytes()).hexdigest()[:16]
     print(f"wrote {args.out} ({args.out.stat().st_size / 1024:.1f} KiB), sha256[:16] of arrays {digest}")
     print(describe(nodes, tets))
+
+
+def _save_npz(path, **arrays):
+    """Like ``numpy.savez_compressed`` but with fixed zip timestamps, so a rerun rewrites identical bytes."""
+    with zipfile.ZipFile(path, "w", compression=zipfile.ZIP_DEFLATED) as archive:
+        for name, array in arrays.items():
+            buffer = io.BytesIO()
+            np.lib.format.write_array(buffer, np.asarray(array), allow_pickle=False)
+            info = zipfile.ZipInfo(f"{name}.npy", date_time=(1980, 1, 1, 0, 0, 0))
+            info.compress_type = zipfile.ZIP_DEFLATED
+            archive.writestr(info, buffer.getvalue())
 
 
 def build():
