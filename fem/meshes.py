@@ -28,8 +28,6 @@ from pathlib import Path
 
 import numpy as np
 
-BEAM_LENGTH = 40.0
-BEAM_WIDTH = 10.0
 BEAM_ELEMENT_SIZE = 2.0
 BEAM_SHAPE = (20, 5, 5)
 
@@ -84,12 +82,15 @@ def reference_permutation(q0_ref, q0, tol: float = 1e-4):
     q0 = np.asarray(q0, np.float64)
     if q0_ref.shape != q0.shape or q0.ndim != 2:
         raise ValueError(f"q0_ref has shape {q0_ref.shape} and q0 {q0.shape}; expected the same [N,3]")
-    scale = max(tol, 1e-12)
-    keys = {tuple(np.rint(p / scale).astype(np.int64)): n for n, p in enumerate(q0)}
-    perm = np.array([keys.get(tuple(np.rint(p / scale).astype(np.int64)), -1) for p in q0_ref])
-    if np.any(perm < 0) or np.max(np.abs(q0[np.maximum(perm, 0)] - q0_ref)) > tol:
-        bad = int(np.argmax(perm < 0)) if np.any(perm < 0) else -1
-        raise ValueError(f"q0_ref node {bad} has no node of q0 within tol={tol}")
+    perm = np.empty(len(q0_ref), np.int64)
+    distance = np.empty(len(q0_ref))
+    for start in range(0, len(q0_ref), 1024):
+        d2 = np.sum((q0_ref[start:start + 1024, None, :] - q0[None, :, :]) ** 2, axis=-1)
+        perm[start:start + 1024] = np.argmin(d2, axis=1)
+        distance[start:start + 1024] = np.sqrt(np.min(d2, axis=1))
+    if np.any(distance > tol):
+        bad = int(np.argmax(distance > tol))
+        raise ValueError(f"q0_ref node {bad} has no node of q0 within tol={tol} (nearest at {distance[bad]:.3g})")
     if len(np.unique(perm)) != len(perm):
         raise ValueError("q0_ref matches some node of q0 twice")
     return perm
