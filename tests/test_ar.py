@@ -187,3 +187,15 @@ def test_camera_inputs_are_validated():
         ar.perspective(1.0, 1.0, 2.0, 1.0)
     with pytest.raises(ValueError, match="eye"):
         ar.look_at([0.0, 0.0], [0.0, 0.0, 1.0], [0.0, 1.0, 0.0])
+
+
+def test_pruned_contact_matches_all_pairs_and_falls_back_when_full():
+    # Restricting to nodes inside the other body's grown box loses no pair; an overfull buffer falls back.
+    a = _points(300, 5) * 0.1
+    b = _points(250, 6) * 0.1 + jnp.array([1.6, 0.0, 0.0])
+    fa, fb = ar.contact_forces(a, b, 0.3, 100.0)
+    assert float(jnp.abs(fa).max()) > 0.0
+    for capacity in (200, 4):
+        pa, pb = jax.jit(lambda a, b: ar.contact_forces(a, b, 0.3, 100.0, capacity=capacity))(a, b)
+        np.testing.assert_allclose(pa, fa, rtol=1e-5, atol=1e-4)
+        np.testing.assert_allclose(pb, fb, rtol=1e-5, atol=1e-4)
