@@ -164,12 +164,13 @@ def characteristic_lengths(points: np.ndarray, cells: np.ndarray, cell_type: str
 
 
 def incidence_table(cells: np.ndarray, n_nodes: int) -> np.ndarray:
-    """[N, max_valence] indices into the flattened element-node array (K·n_per), padded with K·n_per.
+    """[N, max_valence] indices into the node-major flattened element-node array (index a·K + k for local node
+    a of element k), padded with K·n_per.
 
     Assembling nodal sums by gathering through this table is a dense gather instead of a scatter-add, which
     is several times faster on CPU.
     """
-    flat = cells.ravel()
+    flat = cells.T.ravel()
     order = np.argsort(flat, kind="stable")
     counts = np.bincount(flat, minlength=n_nodes)
     width = int(counts.max())

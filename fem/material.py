@@ -101,46 +101,66 @@ def relaxation_modulus(m: Material, t):
     return 1.0 - jnp.sum(m.g * (1.0 - jnp.exp(-t / m.tau)), axis=-1)
 
 
-# --- kinematics helpers on [..., 3, 3] arrays -------------------------------------------------------------
+# --- 3×3 algebra in "component-leading" layout ---------------------------------------------------------------
+# The hot path stores a field of 3×3 tensors as [3, 3, ...] (components first, elements last) so that every
+# operation is an elementwise loop over the elements that XLA fuses and vectorises; `[..., 3, 3]` arrays from
+# users are moved to this layout at the public functions.
 
 def det3(a):
-    return (a[..., 0, 0] * (a[..., 1, 1] * a[..., 2, 2] - a[..., 1, 2] * a[..., 2, 1])
-            - a[..., 0, 1] * (a[..., 1, 0] * a[..., 2, 2] - a[..., 1, 2] * a[..., 2, 0])
-            + a[..., 0, 2] * (a[..., 1, 0] * a[..., 2, 1] - a[..., 1, 1] * a[..., 2, 0]))
+    """Determinant of [3, 3, ...] → [...]."""
+    return (a[0, 0] * (a[1, 1] * a[2, 2] - a[1, 2] * a[2, 1])
+            - a[0, 1] * (a[1, 0] * a[2, 2] - a[1, 2] * a[2, 0])
+            + a[0, 2] * (a[1, 0] * a[2, 1] - a[1, 1] * a[2, 0]))
 
 
 def cofactor3(a):
-    """Cofactor matrix cof(A) = det(A) A⁻ᵀ, written out (cheap and differentiable)."""
-    c00 = a[..., 1, 1] * a[..., 2, 2] - a[..., 1, 2] * a[..., 2, 1]
-    c01 = a[..., 1, 2] * a[..., 2, 0] - a[..., 1, 0] * a[..., 2, 2]
-    c02 = a[..., 1, 0] * a[..., 2, 1] - a[..., 1, 1] * a[..., 2, 0]
-    c10 = a[..., 0, 2] * a[..., 2, 1] - a[..., 0, 1] * a[..., 2, 2]
-    c11 = a[..., 0, 0] * a[..., 2, 2] - a[..., 0, 2] * a[..., 2, 0]
-    c12 = a[..., 0, 1] * a[..., 2, 0] - a[..., 0, 0] * a[..., 2, 1]
-    c20 = a[..., 0, 1] * a[..., 1, 2] - a[..., 0, 2] * a[..., 1, 1]
-    c21 = a[..., 0, 2] * a[..., 1, 0] - a[..., 0, 0] * a[..., 1, 2]
-    c22 = a[..., 0, 0] * a[..., 1, 1] - a[..., 0, 1] * a[..., 1, 0]
-    return jnp.stack([jnp.stack([c00, c01, c02], -1), jnp.stack([c10, c11, c12], -1),
-                      jnp.stack([c20, c21, c22], -1)], -2)
+    """Cofactor matrix cof(A) = det(A) A⁻ᵀ of [3, 3, ...], written out (cheap and differentiable)."""
+    c = [[a[(i + 1) % 3, (j + 1) % 3] * a[(i + 2) % 3, (j + 2) % 3]
+          - a[(i + 1) % 3, (j + 2) % 3] * a[(i + 2) % 3, (j + 1) % 3] for j in range(3)] for i in range(3)]
+    return jnp.stack([jnp.stack(row) for row in c])
 
 
 def inv3(a):
-    return jnp.swapaxes(cofactor3(a), -1, -2) / det3(a)[..., None, None]
+    return transpose3(cofactor3(a)) / det3(a)
 
 
-# --- stresses -----------------------------------------------------------------------------------------------
+def transpose3(a):
+    return jnp.swapaxes(a, 0, 1)
+
+
+def matmul3(a, b):
+    """[3, 3, ...] @ [3, 3, ...] as an elementwise sum (XLA fuses it; a batched dot of 3×3 blocks does not)."""
+    return a[:, 0, None] * b[None, 0] + a[:, 1, None] * b[None, 1] + a[:, 2, None] * b[None, 2]
+
+
+def trace3(a):
+    return a[0, 0] + a[1, 1] + a[2, 2]
+
+
+def _eye_like(a):
+    return jnp.eye(3, dtype=a.dtype).reshape((3, 3) + (1,) * (a.ndim - 2))
+
+
+def _lead(F):
+    return jnp.moveaxis(jnp.moveaxis(jnp.asarray(F), -1, 0), -1, 0)
+
+
+def _trail(a):
+    return jnp.moveaxis(jnp.moveaxis(a, 0, -1), 0, -1)
+
+
+# --- stresses (component-leading layout) ---------------------------------------------------------------------
 
 def isochoric_pk2(m: Material, F):
-    """Instantaneous isochoric 2nd Piola–Kirchhoff stress S⁰_iso [..., 3, 3] and J [...] from F [..., 3, 3]."""
-    C = jnp.swapaxes(F, -1, -2) @ F
+    """Instantaneous isochoric 2nd Piola–Kirchhoff stress S⁰_iso [3, 3, ...], J [...] and C⁻¹ from F [3, 3, ...]."""
+    C = matmul3(transpose3(F), F)
     J = det3(F)
     Cinv = inv3(C)
     j23 = J ** (-2.0 / 3.0)
-    I1b = j23 * jnp.trace(C, axis1=-2, axis2=-1)
-    eye = jnp.eye(3, dtype=F.dtype)
-    Sbar = 2.0 * (m.c10 + m.c01 * I1b)[..., None, None] * eye - 2.0 * m.c01 * (j23[..., None, None] * C)
-    trace_term = jnp.sum(Sbar * C, axis=(-2, -1))
-    S = j23[..., None, None] * (Sbar - (trace_term / 3.0)[..., None, None] * Cinv)
+    I1b = j23 * trace3(C)
+    Sbar = 2.0 * (m.c10 + m.c01 * I1b) * _eye_like(F) - 2.0 * m.c01 * (j23 * C)
+    trace_term = sum(Sbar[i, j] * C[i, j] for i in range(3) for j in range(3))
+    S = j23 * (Sbar - (trace_term / 3.0) * Cinv)
     return S, J, Cinv
 
 
@@ -154,26 +174,30 @@ def volumetric_energy(m: Material, J):
 
 
 def isochoric_energy(m: Material, F):
-    """C10 (Ī1 − 3) + C01 (Ī2 − 3) per unit reference volume."""
-    C = jnp.swapaxes(F, -1, -2) @ F
+    """C10 (Ī1 − 3) + C01 (Ī2 − 3) per unit reference volume, F [3, 3, ...]."""
+    C = matmul3(transpose3(F), F)
     J = det3(F)
-    I1 = jnp.trace(C, axis1=-2, axis2=-1)
-    I2 = 0.5 * (I1 ** 2 - jnp.sum(C * C, axis=(-2, -1)))
+    I1 = trace3(C)
+    I2 = 0.5 * (I1 ** 2 - sum(C[i, j] * C[i, j] for i in range(3) for j in range(3)))
     return m.c10 * (J ** (-2.0 / 3.0) * I1 - 3.0) + m.c01 * (J ** (-4.0 / 3.0) * I2 - 3.0)
 
 
+# --- public functions on user layout [..., 3, 3] -------------------------------------------------------------
+
 def strain_energy_density(m: Material, F):
-    """Instantaneous hyperelastic energy density U(F) per unit reference volume."""
-    return isochoric_energy(m, F) + volumetric_energy(m, det3(F))
+    """Instantaneous hyperelastic energy density U(F) per unit reference volume; F [..., 3, 3]."""
+    Ft = _lead(F)
+    return isochoric_energy(m, Ft) + volumetric_energy(m, det3(Ft))
 
 
 def cauchy_stress(m: Material, F):
-    """Instantaneous (elastic) Cauchy stress [..., 3, 3] of the hyperelastic base."""
-    S_iso, J, Cinv = isochoric_pk2(m, F)
-    S = S_iso + (J * pressure(m, J))[..., None, None] * Cinv
-    return F @ S @ jnp.swapaxes(F, -1, -2) / J[..., None, None]
+    """Instantaneous (elastic) Cauchy stress [..., 3, 3] of the hyperelastic base; F [..., 3, 3]."""
+    Ft = _lead(F)
+    S_iso, J, Cinv = isochoric_pk2(m, Ft)
+    S = S_iso + (J * pressure(m, J)) * Cinv
+    return _trail(matmul3(matmul3(Ft, S), transpose3(Ft)) / J)
 
 
 def to_voigt(s):
-    """[..., 3, 3] symmetric → [..., 6] in the order S11, S22, S33, S12, S13, S23."""
-    return jnp.stack([s[..., 0, 0], s[..., 1, 1], s[..., 2, 2], s[..., 0, 1], s[..., 0, 2], s[..., 1, 2]], -1)
+    """[3, 3, ...] symmetric → [..., 6] in the order S11, S22, S33, S12, S13, S23."""
+    return jnp.stack([s[0, 0], s[1, 1], s[2, 2], s[0, 1], s[0, 2], s[1, 2]], -1)

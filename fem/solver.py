@@ -32,8 +32,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from . import elements as el
-from .material import (Material, bulk_modulus, det3, inv3, isochoric_energy, isochoric_pk2, mooney_rivlin,
-                       pressure, shear_modulus, to_voigt, volumetric_energy)
+from .material import (Material, bulk_modulus, det3, inv3, isochoric_energy, isochoric_pk2, matmul3, pressure,
+                       shear_modulus, to_voigt, transpose3, volumetric_energy)
 
 
 class Config(NamedTuple):
@@ -184,7 +184,7 @@ def setup(points, cells, *, material: Material, frame_dt: float, n_frames: int, 
         pf = jnp.asarray(pf, dtype=jnp.int32)
     arrays = Arrays(
         points=jnp.asarray(pts), cells=jnp.asarray(cl, dtype=jnp.int32), free=jnp.asarray(free),
-        incidence=jnp.asarray(el.incidence_table(cl, len(pts))), geo=jax.tree_util.tree_map(jnp.asarray, geo),
+        incidence=jnp.asarray(el.incidence_table(cl, len(pts))), geo=_element_last(geo),
         pressure_faces=pf, damping_alpha=jnp.asarray(float(damping)))
     config = Config(kind, int(n_frames), int(n_sub), float(frame_dt), material.n_prony, damping > 0.0,
                     pf is not None, load_interp, bool(checkpoint))
@@ -252,8 +252,7 @@ def lumped_mass(problem: Problem, material: Material) -> jnp.ndarray:
     """Nodal masses [N] = ρ Σ_e V_e / n_per."""
     arr = problem.arrays
     n_per = arr.cells.shape[1]
-    share = jnp.repeat(arr.geo.volume / n_per, n_per)
-    return material.density * _gather_sum(arr.incidence, share)
+    return material.density * _gather_sum(arr.incidence, jnp.tile(arr.geo.volume / n_per, n_per))
 
 
 # ------------------------------------------------------------------------------------------------------------
@@ -284,94 +283,130 @@ def _validate_loads(problem: Problem, loads: Loads, batched: bool = False):
             raise ValueError(f"loads.v0 must have shape {lead}{n}, 3], got {np.shape(loads.v0)}")
 
 
+def _element_last(geo):
+    """Move reference geometry to the hot-path layout: components first, elements last (b → [3, n_per, K])."""
+    if isinstance(geo, el.HexGeometry):
+        return el.HexGeometry(jnp.asarray(geo.b.transpose(2, 1, 0)), jnp.asarray(geo.volume),
+                              jnp.asarray(geo.gamma.transpose(1, 2, 0)),
+                              tuple(map(jnp.asarray, geo.hg_lam)), tuple(map(jnp.asarray, geo.hg_mu)))
+    return el.TetGeometry(jnp.asarray(geo.b.transpose(2, 1, 0)), jnp.asarray(geo.volume), jnp.asarray(geo.node_volume))
+
+
 def _gather_sum(incidence, values):
-    """Nodal sums of element-node values [K·n_per, ...] through the padded incidence table."""
+    """Nodal sums [N, ...] of node-major element-node values [n_per·K, ...] through the padded incidence table."""
     pad = jnp.zeros((1,) + values.shape[1:], values.dtype)
     return jnp.concatenate([values, pad])[incidence].sum(axis=1)
 
 
+def _assemble(incidence, fe):
+    """Nodal forces [N, 3] from element-node forces fe [3, n_per, K]."""
+    return _gather_sum(incidence, fe.reshape(3, -1).T)
+
+
+def _gather_elements(x, cells):
+    """Element node coordinates [3, n_per, K] from x [N, 3]."""
+    return jnp.transpose(x[cells.T], (2, 0, 1))
+
+
+def _deformation_gradient(xe, b):
+    """F [3, 3, K] = Σ_a x_a ⊗ b_a (explicit sums: XLA on CPU reduces middle axes slowly)."""
+    return _sum_over(lambda a: xe[:, None, a] * b[None, :, a], b.shape[1])
+
+
+def _sum_over(term, n):
+    """Σ_{a<n} term(a), unrolled."""
+    out = term(0)
+    for a in range(1, n):
+        out = out + term(a)
+    return out
+
+
 def _polar_rotation(F, iterations: int = 6):
-    """Rotation of the polar decomposition F = R U by Higham's iteration R ← (R + R⁻ᵀ)/2."""
+    """Rotation of the polar decomposition F = R U by Higham's iteration R ← (R + R⁻ᵀ)/2; F [3, 3, ...]."""
     R = F
     for _ in range(iterations):
-        R = 0.5 * (R + jnp.swapaxes(inv3(R), -1, -2))
+        R = 0.5 * (R + transpose3(inv3(R)))
     return R
 
 
 def _hourglass_stiffness(geo, m: Material):
-    """Condensed QM6 hourglass stiffness, split into long-term and relaxing parts: (K̂_eq, ΔK̂) [K,12,12]."""
+    """Condensed QM6 hourglass stiffness, split into long-term and relaxing parts: (K̂_eq, ΔK̂) [12, 12, K]."""
     mu0, k0 = shear_modulus(m), bulk_modulus(m)
     ginf = 1.0 - jnp.sum(m.g)
 
     def condense(lam, mu):
         kuu, kua, kaa = (lam * a + mu * b for a, b in zip(geo.hg_lam, geo.hg_mu))
-        return kuu - kua @ jnp.linalg.solve(kaa, jnp.swapaxes(kua, -1, -2))
+        k = kuu - kua @ jnp.linalg.solve(kaa, jnp.swapaxes(kua, -1, -2))
+        return jnp.moveaxis(k, 0, -1)
 
     k_inst = condense(k0 - 2.0 * mu0 / 3.0, mu0)
     if m.n_prony == 0:
-        return k_inst, None
+        return k_inst, None, None
     k_eq = condense(k0 - 2.0 * ginf * mu0 / 3.0, ginf * mu0)
-    return k_eq, k_inst - k_eq
+    dk = k_inst - k_eq
+    dk_inv = jnp.moveaxis(jnp.linalg.inv(jnp.moveaxis(dk, -1, 0)), 0, -1)
+    return k_eq, dk, dk_inv
 
 
 def _zero_visco(arr: Arrays, cfg: Config):
     if cfg.n_prony == 0:
         return ()
     k = arr.cells.shape[0]
-    z = (jnp.zeros((cfg.n_prony, k, 3, 3)), jnp.zeros((k, 3, 3)))
+    z = (jnp.zeros((cfg.n_prony, 3, 3, k)), jnp.zeros((3, 3, k)))
     if cfg.cell_type == "hexahedron":
-        z = z + (jnp.zeros((cfg.n_prony, k, 12)), jnp.zeros((k, 12)))
+        z = z + (jnp.zeros((cfg.n_prony, 12, k)), jnp.zeros((12, k)))
     return z
+
+
+def _hourglass_coordinates(geo, R, xe):
+    """g [12, K] = G Rᵀ x: hourglass coordinates of the co-rotated element nodes (index 3·mode + component)."""
+    xr = _sum_over(lambda j: R[j, :, None] * xe[j, None], 3)             # [3(i), 8, K] = Rᵀ x
+    return _sum_over(lambda a: geo.gamma[:, None, a] * xr[None, :, a], 8).reshape(12, -1)
 
 
 def _internal(arr: Arrays, m: Material, hg, x, visco, cfg: Config, h):
     """Internal nodal forces at x, advancing the viscous variables over a sub-step h.
 
-    Returns (f_int [N,3], new visco, min J, element of min J, dissipation rate, element Cauchy stress is not
-    formed here: see `_element_stress`).
+    Returns (f_int [N, 3], new visco, min J, element of min J, dissipation rate).
     """
     geo = arr.geo
-    xe = x[arr.cells]
-    F = jnp.einsum("kai,kaj->kij", xe, geo.b)
+    xe = _gather_elements(x, arr.cells)
+    F = _deformation_gradient(xe, geo.b)
     S0, J, Cinv = isochoric_pk2(m, F)
-    if cfg.cell_type == "hexahedron":
-        p = pressure(m, J)
-    else:
-        p = _anp_pressure(arr, m, J)
-    S = (J * p)[:, None, None] * Cinv
+    p = pressure(m, J) if cfg.cell_type == "hexahedron" else _anp_pressure(arr, m, J)
+    S = (J * p) * Cinv
     new_visco, diss = (), 0.0
     if cfg.n_prony:
         decay = jnp.exp(-h / m.tau)
         coef = m.tau / h * (1.0 - decay)
         H, S0_prev = visco[0], visco[1]
         H = decay[:, None, None, None] * H + coef[:, None, None, None] * (S0 - S0_prev)[None]
-        ginf = 1.0 - jnp.sum(m.g)
-        S = S + ginf * S0 + jnp.einsum("p,pkij->kij", m.g, H)
-        mu0 = shear_modulus(m)
-        diss = jnp.sum(geo.volume * jnp.einsum("p,pkij->k", m.g / (2.0 * mu0 * m.tau), H * H))
+        S = S + (1.0 - jnp.sum(m.g)) * S0 + jnp.sum(m.g[:, None, None, None] * H, axis=0)
+        rate = m.g / (2.0 * shear_modulus(m) * m.tau)
+        diss = jnp.sum(geo.volume * jnp.sum(rate[:, None, None, None] * H * H, axis=(0, 1, 2)))
         new_visco = (H, S0)
     else:
         S = S + S0
-    P = F @ S
-    fe = geo.volume[:, None, None] * jnp.einsum("kij,kaj->kai", P, geo.b)
+    P = matmul3(F, S)
+    fe = geo.volume * _sum_over(lambda j: P[:, j, None] * geo.b[None, j], 3)   # [3, n_per, K]
     if cfg.cell_type == "hexahedron":
         R = _polar_rotation(F)
-        xr = jnp.einsum("kji,kaj->kai", R, xe)
-        g = jnp.einsum("kma,kai->kmi", geo.gamma, xr).reshape(-1, 12)
-        k_eq, dk = hg
-        Q = jnp.einsum("kij,kj->ki", k_eq, g)
+        g = _hourglass_coordinates(geo, R, xe)
+        k_eq, dk, dk_inv = hg
+        Q = _sum_over(lambda j: k_eq[:, j] * g[None, j], 12)
         if cfg.n_prony:
             HQ, Q0_prev = visco[2], visco[3]
-            Q0 = jnp.einsum("kij,kj->ki", dk, g)
+            Q0 = _sum_over(lambda j: dk[:, j] * g[None, j], 12)
             HQ = decay[:, None, None] * HQ + coef[:, None, None] * (Q0 - Q0_prev)[None]
             w = m.g / jnp.sum(m.g)
-            Q = Q + jnp.einsum("p,pki->ki", w, HQ)
-            dk_inv = jnp.linalg.inv(dk)
-            diss = diss + jnp.sum(jnp.einsum("p,pki,kij,pkj->", w / m.tau, HQ, dk_inv, HQ))
+            Q = Q + jnp.sum(w[:, None, None] * HQ, axis=0)
+            dkinv_hq = jnp.sum(dk_inv[None] * HQ[:, None], axis=2)       # [P, 12, K]
+            diss = diss + jnp.sum((w / m.tau)[:, None, None] * HQ * dkinv_hq)
             new_visco = new_visco + (HQ, Q0)
-        fhat = jnp.einsum("kma,kmi->kai", geo.gamma, Q.reshape(-1, 4, 3))
-        fe = fe + jnp.einsum("kij,kaj->kai", R, fhat)
-    f = _gather_sum(arr.incidence, fe.reshape(-1, 3))
+        Q = Q.reshape(4, 3, 1, -1)
+        fhat = _sum_over(lambda mo: geo.gamma[mo, None] * Q[mo], 4)         # [3, 8, K]
+        fe = fe + _sum_over(lambda j: R[:, j, None] * fhat[None, j], 3)
+    f = _assemble(arr.incidence, fe)
     k_min = jnp.argmin(J)
     return f, new_visco, J[k_min], k_min, diss
 
@@ -379,53 +414,54 @@ def _internal(arr: Arrays, m: Material, hg, x, visco, cfg: Config, h):
 def _anp_pressure(arr: Arrays, m: Material, J):
     """Average-nodal-pressure element pressures [K] from element Jacobians J [K] (tet4)."""
     geo = arr.geo
-    v_share = jnp.repeat(geo.volume * J / 4.0, 4)
+    v_share = jnp.tile(geo.volume * J / 4.0, 4)
     J_node = _gather_sum(arr.incidence, v_share) / geo.node_volume
     return jnp.mean(pressure(m, J_node)[arr.cells], axis=1)
 
 
 def _element_stress(arr: Arrays, m: Material, x, visco, cfg: Config):
     """Element Cauchy stress [K, 6] at x with the current viscous variables (no update)."""
-    F = jnp.einsum("kai,kaj->kij", x[arr.cells], arr.geo.b)
+    F = _deformation_gradient(_gather_elements(x, arr.cells), arr.geo.b)
     S0, J, Cinv = isochoric_pk2(m, F)
     p = pressure(m, J) if cfg.cell_type == "hexahedron" else _anp_pressure(arr, m, J)
     if cfg.n_prony:
-        S_iso = (1.0 - jnp.sum(m.g)) * S0 + jnp.einsum("p,pkij->kij", m.g, visco[0])
+        S_iso = (1.0 - jnp.sum(m.g)) * S0 + jnp.sum(m.g[:, None, None, None] * visco[0], axis=0)
     else:
         S_iso = S0
-    sig = F @ S_iso @ jnp.swapaxes(F, -1, -2) / J[:, None, None] + p[:, None, None] * jnp.eye(3)
+    sig = matmul3(matmul3(F, S_iso), transpose3(F)) / J + p * jnp.eye(3, dtype=F.dtype)[:, :, None]
     return to_voigt(sig)
 
 
 def _nodal_stress(arr: Arrays, sig_e):
     n_per = arr.cells.shape[1]
-    w = jnp.repeat(arr.geo.volume, n_per)
-    num = _gather_sum(arr.incidence, jnp.repeat(sig_e * arr.geo.volume[:, None], n_per, axis=0))
-    return num / _gather_sum(arr.incidence, w)[:, None]
+    vol = arr.geo.volume
+    num = _gather_sum(arr.incidence, jnp.tile(sig_e * vol[:, None], (n_per, 1)))
+    return num / _gather_sum(arr.incidence, jnp.tile(vol, n_per))[:, None]
 
 
 def _stored_energy(arr: Arrays, m: Material, x, visco, hg, cfg: Config, elastic: bool = False):
     """Stored energy: volumetric + long-term isochoric + energy held in the viscous branches."""
     geo = arr.geo
-    F = jnp.einsum("kai,kaj->kij", x[arr.cells], geo.b)
+    xe = _gather_elements(x, arr.cells)
+    F = _deformation_gradient(xe, geo.b)
     ginf = 1.0 if (elastic or cfg.n_prony == 0) else 1.0 - jnp.sum(m.g)
     if cfg.cell_type == "hexahedron":
         e = jnp.sum(geo.volume * (ginf * isochoric_energy(m, F) + volumetric_energy(m, det3(F))))
-        R = _polar_rotation(F)
-        g = jnp.einsum("kma,kai->kmi", geo.gamma, jnp.einsum("kji,kaj->kai", R, x[arr.cells])).reshape(-1, 12)
-        k_eq, dk = hg
+        g = _hourglass_coordinates(geo, _polar_rotation(F), xe)
+        k_eq, dk, _ = hg
         k_use = k_eq + dk if (elastic and dk is not None) else k_eq
-        e = e + 0.5 * jnp.sum(g * jnp.einsum("kij,kj->ki", k_use, g))
+        e = e + 0.5 * jnp.sum(g * jnp.sum(k_use * g[None], axis=1))
     else:
         J = det3(F)
-        J_node = _gather_sum(arr.incidence, jnp.repeat(geo.volume * J / 4.0, 4)) / geo.node_volume
+        J_node = _gather_sum(arr.incidence, jnp.tile(geo.volume * J / 4.0, 4)) / geo.node_volume
         e = jnp.sum(geo.volume * ginf * isochoric_energy(m, F)) + jnp.sum(geo.node_volume * volumetric_energy(m, J_node))
     if cfg.n_prony and not elastic:
         H = visco[0]
-        e = e + jnp.sum(geo.volume * jnp.einsum("p,pkij->k", m.g / (4.0 * shear_modulus(m)), H * H))
+        e = e + jnp.sum(geo.volume * jnp.sum((m.g / (4.0 * shear_modulus(m)))[:, None, None, None] * H * H, axis=(0, 1, 2)))
         if cfg.cell_type == "hexahedron":
             w = m.g / jnp.sum(m.g)
-            e = e + 0.5 * jnp.einsum("p,pki,kij,pkj->", w, visco[2], jnp.linalg.inv(hg[1]), visco[2])
+            HQ = visco[2]
+            e = e + 0.5 * jnp.sum(w[:, None, None] * HQ * jnp.sum(hg[2][None] * HQ[:, None], axis=2))
     return e
 
 
@@ -457,7 +493,8 @@ def _external_force(arr: Arrays, loads: Loads, cfg: Config, frame, frac, x):
 
 def _simulate_impl(arr: Arrays, m: Material, loads: Loads, cfg: Config) -> Result:
     h = cfg.frame_dt / cfg.n_sub
-    mass = m.density * _gather_sum(arr.incidence, jnp.repeat(arr.geo.volume / arr.cells.shape[1], arr.cells.shape[1]))
+    n_per = arr.cells.shape[1]
+    mass = m.density * _gather_sum(arr.incidence, jnp.tile(arr.geo.volume / n_per, n_per))
     inv_mass = (arr.free / mass[:, None])
     hg = _hourglass_stiffness(arr.geo, m) if cfg.cell_type == "hexahedron" else None
     alpha = arr.damping_alpha
