@@ -138,3 +138,109 @@ def test_tet4_boundary_of_a_split_cube_is_closed_and_outward():
 def test_surface_triangles_rejects_other_cells():
     with pytest.raises(ValueError, match="cells"):
         surface_triangles(np.zeros((3, 6), int), np.zeros((6, 3)))
+
+
+# ------------------------------------------------------------------------------- scenes and the loop
+
+import jax  # noqa: E402
+
+from tignn_jax import ar, scene as sc  # noqa: E402
+
+
+def _spring_mass_step(q0, cells, clamped, k=40.0, damping=0.2, dt=0.05, mass=1.0):
+    """Stand-in dynamics (not the learned model): damped springs on the mesh edges, clamped nodes fixed.
+    State z = [q, v, sigma]; sigma gets the mean spring tension in S11 so the colour map has something to show."""
+    edges = np.unique(np.sort(cells[:, [[0, 1], [1, 2], [2, 3], [3, 0], [4, 5], [5, 6], [6, 7], [7, 4],
+                                        [0, 4], [1, 5], [2, 6], [3, 7]]].reshape(-1, 2), axis=1), axis=0)
+    i, j = jnp.asarray(edges[:, 0]), jnp.asarray(edges[:, 1])
+    rest = jnp.linalg.norm(jnp.asarray(q0[edges[:, 1]] - q0[edges[:, 0]]), axis=1)
+    free = jnp.asarray(~clamped, jnp.float32)[:, None]
+
+    def step(z, f):
+        q, v = z[:, :3], z[:, 3:6]
+        d = q[j] - q[i]
+        length = jnp.linalg.norm(d, axis=1)
+        tension = k * (length - rest)
+        fe = (tension / length)[:, None] * d
+        f_int = jnp.zeros_like(q).at[i].add(fe).at[j].add(-fe)
+        v = free * ((1.0 - damping) * v + dt * (f_int + f) / mass)
+        s11 = jnp.zeros(len(q)).at[i].add(tension).at[j].add(tension) / 6.0
+        sigma = jnp.zeros((len(q), 6)).at[:, 0].set(s11)
+        return jnp.concatenate([q + dt * v, v, sigma], axis=1)
+
+    return step
+
+
+def _demo_scene(frames=10, width=160, height=120):
+    points, cells = _box_hex(4, 2, 2)
+    clamped = points[:, 0] == 0.0
+    tris = surface_triangles(cells, points)
+    model = ar.model_matrix([-0.04, 0.0, -0.02], np.eye(3), 0.02)       # 8 x 4 x 4 cm on the table
+    view = np.asarray(ar.look_at([0.02, 0.15, 0.22], [0.0, 0.02, 0.0], [0.0, 1.0, 0.0]))
+    cam = sc.Camera(fx=150.0, fy=150.0, cx=width / 2, cy=height / 2, width=width, height=height, near=0.02,
+                    far=3.0, view=view)
+    z0 = np.concatenate([points, np.zeros((len(points), 9))], axis=1).astype(np.float32)
+    top_end = np.asarray(ar.transform_points(model, jnp.array([[4.0, 2.0, 1.0]])))[0]
+    body = sc.Body(q0=points, triangles=tris, model=np.asarray(model), z=z0,
+                   step_fn=_spring_mass_step(points, cells, clamped), tip_radius=1.2, tip_force=3.0, vmax=5.0)
+    track = sc.press_track(cam, top_end, [0.0, 1.0, 0.0], frames)
+    return sc.Scene(bodies=(body,), camera=cam, background=sc.table_background(cam), track=track), top_end
+
+
+def test_scene_loop_compiles_only_on_the_first_frame():
+    # Real time needs fixed shapes: after frame 0 no stage (nor the fingertip padding) triggers a compile.
+    compiles = []
+    jax.monitoring.register_event_duration_secs_listener(
+        lambda event, duration, **kw: compiles.append(event) if "backend_compile" in event else None)
+    scene, _ = _demo_scene(frames=6)
+    seen = []
+    sc.run(scene, write=lambda i, rgb: seen.append(len(compiles)))
+    assert seen[0] > 0 and seen[-1] == seen[0]
+
+
+def test_fingertip_press_pushes_the_body_down_and_frames_are_drawn():
+    # A fingertip pressing the free end's top face bends the cantilever downwards (-y), and every frame shows it.
+    scene, _ = _demo_scene(frames=10)
+    frames = []
+    zs, timings = sc.run(scene, write=lambda i, rgb: frames.append(rgb))
+    q0 = scene.bodies[0].q0
+    q = np.asarray(zs[0][:, :3])
+    tip_nodes = q0[:, 0] == 4.0
+    assert np.all(q[tip_nodes, 1] - q0[tip_nodes, 1] < -1e-3)
+    np.testing.assert_array_equal(q[q0[:, 0] == 0.0], q0[q0[:, 0] == 0.0])
+    background = (np.asarray(scene.background.rgb) * 255 + 0.5).astype(np.uint8)
+    assert len(frames) == 10 and frames[0].shape == (120, 160, 3) and frames[0].dtype == np.uint8
+    assert all(np.any(f != background) for f in frames)
+    summary = timings.summary()
+    assert summary["frames"] == 9 and set(summary) >= {"forces", "step", "render", "write", "frame"}
+
+
+def test_track_json_lines_round_trip(tmp_path):
+    # A user's tracker output (varying numbers of tips, empty frames) reads back as a NaN-padded array.
+    path = tmp_path / "track.jsonl"
+    path.write_text('{"frame": 0, "tips": [[320.5, 240.25, 0.41]]}\n'
+                    '{"frame": 1, "tips": []}\n'
+                    '{"frame": 2, "tips": [[1, 2, 0.5], [3, 4, 0.6]], "hand": "right"}\n')
+    track = sc.load_track(path, max_tips=3)
+    assert track.shape == (3, 3, 3)
+    np.testing.assert_allclose(track[0, 0], [320.5, 240.25, 0.41], rtol=1e-6)
+    assert np.isnan(track[1]).all() and np.isnan(track[0, 1:]).all()
+    sc.save_track(tmp_path / "again.jsonl", track)
+    np.testing.assert_array_equal(sc.load_track(tmp_path / "again.jsonl", max_tips=3), track)
+
+
+def test_press_track_fingertip_unprojects_onto_the_pressed_point():
+    # At mid-track the fingertip is `press` inside the surface along -normal: unprojecting gives that point.
+    scene, top_end = _demo_scene(frames=11)
+    cam = scene.camera
+    vp = jnp.asarray(sc.camera_projection(cam) @ cam.view)
+    tip = scene.track[5]
+    world = ar.unproject(jnp.asarray(tip[:, :2]), jnp.asarray(tip[:, 2]), vp, (0.0, 0.0, cam.width, cam.height))
+    np.testing.assert_allclose(world[0], top_end - np.array([0.0, 0.01, 0.0]), atol=1e-5)
+
+
+def test_scene_validation_names_the_bad_array():
+    scene, _ = _demo_scene(frames=2)
+    bad = scene._replace(bodies=(scene.bodies[0]._replace(z=np.zeros((3, 12))),))
+    with pytest.raises(ValueError, match=r"bodies\[0\].z"):
+        sc.run(bad)

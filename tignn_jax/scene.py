@@ -1,0 +1,393 @@
+"""Mixed-reality scenes and the real-time loop: fingertips in a camera image push virtual solids.
+
+A ``Scene`` is a tuple of ``Body`` (surface mesh, pose, state z and a ``step_fn(z, forces) -> z``), a ``Camera``
+(pinhole intrinsics + world-to-camera extrinsics), a ``Background`` (the real RGB + depth image; here a synthetic
+table plane) and a fingertip track. ``run`` plays it frame by frame:
+
+    unproject fingertips -> fingertip + contact forces -> step every body -> render -> write frame
+
+Each stage is one jitted function compiled on the first frame; shapes never change afterwards (the track is
+padded to a fixed number of fingertips), so nothing is recompiled. ``run`` returns per-stage timings (p50/p99).
+
+Units: the world and the camera are in metres (the depth camera's unit). A body's state lives in its model frame
+and units (q and forces as the body's model was trained); ``Body.model`` maps model to world (with a scale).
+
+Fingertip track format (JSON lines, one object per camera frame, in order)::
+
+    {"frame": 0, "tips": [[u, v, depth_m], [u, v, depth_m]]}
+    {"frame": 1, "tips": []}
+
+- ``u, v``: pixel coordinates of the fingertip in the camera image: u to the right, v down, origin at the
+  top-left corner of the image, pixel centres at +0.5 (so a MediaPipe hand landmark with normalised (x, y) is
+  ``u = x * width, v = y * height``; landmarks 4, 8, 12, 16, 20 are the five fingertips).
+- ``depth_m``: the depth camera's reading at that pixel, in metres along the optical axis (the value of the
+  aligned depth image at (u, v); MediaPipe's relative z is not a depth).
+- Any number of tips per frame up to the scene's maximum (more are dropped with a warning); extra keys are
+  ignored; a frame with no line or an empty list has no fingertips. ``frame`` numbers the lines from 0.
+"""
+from __future__ import annotations
+
+import json
+import time
+import warnings
+from pathlib import Path
+from typing import Callable, NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from tignn_jax import ar
+from tignn_jax.render import draw_mesh, fragment_capacity, surface_nodes
+
+StepFn = Callable[[jax.Array, jax.Array], jax.Array]
+
+
+class Camera(NamedTuple):
+    """Pinhole camera: focal lengths and principal point in pixels, image size, clipping distances (m), and the
+    extrinsics ``view`` [4,4] (world -> camera, OpenGL: the camera looks down its -z axis)."""
+    fx: float
+    fy: float
+    cx: float
+    cy: float
+    width: int
+    height: int
+    near: float
+    far: float
+    view: np.ndarray
+
+
+class Body(NamedTuple):
+    """A virtual solid.
+
+    q0: [N,3] reference positions (model units); triangles: [T,3] outward surface triangles (``render.
+    surface_triangles``); model: [4,4] pose, model -> world (``ar.model_matrix``); z: [N,12] initial state
+    (q, v, sigma with sigma in S11,S22,S33,S12,S13,S23 order); step_fn(z, forces [N,3]) -> z: one time step of
+    the body's simulator (the learned model, or anything with that signature); tip_radius (model units) and
+    tip_force (model force units per node): the fingertip rule of ``ar.fingertip_forces``; colour by the von
+    Mises stress of sigma over [0, vmax].
+    """
+    q0: np.ndarray
+    triangles: np.ndarray
+    model: np.ndarray
+    z: np.ndarray
+    step_fn: StepFn
+    tip_radius: float
+    tip_force: float
+    vmax: float
+
+
+class Background(NamedTuple):
+    """The real image: ``rgb`` [H,W,3] in [0,1] and ``depth`` [H,W] in metres (0 = unknown)."""
+    rgb: np.ndarray
+    depth: np.ndarray
+
+
+class Scene(NamedTuple):
+    """Bodies, camera, background and fingertip ``track`` [F,K,3] (u, v, depth_m; NaN rows = no fingertip).
+
+    contact_radius (m) and contact_stiffness (model force units per metre of overlap): penalty contact between
+    every pair of bodies (``ar.contact_forces`` on their surface nodes, in world space); hand_radius (m): the
+    radius of the spheres of the hand proxy drawn into the real depth at each fingertip (0 for none).
+    """
+    bodies: tuple
+    camera: Camera
+    background: Background
+    track: np.ndarray
+    contact_radius: float = 0.004
+    contact_stiffness: float = 1e6
+    hand_radius: float = 0.008
+
+
+class Timings(NamedTuple):
+    """Milliseconds per frame for each stage (arrays over frames) and the frames' overflow count."""
+    forces: np.ndarray
+    step: np.ndarray
+    render: np.ndarray
+    write: np.ndarray
+    frame: np.ndarray
+    reallocations: int
+
+    def summary(self) -> dict:
+        """{stage: {"p50_ms", "p99_ms"}} plus frames and frames per second at the median frame time."""
+        out = {k: {"p50_ms": float(np.median(v)), "p99_ms": float(np.percentile(v, 99))}
+               for k, v in self._asdict().items() if k != "reallocations" and len(v)}
+        out["frames"] = int(len(self.frame))
+        out["fps_at_p50"] = 1e3 / out["frame"]["p50_ms"] if len(self.frame) else 0.0
+        out["reallocations"] = self.reallocations
+        return out
+
+
+# ------------------------------------------------------------------------------------------ the loop
+
+
+def run(scene: Scene, frames: int | None = None, write: Callable[[int, np.ndarray], None] | None = None,
+        warmup: int = 1):
+    """Play ``scene`` for ``frames`` frames (default: the track's length); returns (final states, Timings).
+
+    ``write(frame_index, rgb_uint8 [H,W,3])`` receives every rendered frame (e.g. an imageio writer's
+    ``append_data``); its time is the ``write`` stage. The first ``warmup`` frames (compilation) are run but
+    not timed. Raises ValueError for a scene whose arrays do not fit together.
+    """
+    validate(scene)
+    frames = len(scene.track) if frames is None else int(frames)
+    forces_fn, step_fn, render_fn, capacity = build(scene)
+    zs = tuple(jnp.asarray(b.z, jnp.float32) for b in scene.bodies)
+    track = _pad_frames(scene.track, frames)  # host array: a device index per frame would compile per index
+    times = {k: [] for k in ("forces", "step", "render", "write", "frame")}
+    reallocations = 0
+    for i in range(frames):
+        tips = track[i]
+        t0 = time.perf_counter()
+        forces = jax.block_until_ready(forces_fn(zs, tips))
+        t1 = time.perf_counter()
+        zs = jax.block_until_ready(step_fn(zs, forces))
+        t2 = time.perf_counter()
+        image, overflow = jax.block_until_ready(render_fn(zs, tips))
+        t3 = time.perf_counter()
+        if bool(overflow):  # rare: a body came much closer to the camera; grow the buffer (recompiles)
+            capacity = _grow(capacity)
+            render_fn = make_render_fn(scene, capacity)
+            image, _ = render_fn(zs, tips)
+            reallocations += 1
+        frame = np.asarray(image)
+        if write is not None:
+            write(i, frame)
+        t4 = time.perf_counter()
+        if i >= warmup:
+            for key, dt in zip(times, (t1 - t0, t2 - t1, t3 - t2, t4 - t3, t4 - t0)):
+                times[key].append(1e3 * dt)
+    return zs, Timings(**{k: np.asarray(v) for k, v in times.items()}, reallocations=reallocations)
+
+
+def build(scene: Scene):
+    """The jitted stages of ``run``: (forces_fn(zs, tips) -> forces, step_fn(zs, forces) -> zs,
+    render_fn(zs, tips) -> (rgb uint8 [H,W,3], overflow), fragment capacity)."""
+    cam = scene.camera
+    vp = jnp.asarray(camera_projection(cam) @ cam.view)
+    viewport = (0.0, 0.0, float(cam.width), float(cam.height))
+    models = [jnp.asarray(b.model, jnp.float32) for b in scene.bodies]
+    inverses = [jnp.linalg.inv(m) for m in models]
+    tris = [jnp.asarray(b.triangles, jnp.int32) for b in scene.bodies]
+    surfaces = [jnp.asarray(surface_nodes(b.triangles)) for b in scene.bodies]
+    capacities = [max(64, len(s) // 2) for s in surfaces]
+    rotations = [m[:3, :3] / jnp.linalg.norm(m[:3, :3], axis=0, keepdims=True) for m in models]
+    n = len(scene.bodies)
+
+    @jax.jit
+    def forces_fn(zs, tips):
+        world_tips = ar.unproject(tips[:, :2], tips[:, 2], vp, viewport)
+        world_tips = jnp.where(jnp.isfinite(tips[:, 2:3]) & (tips[:, 2:3] > 0), world_tips, jnp.nan)
+        out = []
+        for b, z, inv, tri in zip(scene.bodies, zs, inverses, tris):
+            q = z[:, :3]
+            normals = ar.vertex_normals(q, tri)
+            out.append(ar.fingertip_forces(ar.transform_points(inv, world_tips), q, normals,
+                                           b.tip_radius, b.tip_force))
+        world = [ar.transform_points(m, z[:, :3])[s] for m, z, s in zip(models, zs, surfaces)]
+        for i in range(n):
+            for j in range(i + 1, n):
+                fi, fj = ar.contact_forces(world[i], world[j], scene.contact_radius, scene.contact_stiffness,
+                                           capacity=max(capacities[i], capacities[j]))
+                out[i] = out[i].at[surfaces[i]].add(fi @ rotations[i])  # world -> model directions
+                out[j] = out[j].at[surfaces[j]].add(fj @ rotations[j])
+        return tuple(out)
+
+    @jax.jit
+    def step_fn(zs, forces):
+        return tuple(b.step_fn(z, f) for b, z, f in zip(scene.bodies, zs, forces))
+
+    positions, _ = _world_mesh(scene, tuple(jnp.asarray(b.z, jnp.float32) for b in scene.bodies))
+    pixels, depth = ar.project(positions, vp, viewport)
+    capacity = fragment_capacity(pixels, depth, _all_triangles(scene), cam.width, cam.height, headroom=2.0)
+    return forces_fn, step_fn, make_render_fn(scene, capacity), capacity
+
+
+def make_render_fn(scene: Scene, capacity: int):
+    """The jitted render stage: (zs, tips) -> (rgb uint8 [H,W,3], overflow), bodies occluded by the real depth
+    (background + hand proxy at the fingertips)."""
+    cam = scene.camera
+    vp = jnp.asarray(camera_projection(cam) @ cam.view)
+    eye = jnp.asarray(np.linalg.inv(cam.view)[:3, 3], jnp.float32)
+    light = jnp.array([0.3, -1.0, -0.4], jnp.float32)
+    triangles = jnp.asarray(_all_triangles(scene))
+    bg_rgb = jnp.asarray(scene.background.rgb, jnp.float32)
+    bg_depth = jnp.asarray(scene.background.depth, jnp.float32)
+
+    @jax.jit
+    def render_fn(zs, tips):
+        positions, colours = _world_mesh(scene, zs)
+        raster = draw_mesh(positions, triangles, colours, vp, eye, light, width=cam.width, height=cam.height,
+                           capacity=capacity)
+        real_rgb, real_depth = hand_proxy(bg_rgb, bg_depth, tips, cam, scene.hand_radius)
+        rgb = ar.occlude(raster.rgb, raster.depth, real_rgb, real_depth)
+        return (jnp.clip(rgb, 0.0, 1.0) * 255.0 + 0.5).astype(jnp.uint8), raster.overflow
+
+    return render_fn
+
+
+# ------------------------------------------------------------------------------------- scene pieces
+
+
+def camera_projection(camera: Camera) -> np.ndarray:
+    """OpenGL projection matrix [4,4] of the camera's intrinsics (full-image viewport)."""
+    return np.asarray(ar.projection_from_intrinsics(camera.fx, camera.fy, camera.cx, camera.cy, camera.width,
+                                                    camera.height, camera.near, camera.far))
+
+
+def table_background(camera: Camera, table_height: float = 0.0, wall_distance: float = 1.5,
+                     tile: float = 0.05) -> Background:
+    """A synthetic real image: a grey checkered table (the world plane y = table_height, y up) and a plain wall
+    ``wall_distance`` metres from the camera where the table is not seen. Depth in metres."""
+    u, v = np.meshgrid(np.arange(camera.width) + 0.5, np.arange(camera.height) + 0.5)
+    rays = np.stack([(u - camera.cx) / camera.fx, -(v - camera.cy) / camera.fy, -np.ones_like(u)], -1)  # eye
+    to_world = np.linalg.inv(np.asarray(camera.view, np.float64))
+    origin = to_world[:3, 3]
+    dirs = rays @ to_world[:3, :3].T
+    with np.errstate(divide="ignore", invalid="ignore"):
+        s = (table_height - origin[1]) / dirs[..., 1]   # ray parameter = depth along the optical axis
+    on_table = (s > 0) & (s < wall_distance)
+    depth = np.where(on_table, s, wall_distance)
+    hit = origin + np.where(on_table, s, 0.0)[..., None] * dirs
+    checker = (np.floor(hit[..., 0] / tile) + np.floor(hit[..., 2] / tile)) % 2
+    table = (0.55 + 0.12 * checker)[..., None] * np.array([0.85, 0.8, 0.72])
+    wall = np.broadcast_to(np.array([0.78, 0.8, 0.83]), table.shape)
+    rgb = np.where(on_table[..., None], table, wall)
+    return Background(rgb=rgb.astype(np.float32), depth=depth.astype(np.float32))
+
+
+def hand_proxy(rgb, depth, tips, camera: Camera, radius: float):
+    """Draw a hand proxy into the real image: for each fingertip a finger of 4 spheres (``radius`` m) from the
+    tip towards the camera and down the image, the way a hand reaching in is seen. Returns (rgb, depth).
+
+    Each sphere is drawn inside a fixed-size window around its centre (sized for spheres at >= 0.1 m), so the
+    cost does not depend on the image size."""
+    if radius <= 0:
+        return rgb, depth
+    steps = jnp.linspace(0.0, 1.0, 4)[:, None] * jnp.array([0.0, 0.05, -0.04])  # (down m, down m, depth m)
+    d = tips[:, None, 2] + steps[None, :, 2]
+    centres = jnp.stack([tips[:, None, 0] + 0.0 * d,
+                         tips[:, None, 1] + steps[None, :, 1] * camera.fy / tips[:, None, 2], d], -1)
+    win = int(min(camera.height, camera.width, 2 * np.ceil(max(camera.fx, camera.fy) * radius / 0.1) + 4))
+    offs = jnp.arange(win, dtype=jnp.float32)
+    skin = jnp.array([0.93, 0.72, 0.6], jnp.float32)
+    for c in centres.reshape(-1, 3):
+        ok = jnp.all(jnp.isfinite(c)) & (c[2] > camera.near)
+        i0 = jnp.clip(jnp.nan_to_num(jnp.floor(c[0]) - win // 2), 0, camera.width - win).astype(jnp.int32)
+        j0 = jnp.clip(jnp.nan_to_num(jnp.floor(c[1]) - win // 2), 0, camera.height - win).astype(jnp.int32)
+        u = i0 + offs + 0.5
+        v = j0 + offs + 0.5
+        rho = camera.fx * radius / c[2]
+        r2 = ((u[None, :] - c[0]) ** 2 + (v[:, None] - c[1]) ** 2) / rho ** 2
+        cos = jnp.sqrt(jnp.maximum(1.0 - r2, 0.0))
+        sphere = c[2] - radius * cos
+        window = jax.lax.dynamic_slice(depth, (j0, i0), (win, win))
+        hit = ok & (r2 < 1.0) & (sphere < window)
+        depth = jax.lax.dynamic_update_slice(depth, jnp.where(hit, sphere, window), (j0, i0))
+        colour = jax.lax.dynamic_slice(rgb, (j0, i0, 0), (win, win, 3))
+        shaded = (0.35 + 0.6 * cos)[..., None] * skin
+        rgb = jax.lax.dynamic_update_slice(rgb, jnp.where(hit[..., None], shaded, colour), (j0, i0, 0))
+    return rgb, depth
+
+
+def press_track(camera: Camera, point, normal, frames: int, approach: float = 0.03,
+                press: float = 0.01) -> np.ndarray:
+    """A fingertip track [frames,1,3] that pushes on a world ``point`` along ``-normal`` and lets go.
+
+    The tip starts ``approach`` m outside the surface along ``normal``, moves in to ``press`` m inside it at
+    mid-track and back out (a cosine ramp), seen by ``camera`` as pixel + depth (the track format)."""
+    point, normal = np.asarray(point, np.float64), np.asarray(normal, np.float64)
+    normal = normal / np.linalg.norm(normal)
+    s = 0.5 - 0.5 * np.cos(2 * np.pi * np.arange(frames) / max(frames - 1, 1))   # 0 -> 1 -> 0
+    world = point + ((1 - s) * approach - s * press)[:, None] * normal
+    pixels, depth = ar.project(jnp.asarray(world, jnp.float32), jnp.asarray(camera_projection(camera) @ camera.view),
+                               (0.0, 0.0, float(camera.width), float(camera.height)))
+    return np.concatenate([np.asarray(pixels), np.asarray(depth)[:, None]], axis=1)[:, None, :].astype(np.float32)
+
+
+def load_track(path, max_tips: int = 5) -> np.ndarray:
+    """Read a JSON-lines fingertip track (format in the module docstring) -> [F, max_tips, 3], NaN-padded."""
+    frames = {}
+    for n, line in enumerate(Path(path).read_text().splitlines()):
+        if not line.strip():
+            continue
+        record = json.loads(line)
+        tips = np.asarray(record.get("tips", []), np.float32).reshape(-1, 3)
+        if len(tips) > max_tips:
+            warnings.warn(f"{path}:{n + 1}: {len(tips)} fingertips, keeping the first {max_tips}")
+        frames[int(record.get("frame", n))] = tips[:max_tips]
+    track = np.full((max(frames) + 1 if frames else 0, max_tips, 3), np.nan, np.float32)
+    for i, tips in frames.items():
+        track[i, : len(tips)] = tips
+    return track
+
+
+def save_track(path, track) -> None:
+    """Write a track [F,K,3] (NaN rows = no fingertip) as JSON lines."""
+    with open(path, "w") as f:
+        for i, tips in enumerate(np.asarray(track)):
+            keep = np.all(np.isfinite(tips), axis=1)
+            f.write(json.dumps({"frame": i, "tips": tips[keep].round(5).tolist()}) + "\n")
+
+
+def von_mises(sigma) -> jax.Array:
+    """Von Mises equivalent stress [N] of Cauchy stress [N,6] in S11,S22,S33,S12,S13,S23 order."""
+    s11, s22, s33, s12, s13, s23 = (sigma[:, i] for i in range(6))
+    return jnp.sqrt(jnp.maximum(0.5 * ((s11 - s22) ** 2 + (s22 - s33) ** 2 + (s33 - s11) ** 2)
+                                + 3.0 * (s12 ** 2 + s13 ** 2 + s23 ** 2), 0.0))
+
+
+def validate(scene: Scene) -> None:
+    """Raise ValueError naming the first array of ``scene`` with a wrong shape or value."""
+    cam = scene.camera
+    if np.asarray(cam.view).shape != (4, 4):
+        raise ValueError(f"camera.view must be [4,4], got {np.asarray(cam.view).shape}")
+    if not 0 < cam.near < cam.far:
+        raise ValueError(f"camera needs 0 < near < far, got near={cam.near}, far={cam.far}")
+    shape = (cam.height, cam.width)
+    if scene.background.rgb.shape != shape + (3,) or scene.background.depth.shape != shape:
+        raise ValueError(f"background must be [{cam.height},{cam.width},3] + [{cam.height},{cam.width}], got "
+                         f"{scene.background.rgb.shape} + {scene.background.depth.shape}")
+    track = np.asarray(scene.track)
+    if track.ndim != 3 or track.shape[2] != 3:
+        raise ValueError(f"track must be [frames, tips, 3] (u, v, depth_m), got shape {track.shape}")
+    if not scene.bodies:
+        raise ValueError("scene has no bodies")
+    for k, b in enumerate(scene.bodies):
+        n = len(b.q0)
+        if np.asarray(b.z).shape != (n, 12):
+            raise ValueError(f"bodies[{k}].z must be [{n},12] (q, v, sigma), got {np.asarray(b.z).shape}")
+        if np.asarray(b.model).shape != (4, 4):
+            raise ValueError(f"bodies[{k}].model must be [4,4], got {np.asarray(b.model).shape}")
+        tri = np.asarray(b.triangles)
+        if tri.ndim != 2 or tri.shape[1] != 3 or tri.min() < 0 or tri.max() >= n:
+            raise ValueError(f"bodies[{k}].triangles must be [T,3] indices below {n}")
+        if not (b.tip_radius > 0 and b.vmax > 0):
+            raise ValueError(f"bodies[{k}] needs tip_radius > 0 and vmax > 0, got {b.tip_radius}, {b.vmax}")
+
+
+# -------------------------------------------------------------------------------------------- helpers
+
+
+def _world_mesh(scene: Scene, zs):
+    positions, colours = [], []
+    for b, z in zip(scene.bodies, zs):
+        positions.append(ar.transform_points(jnp.asarray(b.model, jnp.float32), z[:, :3]))
+        colours.append(ar.colour_map(von_mises(z[:, 6:12]), 0.0, b.vmax))
+    return jnp.concatenate(positions), jnp.concatenate(colours)
+
+
+def _all_triangles(scene: Scene) -> np.ndarray:
+    offsets = np.cumsum([0] + [len(b.q0) for b in scene.bodies])
+    return np.concatenate([np.asarray(b.triangles) + o for b, o in zip(scene.bodies, offsets)]).astype(np.int32)
+
+
+def _pad_frames(track, frames):
+    track = np.asarray(track, np.float32)
+    if len(track) >= frames:
+        return track[:frames]
+    return np.concatenate([track, np.full((frames - len(track),) + track.shape[1:], np.nan, np.float32)])
+
+
+def _grow(capacity: int) -> int:
+    return int(capacity * 2)
