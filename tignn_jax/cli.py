@@ -13,6 +13,7 @@ import sys
 # (module path) of every subcommand module, in the order they appear in --help.
 COMMAND_MODULES = (
     "fem.cli",
+    "tignn_jax.commands_model",
 )
 
 

@@ -1,0 +1,170 @@
+"""The public simulator: ``step``, ``rollout``, ``load_pretrained``.
+
+A model ("params") is a plain dict:
+  config:  dict of ModelConfig fields (static architecture);
+  norm:    dict of float32 arrays, the training split's statistics (see ``data.normalization``);
+  weights: the flax parameter pytree;
+  mesh:    dict with senders [E], receivers [E], node_type [N] and q0 [N,3] of the mesh it was trained on;
+  topo:    the mesh's ``model.Topology`` (derived from mesh, not stored in files).
+``step`` and ``rollout`` validate their inputs in Python, then call jit-compiled functions; graphs made of k
+copies of the model's mesh (``graph.batch``) are accepted, so several bodies step in one call.
+"""
+from __future__ import annotations
+
+import json
+from functools import partial
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import jraph
+import numpy as np
+from flax import traverse_util
+
+from tignn_jax import graph as G
+from tignn_jax import model as M
+
+MODELS_DIR = Path(__file__).resolve().parent / "models"
+
+
+def step(params: dict, graph: jraph.GraphsTuple, forces) -> jraph.GraphsTuple:
+    """Advance the graph's state one frame Δt under ``forces`` [N,3] (external nodal force during the step).
+
+    Returns the graph with the new ``nodes["z"]`` [N,12]. Raises ValueError for wrong shapes, non-finite
+    forces or a graph that is not the model's mesh."""
+    forces, topo = _check(params, graph, forces, seq=False)
+    z = _step_jit(params["weights"], _config(params), params["norm"], graph.nodes["z"], forces,
+                  graph.nodes["node_type"], topo)
+    return G.with_state(graph, z)
+
+
+def rollout(params: dict, graph: jraph.GraphsTuple, forces_seq) -> jax.Array:
+    """States [T+1, N, 12] from the graph's state (first row) under ``forces_seq`` [T, N, 3], by ``lax.scan``."""
+    forces_seq, topo = _check(params, graph, forces_seq, seq=True)
+    return rollout_states(params["weights"], _config(params), params["norm"], graph.nodes["z"], forces_seq,
+                          graph.nodes["node_type"], topo)
+
+
+def load_pretrained(name: str = "beam-abaqus"):
+    """A shipped model by name (a folder of ``tignn_jax/models``) or a path to a model folder/file.
+
+    Returns (params, graph): the model and the rest-state graph of its mesh (q = q0, v = 0, sigma = 0)."""
+    path = Path(name)
+    if not path.exists():
+        path = MODELS_DIR / name
+    if path.is_dir():
+        path = path / "model.npz"
+    if not path.exists():
+        shipped = sorted(p.name for p in MODELS_DIR.iterdir() if (p / "model.npz").exists()) \
+            if MODELS_DIR.exists() else []
+        raise ValueError(f"no model named {name!r}; shipped models: {shipped}")
+    params = load_model(path)
+    mesh = params["mesh"]
+    return params, G.rest_graph(mesh["q0"], np.stack([mesh["senders"], mesh["receivers"]]), mesh["node_type"])
+
+
+def make_params(config: M.ModelConfig, norm: dict, weights, q0, edges, node_type) -> dict:
+    """Bundle a model: architecture, normalisation, weights and its mesh."""
+    edges = np.asarray(edges)
+    return {
+        "config": dict(config._asdict()),
+        "norm": {k: jnp.asarray(v, jnp.float32) for k, v in norm.items()},
+        "weights": weights,
+        "mesh": {"senders": np.asarray(edges[0], np.int32), "receivers": np.asarray(edges[1], np.int32),
+                 "node_type": np.asarray(node_type, np.int32), "q0": np.asarray(q0, np.float32)},
+        "topo": M.topology(edges[0], edges[1], len(node_type)),
+    }
+
+
+def save_model(params: dict, path: str | Path, info: dict | None = None) -> Path:
+    """Write a model to one compressed ``.npz`` (float32 weights; config and ``info`` as JSON)."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    arrays = {f"weights/{k}": np.asarray(v, np.float32)
+              for k, v in traverse_util.flatten_dict(jax.device_get(params["weights"]), sep="/").items()}
+    arrays.update({f"norm/{k}": np.asarray(v, np.float32) for k, v in params["norm"].items()})
+    arrays.update({f"mesh/{k}": np.asarray(v) for k, v in params["mesh"].items()})
+    arrays["config"] = np.array(json.dumps(params["config"]))
+    arrays["info"] = np.array(json.dumps(info or {}))
+    np.savez_compressed(path, **arrays)
+    return path
+
+
+def load_model(path: str | Path) -> dict:
+    """Read a model written by ``save_model``."""
+    with np.load(path, allow_pickle=False) as npz:
+        flat = {k: npz[k] for k in npz.files}
+    group = lambda p: {k[len(p) + 1:]: v for k, v in flat.items() if k.startswith(p + "/")}
+    weights = traverse_util.unflatten_dict({tuple(k.split("/")): jnp.asarray(v)
+                                            for k, v in group("weights").items()})
+    mesh = group("mesh")
+    params = make_params(M.ModelConfig(**json.loads(str(flat["config"]))), group("norm"), weights, mesh["q0"],
+                         np.stack([mesh["senders"], mesh["receivers"]]), mesh["node_type"])
+    params["info"] = json.loads(str(flat["info"])) if "info" in flat else {}
+    return params
+
+
+@partial(jax.jit, static_argnames="config")
+def rollout_states(weights, config, norm, z0, forces_seq, node_type, topo):
+    """Unvalidated jit-compiled rollout: z0 [N,12], forces_seq [T,N,3] → [T+1,N,12]."""
+    def body(z, f):
+        z_next = M.step_state(weights, config, norm, z, f, node_type, topo)
+        return z_next, z_next
+
+    _, zs = jax.lax.scan(body, z0, forces_seq)
+    return jnp.concatenate([z0[None], zs])
+
+
+@partial(jax.jit, static_argnames="config")
+def _step_jit(weights, config, norm, z, f, node_type, topo):
+    return M.step_state(weights, config, norm, z, f, node_type, topo)
+
+
+def _config(params) -> M.ModelConfig:
+    return M.ModelConfig(**params["config"])
+
+
+def _check(params, graph, forces, seq: bool):
+    """Validate a graph against the model's mesh and the forces' shape and values.
+
+    Returns forces (float32) and the graph's Topology (the model's, tiled for k copies of the mesh)."""
+    if not isinstance(graph, jraph.GraphsTuple) or not isinstance(graph.nodes, dict) \
+            or "z" not in graph.nodes or "node_type" not in graph.nodes:
+        raise ValueError("graph must be a jraph.GraphsTuple with nodes {'z': [N,12], 'node_type': [N]}")
+    mesh = params["mesh"]
+    n_mesh = len(mesh["node_type"])
+    n_node = np.asarray(graph.n_node).reshape(-1)
+    z = graph.nodes["z"]
+    n = z.shape[0]
+    if np.any(n_node != n_mesh) or n != n_mesh * len(n_node):
+        raise ValueError(f"graph has n_node {n_node.tolist()}, but the model's mesh has {n_mesh} nodes")
+    if tuple(z.shape) != (n, M.STATE_DIM):
+        raise ValueError(f"graph.nodes['z'] has shape {tuple(z.shape)}, expected ({n}, {M.STATE_DIM})")
+    k = len(n_node)
+    offsets = np.repeat(np.arange(k) * n_mesh, len(mesh["senders"]))
+    senders, receivers = np.asarray(graph.senders), np.asarray(graph.receivers)
+    if senders.shape != offsets.shape or not np.array_equal(senders, np.tile(mesh["senders"], k) + offsets) \
+            or not np.array_equal(receivers, np.tile(mesh["receivers"], k) + offsets):
+        raise ValueError("graph senders/receivers are not the edges of the model's mesh")
+    if not np.array_equal(np.asarray(graph.nodes["node_type"]), np.tile(mesh["node_type"], k)):
+        raise ValueError("graph.nodes['node_type'] differs from the model's mesh")
+    expected = (n, 3) if not seq else (None, n, 3)
+    shape = tuple(np.shape(forces))
+    if len(shape) != len(expected) or any(e is not None and e != s for e, s in zip(expected, shape)):
+        name = "forces_seq" if seq else "forces"
+        raise ValueError(f"{name} has shape {shape}, expected {'[T, ' if seq else '['}{n}, 3]")
+    forces = np.asarray(forces, np.float32)
+    if not np.all(np.isfinite(forces)):
+        name = "forces_seq" if seq else "forces"
+        raise ValueError(f"{name} contains NaN or infinite values")
+    if not np.all(np.isfinite(np.asarray(z))):
+        raise ValueError("graph.nodes['z'] contains NaN or infinite values")
+    return forces, _tile_topology(params["topo"], k)
+
+
+def _tile_topology(topo: M.Topology, k: int) -> M.Topology:
+    if k == 1:
+        return topo
+    n, slots = topo.nbr.shape
+    return M.Topology(jnp.concatenate([topo.nbr + i * n for i in range(k)]), jnp.tile(topo.mask, (k, 1)),
+                      jnp.concatenate([topo.rev + i * n * slots for i in range(k)]))

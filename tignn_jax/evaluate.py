@@ -1,0 +1,159 @@
+"""Rollout errors, degeneracy residuals and entropy production of a model on a data set.
+
+Error measure (as in ``shared/data/README.md``): per snapshot, the relative L2 error
+``sqrt(Σ (pred − true)² / Σ true²)`` over the nodes (all nodes, or only free ones) and the variable's
+components, for q (position), v, σ (stress) and u = q − q0 (displacement); the rollout starts from the true
+first state and runs on the true forces; statistics are over snapshots 1..T (t = 0 is the given state).
+"""
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from tignn_jax import api
+from tignn_jax import data as D
+from tignn_jax import model as M
+
+VARIABLES = ("q", "v", "sigma", "u")
+PUBLISHED_TEST = {"q": 4.14e-3, "v": 1.72e-2, "sigma": 9.51e-2, "u": 7.07e-2}
+
+
+def relative_errors(pred, true, q0, mask=None) -> np.ndarray:
+    """Per-snapshot relative L2 errors [..., T+1, 4] (q, v, sigma, u) of states pred, true [..., T+1, N, 12].
+
+    mask [N] bool selects nodes (None: all). The t = 0 entry of u is NaN (its true value is zero)."""
+    pred, true = np.asarray(pred, np.float64), np.asarray(true, np.float64)
+    if mask is not None:
+        pred, true, q0 = pred[..., mask, :], true[..., mask, :], np.asarray(q0)[mask]
+    out = []
+    for name in VARIABLES:
+        if name == "u":
+            p, t = pred[..., :3] - q0, true[..., :3] - q0
+        else:
+            sl = {"q": D.Q, "v": D.V, "sigma": D.SIGMA}[name]
+            p, t = pred[..., sl], true[..., sl]
+        num = np.sum((p - t) ** 2, axis=(-2, -1))
+        den = np.sum(t ** 2, axis=(-2, -1))
+        with np.errstate(invalid="ignore", divide="ignore"):
+            out.append(np.where(den > 0, np.sqrt(num / np.where(den > 0, den, 1.0)), np.nan))
+    return np.stack(out, axis=-1)
+
+
+def rollout_cases(params: dict, data: D.Dataset, rows) -> np.ndarray:
+    """Predicted states [len(rows), T+1, N, 12] from each case's first state and forces."""
+    config = M.ModelConfig(**params["config"])
+    nt = jnp.asarray(data.node_type, jnp.int32)
+    topo = M.topology(data.edges[0], data.edges[1], len(data.node_type))
+    run = jax.jit(jax.vmap(lambda z0, f: api.rollout_states(params["weights"], config, params["norm"], z0, f,
+                                                            nt, topo)))
+    return np.asarray(run(jnp.asarray(data.z[rows, 0]), jnp.asarray(data.f[rows])))
+
+
+def split_errors(params: dict, data: D.Dataset, rows, pred=None) -> dict:
+    """Errors of the rollouts of ``rows``: {"all": [C,T,4], "free": [C,T,4]} over snapshots 1..T."""
+    pred = rollout_cases(params, data, rows) if pred is None else pred
+    true = data.z[rows]
+    free = data.node_type == 0
+    return {"all": relative_errors(pred, true, data.q0)[:, 1:],
+            "free": relative_errors(pred, true, data.q0, free)[:, 1:]}
+
+
+def summarize(errors: dict) -> dict:
+    """Mean and median over cases and snapshots, and the mean per rollout step, per variable and node set."""
+    out = {}
+    for nodes, e in errors.items():
+        out[nodes] = {
+            name: {"mean": float(np.nanmean(e[..., i])), "median": float(np.nanmedian(e[..., i])),
+                   "per_step_mean": np.nanmean(e[..., i], axis=0).tolist()}
+            for i, name in enumerate(VARIABLES)}
+    return out
+
+
+def structure_along_rollouts(params: dict, data: D.Dataset, rows, pred) -> dict:
+    """Degeneracy residuals and entropy production at every predicted state (frames 0..T-1).
+
+    Residuals are reported relative to the size of the step: ‖L∇S‖/‖dw‖ and ‖M∇E‖/‖dw‖ (whole graph); the
+    dissipated part ∇Sᵀ M ∇S is ≥ 0 by construction, and dS/dt·Δt = ∇Sᵀ dw is ≥ 0 when L∇S = 0."""
+    config = M.ModelConfig(**params["config"])
+    nt = jnp.asarray(data.node_type, jnp.int32)
+    topo = M.topology(data.edges[0], data.edges[1], len(data.node_type))
+
+    def one(z, f):
+        rt = M.rates(params["weights"], config, params["norm"], z, f, nt, topo)
+        size = jnp.linalg.norm(rt.dw) + 1e-12
+        _, m_op = M.operators(params["weights"], config, params["norm"], z, f, nt, topo)
+        dissipation = jnp.einsum("ni,nij,nj->", rt.grad_s, m_op, rt.grad_s)
+        return jnp.stack([jnp.linalg.norm(rt.deg_l) / size, jnp.linalg.norm(rt.deg_m) / size,
+                          rt.entropy_rate, dissipation])
+
+    fn = jax.jit(jax.vmap(jax.vmap(one)))
+    res = np.asarray(fn(jnp.asarray(pred[:, :-1]), jnp.asarray(data.f[rows])))
+    names = ("deg_l_rel", "deg_m_rel", "entropy_rate", "dissipation")
+    out = {n: {"mean": float(res[..., i].mean()), "max": float(res[..., i].max()),
+               "min": float(res[..., i].min())} for i, n in enumerate(names)}
+    out["entropy_rate_negative_fraction"] = float(np.mean(res[..., 2] < 0))
+    return out
+
+
+def evaluate(params: dict, data: D.Dataset, splits=("train", "val", "test"), structure: bool = True) -> dict:
+    """Errors (and structure diagnostics) per split; returns a JSON-ready dict and the raw error arrays."""
+    report, raw = {}, {}
+    for split in splits:
+        rows = D.split_rows(data, split)
+        pred = rollout_cases(params, data, rows)
+        errs = split_errors(params, data, rows, pred)
+        raw[split] = errs
+        report[split] = summarize(errs)
+        if structure:
+            report[split]["structure"] = structure_along_rollouts(params, data, rows, pred)
+    return report, raw
+
+
+def box_plot(raw: dict, path: str | Path, splits=("train", "test"), nodes: str = "all") -> Path:
+    """The paper's box plot: per variable, the per-snapshot relative errors of each split side by side."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(7, 4))
+    width = 0.8 / len(splits)
+    for j, split in enumerate(splits):
+        e = raw[split][nodes]
+        data = [e[..., i].ravel()[np.isfinite(e[..., i].ravel())] for i in range(len(VARIABLES))]
+        pos = np.arange(len(VARIABLES)) + (j - (len(splits) - 1) / 2) * width
+        bp = ax.boxplot(data, positions=pos, widths=width * 0.9, patch_artist=True, showfliers=False)
+        for b in bp["boxes"]:
+            b.set_facecolor(f"C{j}")
+        ax.plot([], [], color=f"C{j}", lw=6, label=split)
+    ax.set_xticks(np.arange(len(VARIABLES)), ["q", "v", "σ", "u = q − q0"])
+    ax.set_yscale("log")
+    ax.set_ylabel("relative L2 error per snapshot")
+    ax.set_title(f"rollout errors ({nodes} nodes)")
+    ax.legend()
+    fig.tight_layout()
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+    return path
+
+
+def format_table(report: dict) -> str:
+    """Markdown table of mean (median) errors per split and node set."""
+    lines = ["| split | nodes | q | v | σ | u |", "|---|---|---|---|---|---|"]
+    for split, rep in report.items():
+        for nodes in ("all", "free"):
+            cells = [f"{rep[nodes][v]['mean']:.3e} ({rep[nodes][v]['median']:.2e})" for v in VARIABLES]
+            lines.append(f"| {split} | {nodes} | " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
+def write_report(report: dict, path: str | Path) -> Path:
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps(report, indent=1))
+    return path
