@@ -121,7 +121,9 @@ def cofactor3(a):
 
 
 def inv3(a):
-    return transpose3(cofactor3(a)) / det3(a)
+    cof = cofactor3(a)
+    det = a[0, 0] * cof[0, 0] + a[0, 1] * cof[0, 1] + a[0, 2] * cof[0, 2]
+    return transpose3(cof) / det
 
 
 def transpose3(a):

@@ -321,8 +321,12 @@ def _sum_over(term, n):
     return out
 
 
-def _polar_rotation(F, iterations: int = 6):
-    """Rotation of the polar decomposition F = R U by Higham's iteration R ← (R + R⁻ᵀ)/2; F [3, 3, ...]."""
+def _polar_rotation(F, iterations: int = 4):
+    """Rotation of the polar decomposition F = R U by Higham's iteration R ← (R + R⁻ᵀ)/2; F [3, 3, ...].
+
+    The iteration converges quadratically: for a stretch U = I + ε the error after k steps is O(|ε|^(2^k)), so
+    four steps give R to ~1e-8 at 10 % strain and ~1e-3 at 60 % (R only orients the hourglass stiffness).
+    """
     R = F
     for _ in range(iterations):
         R = 0.5 * (R + transpose3(inv3(R)))
