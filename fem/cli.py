@@ -15,6 +15,63 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--frames", type=int, default=20, help="output frames of 0.05 (default: %(default)s)")
     p.set_defaults(func=run)
 
+    g = sub.add_parser("generate", help="generate FEM training data (beam-reference, beam-interactions, bunny)",
+                       description="Generate a data set with the FEM. Resumable: finished cases are kept in "
+                                   "OUT.parts/ and skipped when the command is run again.")
+    g.add_argument("scene", choices=("beam-reference", "beam-interactions", "bunny"))
+    g.add_argument("--out", required=True, help="output .npz path")
+    g.add_argument("--cases", type=int, default=None, help="number of cases (interactions: 64, bunny: 100)")
+    g.add_argument("--seed", type=int, default=0, help="random seed for load cases (default: %(default)s)")
+    g.add_argument("--load-nodes", default=None, help="bunny: comma-separated node ids to load instead of --cases")
+    g.add_argument("--batch", type=int, default=8, help="cases per vmapped batch (default: %(default)s)")
+    g.add_argument("--xdmf", action="store_true", help="also write one ParaView XDMF file per case")
+    g.add_argument("--no-progress", action="store_true", help="no progress bar")
+    g.set_defaults(func=run_generate)
+
+
+def run_generate(args) -> int:
+    import numpy as np
+
+    from . import cases as cs
+    from .generate import run_cases
+    from .scenes import beam_reference_forces, beam_scene, bunny_scene, setup_scene
+
+    if args.cases is not None and args.cases < 1:
+        raise SystemExit(f"--cases must be positive, got {args.cases}")
+    if args.batch < 1:
+        raise SystemExit(f"--batch must be positive, got {args.batch}")
+    meta = {"seed": args.seed, "command": f"tignn generate {args.scene}"}
+    sim_ids = None
+    if args.scene == "beam-reference":
+        scene = beam_scene()
+        sim_ids = np.arange(1, 53)
+        forces = beam_reference_forces(scene, sim_ids)
+        meta["cases"] = "the 52 reference load cases (13 positions x 4 faces, 5000*(k+1) per node)"
+    elif args.scene == "beam-interactions":
+        scene = beam_scene()
+        forces, described = cs.fingertip_forces(scene, args.cases or 64, args.seed)
+        meta["cases"] = described
+    else:
+        scene = bunny_scene()
+        nodes = None
+        if args.load_nodes:
+            try:
+                nodes = [int(t) for t in args.load_nodes.split(",") if t.strip()]
+            except ValueError:
+                raise SystemExit(f"--load-nodes must be comma-separated integers, got {args.load_nodes!r}")
+        try:
+            forces, picked = cs.point_load_forces(scene, args.cases or 100, args.seed, load_nodes=nodes)
+        except ValueError as e:
+            raise SystemExit(str(e))
+        meta["load_nodes"] = np.asarray(picked).tolist()
+    problem = setup_scene(scene)
+    print(f"{scene.name}: {len(forces)} cases, {len(scene.points)} nodes, {problem.config.n_frames} frames x "
+          f"{problem.config.n_sub} sub-steps")
+    out = run_cases(scene, problem, forces, args.out, batch_size=args.batch, progress=not args.no_progress,
+                    xdmf=args.xdmf, metadata=meta, sim_ids=sim_ids)
+    print(f"wrote {out}")
+    return 0
+
 
 def run(args) -> int:
     import jax

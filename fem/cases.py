@@ -1,0 +1,124 @@
+"""Load cases beyond the paper's: fingertip-like interactions on the beam and point loads on the bunny.
+
+A fingertip case is a patch of 1–6 neighbouring free-surface nodes pushed along a direction inside a cone around
+the inward normal, with one of four time profiles (all reach the peak within the run):
+
+* ``ramp``: linear from 0 to the peak at the last frame (like the reference cases);
+* ``hold``: linear to the peak at a random frame, then held;
+* ``release``: up to the peak, held, then back to zero (the solid recovers);
+* ``move``: the peak force slides from one patch to a neighbouring patch half-way through the run.
+
+Peak totals are drawn uniformly in [0.1, 1] × the reference maximum (6 nodes × 100 000 = 600 000 for the beam).
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from .meshes import surface_nodes_and_normals
+
+PROFILES = ("ramp", "hold", "release", "move")
+
+
+def fingertip_forces(scene, n_cases: int, seed: int, *, peak_total: float = 600_000.0, cone_deg: float = 30.0):
+    """Forces [n_cases, T, N, 3] and a list of case descriptions (JSON-able dicts)."""
+    if n_cases < 1:
+        raise ValueError(f"n_cases must be positive, got {n_cases}")
+    if peak_total <= 0:
+        raise ValueError(f"peak_total must be positive, got {peak_total}")
+    rng = np.random.default_rng(seed)
+    nodes, normals = _free_surface(scene)
+    T, N = scene.n_frames, len(scene.points)
+    out = np.zeros((n_cases, T, N, 3))
+    described = []
+    for c in range(n_cases):
+        profile = PROFILES[rng.integers(len(PROFILES))]
+        size = int(rng.integers(1, 7))
+        centre = int(rng.integers(len(nodes)))
+        patch = _patch(scene.points, nodes, centre, size)
+        direction = _cone_direction(rng, -normals[centre], np.radians(cone_deg))
+        peak = rng.uniform(0.1, 1.0) * peak_total
+        amp = _amplitude(rng, profile, T)
+        if profile == "move":
+            other = _patch(scene.points, nodes, _neighbour(scene.points, nodes, centre, rng), size)
+            half = T // 2
+            out[c, :half][:, nodes[patch]] = (amp[:half, None, None] * peak / size) * direction
+            out[c, half:][:, nodes[other]] = (amp[half:, None, None] * peak / size) * direction
+        else:
+            out[c][:, nodes[patch]] = (amp[:, None, None] * peak / size) * direction
+        described.append({"profile": profile, "nodes": nodes[patch].tolist(), "direction": direction.tolist(),
+                          "peak_total": peak})
+    return out, described
+
+
+def point_load_forces(scene, n_cases: int = 100, seed: int = 0, load_nodes=None, magnitude: float = 1.0):
+    """Unit point loads normal to the surface (pushing inwards), held for the whole run: [C, T, N, 3].
+
+    Load nodes are spread over the free surface by farthest-point sampling from a seeded start, or given.
+    """
+    nodes, normals = _free_surface(scene)
+    if load_nodes is None:
+        if not 1 <= n_cases <= len(nodes):
+            raise ValueError(f"n_cases must be in 1..{len(nodes)} (free surface nodes), got {n_cases}")
+        picked = _farthest_points(scene.points[nodes], n_cases, np.random.default_rng(seed))
+    else:
+        load_nodes = np.asarray(load_nodes, int).ravel()
+        where = {int(n): i for i, n in enumerate(nodes)}
+        missing = [int(n) for n in load_nodes if int(n) not in where]
+        if missing:
+            raise ValueError(f"load nodes are not free surface nodes: {missing[:10]}")
+        picked = np.array([where[int(n)] for n in load_nodes])
+    out = np.zeros((len(picked), scene.n_frames, len(scene.points), 3))
+    for c, i in enumerate(picked):
+        out[c, :, nodes[i]] = -magnitude * normals[i]
+    return out, nodes[picked]
+
+
+def _free_surface(scene):
+    nodes, normals = surface_nodes_and_normals(scene.points, scene.cells)
+    keep = scene.node_type[nodes] == 0
+    return nodes[keep], normals[keep]
+
+
+def _patch(points, nodes, centre, size):
+    d = np.linalg.norm(points[nodes] - points[nodes[centre]], axis=1)
+    return np.argsort(d, kind="stable")[:size]
+
+
+def _neighbour(points, nodes, centre, rng):
+    d = np.linalg.norm(points[nodes] - points[nodes[centre]], axis=1)
+    near = np.argsort(d, kind="stable")[1:9]
+    return int(near[rng.integers(len(near))])
+
+
+def _cone_direction(rng, axis, half_angle):
+    axis = axis / np.linalg.norm(axis)
+    cos_t = rng.uniform(np.cos(half_angle), 1.0)
+    phi = rng.uniform(0, 2 * np.pi)
+    helper = np.array([1.0, 0, 0]) if abs(axis[0]) < 0.9 else np.array([0, 1.0, 0])
+    e1 = np.cross(axis, helper)
+    e1 /= np.linalg.norm(e1)
+    e2 = np.cross(axis, e1)
+    sin_t = np.sqrt(1 - cos_t ** 2)
+    return cos_t * axis + sin_t * (np.cos(phi) * e1 + np.sin(phi) * e2)
+
+
+def _amplitude(rng, profile, T):
+    k = np.arange(1, T + 1, dtype=float)
+    if profile in ("ramp", "move"):
+        return k / T
+    t_peak = int(rng.integers(T // 4, 3 * T // 4))
+    a = np.minimum(k / t_peak, 1.0)
+    if profile == "release":
+        t_off = int(rng.integers(t_peak + 1, T))
+        a = np.where(k > t_off, np.maximum(0.0, 1.0 - (k - t_off) / 3.0), a)
+    return a
+
+
+def _farthest_points(x, n, rng):
+    chosen = [int(rng.integers(len(x)))]
+    d = np.linalg.norm(x - x[chosen[0]], axis=1)
+    for _ in range(n - 1):
+        nxt = int(np.argmax(d))
+        chosen.append(nxt)
+        d = np.minimum(d, np.linalg.norm(x - x[nxt], axis=1))
+    return np.array(chosen)

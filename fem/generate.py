@@ -1,0 +1,112 @@
+"""Data generation: load cases → FEM runs (batched with `vmap`) → one data-set file.
+
+The data-set file is the one contract between `fem` and `tignn_jax` (keys of the Abaqus reference file plus
+``cells``, ``cell_type``, ``metadata``)::
+
+    q0 [N,3] f32, edges [2,E] i32, node_type [N] i8, z [C,T+1,N,12] f32 (q, v, σ: S11 S22 S33 S12 S13 S23),
+    f [C,T,N,3] f32 (force acting during frame k), dt (), cells [K,n] i32, cell_type str, metadata JSON str,
+    v_solver [C,T+1,N,3] f32 (the solver's own velocity; z's v is numpy.gradient of q, second order, as in the
+    reference data), sim_id [C] i32 (1-based).
+
+Long runs are resumable: each finished case is written to ``<out>.parts/case_XXXXX.npz`` as soon as its batch
+is done, and a rerun skips the cases already there before assembling the final file.
+"""
+from __future__ import annotations
+
+import json
+import time
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from . import __name__ as _pkg  # noqa: F401
+from .solver import Loads, check, simulate_batch
+
+
+def run_cases(scene, problem, forces, out, *, batch_size: int = 8, progress: bool = True, xdmf: bool = False,
+              metadata: dict | None = None, sim_ids=None) -> Path:
+    """Simulate every case of ``forces`` [C, T, N, 3] and write the data set to ``out`` (.npz).
+
+    Cases are run in batches of ``batch_size`` (vmapped; the last batch is padded, so one compilation serves
+    all); finished cases are kept in ``<out>.parts/`` and skipped on a rerun.
+    """
+    forces = np.asarray(forces, np.float32)
+    if forces.ndim != 4 or forces.shape[1:] != (problem.config.n_frames, len(scene.points), 3):
+        raise ValueError(f"forces must be [cases, {problem.config.n_frames}, {len(scene.points)}, 3], got {forces.shape}")
+    if batch_size < 1:
+        raise ValueError(f"batch_size must be positive, got {batch_size}")
+    out = Path(out)
+    parts = out.with_name(out.name + ".parts")
+    parts.mkdir(parents=True, exist_ok=True)
+    n_cases = len(forces)
+    sim_ids = np.arange(1, n_cases + 1) if sim_ids is None else np.asarray(sim_ids)
+    todo = [c for c in range(n_cases) if not (parts / f"case_{c:05d}.npz").exists()]
+    bar = _progress(total=n_cases, initial=n_cases - len(todo), enabled=progress, desc=f"{scene.name} cases")
+    t_start = time.perf_counter()
+    for start in range(0, len(todo), batch_size):
+        idx = todo[start:start + batch_size]
+        padded = idx + [idx[-1]] * (batch_size - len(idx))
+        res = simulate_batch(problem, scene.material, Loads(nodal=jnp.asarray(forces[padded])))
+        jax.block_until_ready(res.q)
+        check(res, "warn")
+        for j, c in enumerate(idx):
+            q, v = np.asarray(res.q[j], np.float32), np.asarray(res.v[j], np.float32)
+            sig = np.asarray(res.sigma[j], np.float32)
+            v_fd = np.gradient(q.astype(np.float64), scene.frame_dt, axis=0, edge_order=2).astype(np.float32)
+            np.savez(parts / f"case_{c:05d}.npz", z=np.concatenate([q, v_fd, sig], -1), v_solver=v,
+                     inverted=np.asarray(res.inverted[j]))
+            if xdmf:
+                from .mesh import write_xdmf
+
+                write_xdmf(out.with_name(f"{out.stem}_case{int(sim_ids[c]):03d}.xdmf"), scene.points, scene.cells,
+                           scene.cell_type, np.asarray(res.t), q, v, sig)
+        bar.update(len(idx))
+    bar.close()
+    wall = time.perf_counter() - t_start
+    return assemble(scene, problem, forces, parts, out, metadata=dict(metadata or {}, wall_time_s=wall), sim_ids=sim_ids)
+
+
+def assemble(scene, problem, forces, parts: Path, out: Path, *, metadata: dict, sim_ids) -> Path:
+    cases = [np.load(parts / f"case_{c:05d}.npz") for c in range(len(forces))]
+    meta = {
+        "scene": scene.name, "cell_type": scene.cell_type,
+        "material": {k: np.asarray(v).tolist() for k, v in scene.material._asdict().items()},
+        "frame_dt": scene.frame_dt, "n_frames": scene.n_frames, "n_sub": problem.config.n_sub,
+        "damping": scene.damping, "load_interp": scene.load_interp, "code_version": _version(),
+        "velocity": "z[..., 3:6] = numpy.gradient(q, dt, axis=time, edge_order=2); v_solver = solver velocity",
+    }
+    meta.update(metadata)
+    np.savez_compressed(
+        out, q0=scene.points.astype(np.float32), edges=scene.edges.astype(np.int32),
+        node_type=scene.node_type.astype(np.int8), z=np.stack([c["z"] for c in cases]),
+        f=np.asarray(forces, np.float32), dt=np.float64(scene.frame_dt), cells=scene.cells.astype(np.int32),
+        cell_type=np.array(scene.cell_type), metadata=np.array(json.dumps(meta)),
+        v_solver=np.stack([c["v_solver"] for c in cases]), sim_id=np.asarray(sim_ids, np.int32))
+    return out
+
+
+def _version() -> str:
+    from importlib.metadata import PackageNotFoundError, version
+
+    try:
+        return version("tignn-jax")
+    except PackageNotFoundError:
+        return "unknown"
+
+
+class _NoBar:
+    def update(self, n):
+        pass
+
+    def close(self):
+        pass
+
+
+def _progress(total, initial, enabled, desc):
+    if not enabled:
+        return _NoBar()
+    from tqdm.auto import tqdm
+
+    return tqdm(total=total, initial=initial, desc=desc, unit="case")
