@@ -84,7 +84,7 @@ def build_scene(name: str, frames: int, model: str | None = None, stand_in: bool
         scale = 0.005
         poses = [ar.model_matrix([0.0, 0.03, 0.0], np.eye(3), scale),
                  ar.model_matrix([0.0, 0.03, -0.06], np.eye(3), scale)]
-        eye, target = [0.12, 0.22, 0.42], [0.1, 0.045, -0.01]
+        eye, target = [0.26, 0.26, 0.30], [0.1, 0.04, -0.01]
         press_at, normal = [38.0, 5.0, 10.0], [0.0, 0.0, 1.0]   # model coords on beam 0: free end, front face
         tip_radius, tip_force, vmax = 3.0, 2.0e4, 6.0e4
     elif name == "bunny":
@@ -93,7 +93,7 @@ def build_scene(name: str, frames: int, model: str | None = None, stand_in: bool
         clamped[bunny_bottom_nodes(q0)] = True
         scale = 0.01
         poses = [ar.model_matrix([0.1, 0.0, 0.0], ar.rotation_matrix([1.0, 0.0, 0.0], -np.pi / 2), scale)]
-        eye, target = [0.1, 0.2, 0.35], [0.1, 0.05, 0.0]
+        eye, target = [0.17, 0.16, 0.22], [0.1, 0.05, 0.0]
         top = np.argmax(q0[:, 2] - 0.3 * np.abs(q0[:, 0]))
         press_at, normal = q0[top], [0.0, 0.0, 1.0]
         tip_radius, tip_force, vmax = 1.5, 2.0e3, 2.0e4
@@ -148,10 +148,10 @@ def _dynamics(model_name, stand_in, q0, cells, edges, clamped, copies):
         "STAND-IN spring dynamics (not the learned model)", q0
 
 
-def stand_in_step(q0, cells, clamped, stiffness=1.0e5, mass=4.0e3, damping=0.15, dt=0.05):
+def stand_in_step(q0, cells, clamped, stiffness=1.0e4, mass=1.5e2, damping=0.1, dt=0.05, modulus=9.3e5):
     """STAND-IN dynamics, not the learned model: damped springs between every pair of nodes of each element
-    (a stable truss for hex8 and tet4), clamped nodes fixed; sigma gets the mean spring tension in S11.
-    (z [N,12], f [N,3]) -> z."""
+    (a stable truss for hex8 and tet4), clamped nodes fixed; sigma gets ``modulus`` x the mean absolute spring
+    strain at each node in S11 (a colourable stand-in for stress). (z [N,12], f [N,3]) -> z."""
     import jax.numpy as jnp
     import numpy as np
 
@@ -171,8 +171,9 @@ def stand_in_step(q0, cells, clamped, stiffness=1.0e5, mass=4.0e3, damping=0.15,
         fe = (tension / length)[:, None] * d
         f_int = jnp.zeros_like(q).at[i].add(fe).at[j].add(-fe)
         v = free * ((1.0 - damping) * v + dt * (f_int + f) / mass)
-        s11 = (jnp.zeros(len(q)).at[i].add(tension).at[j].add(tension)) / degree
-        sigma = jnp.zeros((len(q), 6)).at[:, 0].set(jnp.abs(s11))
+        strain = jnp.abs(length - rest) / rest
+        s11 = modulus * jnp.zeros(len(q)).at[i].add(strain).at[j].add(strain) / degree
+        sigma = jnp.zeros((len(q), 6)).at[:, 0].set(s11)
         return jnp.concatenate([q + dt * v, v, sigma], axis=1)
 
     return step
