@@ -7,8 +7,9 @@ bending (parasitic shear: an element of aspect ratio 1 bent in its plane is ~30 
 constant-strain tetrahedron locks volumetrically (one J constraint per element, more elements than nodes).
 
 hex8 — uniform-gradient one-point quadrature with physical (enhanced-strain) hourglass stabilisation:
-    * F = Σ_a x_a ⊗ b_a with b_a = ∂N_a/∂X at the element centre; the full hyperelastic–viscoelastic stress is
-      evaluated there (one J per element: no volumetric locking; passes the patch test on distorted meshes).
+    * F = Σ_a x_a ⊗ b̄_a with the uniform gradients b̄_a = (1/V) ∫ ∇N_a dV (Flanagan–Belytschko); the full
+      hyperelastic–viscoelastic stress is evaluated once per element (one J per element: no volumetric
+      locking; passes the patch test on distorted meshes, forces included).
     * The 12 hourglass modes (4 patterns h = ξη, ηζ, ζξ, ξηζ × 3 components) that one point cannot see get a
       stiffness K̂ [12×12] derived, once per element, from the incompatible-modes (Wilson–Taylor QM6) element of
       small-strain elasticity with the instantaneous Lamé constants: the 33-dof element (24 nodal + 9
@@ -83,8 +84,17 @@ def hex_geometry(points: np.ndarray, cells: np.ndarray) -> HexGeometry:
     xe = points[cells]  # [K,8,3]
     J0 = np.einsum("kai,aj->kij", xe, _hex_dn_dxi(np.zeros(3)))  # dX/dξ at centre
     J0inv = np.linalg.inv(J0)
-    b = np.einsum("aj,kji->kai", _hex_dn_dxi(np.zeros(3)), J0inv)
-    volume = element_volumes(points, cells, "hexahedron")
+    # Flanagan–Belytschko uniform gradient b̄_a = (1/V) ∫ ∇N_a dV (exact with 2×2×2 Gauss). Unlike the
+    # centre-point gradient it makes a uniform stress self-equilibrated on distorted elements (patch test).
+    b = np.zeros_like(xe)
+    volume = np.zeros(len(cells))
+    for p in np.array(np.meshgrid(_GAUSS, _GAUSS, _GAUSS, indexing="ij")).reshape(3, -1).T:
+        dN = _hex_dn_dxi(p)
+        J = np.einsum("kai,aj->kij", xe, dN)
+        detJ = np.linalg.det(J)
+        b += detJ[:, None, None] * np.einsum("aj,kji->kai", dN, np.linalg.inv(J))
+        volume += detJ
+    b /= volume[:, None, None]
     hX = np.einsum("ma,kai->kmi", HOURGLASS, xe)  # [K,4,3]
     gamma = HOURGLASS[None] - np.einsum("kmi,kai->kma", hX, b)
     lam, mu = _incompatible_mode_parts(xe, J0, J0inv)

@@ -89,3 +89,47 @@ def setup_scene(scene: Scene, **kwargs):
     return setup(scene.points, scene.cells, material=scene.material, frame_dt=scene.frame_dt,
                  n_frames=scene.n_frames, clamped=np.where(scene.node_type == 1)[0], cell_type=scene.cell_type,
                  damping=scene.damping, load_interp=scene.load_interp, **kwargs)
+
+
+TWO_BEAMS_GAP = 10.0
+TWO_BEAMS_CONTACT = {"r0": 2.0, "stiffness": 1e6, "skin": 1.5, "capacity": 4096}
+
+
+def two_beams_scene(density: float = BEAM_DENSITY, damping: float = BEAM_DAMPING, prony: bool = BEAM_PRONY) -> Scene:
+    """The paper's two interacting beams: beam A is the reference beam (x ∈ [0, 40], clamped at x = 0); beam B
+    is the same beam turned 90° about z, lying across A's free half with a vertical gap of 10:
+    x_B = 36 − y, y_B = x − 25, z_B = z + 20 (so B spans y ∈ [−25, 15] over x ∈ [26, 36], z ∈ [20, 30], clamped
+    at y = −25). Nodes 0..755 are A's, 756..1511 B's (both in the reference order); no graph edge joins them.
+    """
+    a = beam_scene(density, damping, prony)
+    qa = a.points
+    qb = np.stack([36.0 - qa[:, 1], qa[:, 0] - 25.0, qa[:, 2] + 20.0 + (TWO_BEAMS_GAP - 10.0)], -1)
+    n = len(qa)
+    return a._replace(name="two-beams", points=np.concatenate([qa, qb]), cells=np.concatenate([a.cells, a.cells + n]),
+                      edges=np.concatenate([a.edges, a.edges + n], axis=1),
+                      node_type=np.concatenate([a.node_type, a.node_type]))
+
+
+def two_beams_contact(scene: Scene) -> dict:
+    """Contact definition for `setup_scene`: all surface nodes of A against all surface nodes of B."""
+    from .meshes import surface_nodes_and_normals
+
+    n = len(scene.points) // 2
+    nodes, _ = surface_nodes_and_normals(scene.points[:n], scene.cells[: len(scene.cells) // 2])
+    return dict(TWO_BEAMS_CONTACT, a=nodes, b=nodes + n)
+
+
+def two_beams_forces(scene: Scene, positions=(40.0, 36.0, 32.0), scales=(1.0, 1.5)) -> np.ndarray:
+    """B pushed down onto A: B's load line on its top face at A-coordinate x ∈ positions (the reference cases
+    14, 16, 18: face z = 10, −z), ramped as the reference (5000·(k+1) per node) times each scale:
+    [len(positions)·len(scales), 20, 1512, 3]."""
+    n = len(scene.points) // 2
+    cases = []
+    for x in positions:
+        sim = 14 + int(round((40.0 - x) / 2.0))
+        fb = beam_reference_forces(scene._replace(points=scene.points[:n]), [sim])[0]
+        for sc in scales:
+            f = np.zeros((scene.n_frames, 2 * n, 3))
+            f[:, n:] = sc * fb
+            cases.append(f)
+    return np.stack(cases)

@@ -17,6 +17,14 @@ default) each frame's sub-step scan is wrapped in `jax.checkpoint`, so the forwa
 states and the backward pass recomputes one frame's sub-steps at a time: memory O(n_frames + n_sub) instead of
 O(n_frames · n_sub), for about one extra forward pass of compute.
 
+Contact between bodies (optional): node-to-node penalty between the surface nodes of body A and body B. A pair
+closer than r0 (the contact thickness, about one element size) repels with f = k (r0 − d) n_AB on the A node and
+−f on the B node: equal and opposite, so momentum is conserved; the force derives from the potential
+½ k (r0 − d)², which is counted in the stored energy, so the energy balance still closes. Candidate pairs closer
+than r0 + skin are searched once per frame over all A×B surface pairs (dense, inside `jit`, fixed capacity) and
+only those are evaluated in the sub-steps; the run reports if the capacity overflowed or a pair moved more than
+the skin (``Result.contact_overflow``).
+
 What a scene does not use is not traced: without Prony terms there are no internal variables and no
 dissipation integral; without damping no damping term; without pressure faces no pressure loads. These are
 Python-level (static) decisions in :class:`Config`.
@@ -48,6 +56,7 @@ class Config(NamedTuple):
     pressure: bool
     load_interp: str
     checkpoint: bool
+    contact_capacity: int = 0   # 0: no contact
 
 
 class Arrays(NamedTuple):
@@ -60,6 +69,9 @@ class Arrays(NamedTuple):
     geo: tuple               # HexGeometry or TetGeometry as jnp arrays
     pressure_faces: Optional[jnp.ndarray]  # [P, 3|4] or None
     damping_alpha: jnp.ndarray
+    contact_a: Optional[jnp.ndarray] = None   # [Sa] surface node ids of body A
+    contact_b: Optional[jnp.ndarray] = None   # [Sb] surface node ids of body B
+    contact_params: Optional[jnp.ndarray] = None  # [r0, k, skin]
 
 
 class Problem(NamedTuple):
@@ -104,6 +116,7 @@ class Result(NamedTuple):
     energies: Energies
     inverted: jnp.ndarray
     inversion_time: jnp.ndarray
+    contact_overflow: jnp.ndarray = None
 
 
 class State(NamedTuple):
@@ -131,7 +144,7 @@ class ElementInversionError(RuntimeError):
 
 def setup(points, cells, *, material: Material, frame_dt: float, n_frames: int, clamped=(),
           cell_type: Optional[str] = None, safety: float = 0.9, n_sub: Optional[int] = None, damping: float = 0.0,
-          pressure_faces=None, load_interp: str = "step", checkpoint: bool = True) -> Problem:
+          pressure_faces=None, load_interp: str = "step", checkpoint: bool = True, contact=None) -> Problem:
     """Validate a mesh and build a :class:`Problem`.
 
     points [N, 3] reference coordinates [length]; cells [K, 8] (hex8, VTK order) or [K, 4] (tet4);
@@ -139,7 +152,8 @@ def setup(points, cells, *, material: Material, frame_dt: float, n_frames: int, 
     differentiated); frame_dt [time] > 0 between output frames; clamped: node ids with fixed position;
     safety: fraction of the element-size stability limit; n_sub: sub-steps per frame (overrides the automatic
     choice); damping: Rayleigh mass-damping coefficient α [1/time]; pressure_faces [P, 4|3] node ids of loaded
-    faces (outward orientation).
+    faces (outward orientation); contact: optional dict(a=node ids, b=node ids, r0=contact thickness,
+    stiffness=k [force/length], skin=search margin, capacity=max candidate pairs) for body–body contact.
     """
     pts = np.asarray(points, dtype=float)
     cl = np.asarray(cells)
@@ -186,8 +200,21 @@ def setup(points, cells, *, material: Material, frame_dt: float, n_frames: int, 
         points=jnp.asarray(pts), cells=jnp.asarray(cl, dtype=jnp.int32), free=jnp.asarray(free),
         incidence=jnp.asarray(el.incidence_table(cl, len(pts))), geo=_element_last(geo),
         pressure_faces=pf, damping_alpha=jnp.asarray(float(damping)))
+    capacity = 0
+    if contact is not None:
+        ca, cb = (np.asarray(contact[k], int).ravel() for k in ("a", "b"))
+        for name, ids in (("contact['a']", ca), ("contact['b']", cb)):
+            if ids.size == 0 or ids.min() < 0 or ids.max() >= len(pts):
+                raise ValueError(f"{name} must be non-empty node ids in [0, {len(pts) - 1}]")
+        r0, k_c = float(contact["r0"]), float(contact["stiffness"])
+        skin = float(contact.get("skin", r0))
+        if r0 <= 0 or k_c <= 0 or skin < 0:
+            raise ValueError(f"contact needs r0 > 0, stiffness > 0, skin >= 0; got r0={r0}, stiffness={k_c}, skin={skin}")
+        capacity = int(contact.get("capacity", 4096))
+        arrays = arrays._replace(contact_a=jnp.asarray(ca, jnp.int32), contact_b=jnp.asarray(cb, jnp.int32),
+                                 contact_params=jnp.asarray([r0, k_c, skin]))
     config = Config(kind, int(n_frames), int(n_sub), float(frame_dt), material.n_prony, damping > 0.0,
-                    pf is not None, load_interp, bool(checkpoint))
+                    pf is not None, load_interp, bool(checkpoint), capacity)
     return Problem(arrays, config)
 
 
@@ -241,10 +268,12 @@ def internal_energy(problem: Problem, material: Material, x) -> jnp.ndarray:
 
 
 def internal_force(problem: Problem, material: Material, x) -> jnp.ndarray:
-    """Nodal internal forces f_int(x) [N, 3] of the hand-derived element routines (no viscous history)."""
-    arr, cfg = problem.arrays, problem.config
-    hg = _hourglass_stiffness(arr.geo, material) if cfg.cell_type == "hexahedron" else None
-    f, *_ = _internal(arr, material, hg, x, _zero_visco(arr, cfg), cfg, 1.0)
+    """Instantaneous elastic nodal internal forces f_int(x) [N, 3] of the hand-derived element routines (no
+    viscous history: the Prony series at t = 0, g_R = 1)."""
+    arr, cfg = problem.arrays, problem.config._replace(n_prony=0)
+    elastic = material._replace(g=jnp.zeros(0), tau=jnp.zeros(0))   # instantaneous response
+    hg = _hourglass_stiffness(arr.geo, elastic) if cfg.cell_type == "hexahedron" else None
+    f, *_ = _internal(arr, elastic, hg, x, (), cfg, 1.0)
     return f
 
 
@@ -469,6 +498,47 @@ def _stored_energy(arr: Arrays, m: Material, x, visco, hg, cfg: Config, elastic:
     return e
 
 
+def _contact_pairs(arr: Arrays, x, capacity: int):
+    """Candidate A–B surface-node pairs closer than r0 + skin: ([capacity, 2] ids, overflowed)."""
+    r0, _, skin = arr.contact_params[0], arr.contact_params[1], arr.contact_params[2]
+    xa, xb = x[arr.contact_a], x[arr.contact_b]
+    d2 = jnp.sum((xa[:, None] - xb[None]) ** 2, axis=-1)
+    close = d2 < (r0 + skin) ** 2
+    ia, ib = jnp.nonzero(close, size=capacity, fill_value=-1)
+    valid = ia >= 0
+    pairs = jnp.stack([jnp.where(valid, arr.contact_a[ia], -1), jnp.where(valid, arr.contact_b[ib], -1)], -1)
+    return pairs, jnp.sum(close) > capacity
+
+
+def _pairs_missed(arr: Arrays, pairs, x):
+    """True if some A–B pair is inside r0 at the end of a frame but was not a candidate (skin too small)."""
+    r0 = arr.contact_params[0]
+    xa, xb = x[arr.contact_a], x[arr.contact_b]
+    inside = jnp.sum(jnp.sum((xa[:, None] - xb[None]) ** 2, axis=-1) < r0 ** 2)
+    d = jnp.linalg.norm(x[pairs[:, 0]] - x[pairs[:, 1]], axis=-1)
+    counted = jnp.sum((pairs[:, 0] >= 0) & (d < r0))
+    return inside > counted
+
+
+def _contact_force(arr: Arrays, pairs, x):
+    """Penalty forces [N, 3]: k (r0 − d) along the B→A direction on A, the opposite on B."""
+    r0, k = arr.contact_params[0], arr.contact_params[1]
+    valid = pairs[:, 0] >= 0
+    ia, ib = jnp.where(valid, pairs[:, 0], 0), jnp.where(valid, pairs[:, 1], 0)
+    dx = x[ia] - x[ib]
+    d = jnp.sqrt(jnp.sum(dx ** 2, axis=-1) + 1e-30)
+    mag = jnp.where(valid & (d < r0), k * (r0 - d), 0.0)
+    f = (mag / d)[:, None] * dx
+    return jnp.zeros_like(x).at[ia].add(f).at[ib].add(-f)
+
+
+def _contact_energy(arr: Arrays, x):
+    r0, k = arr.contact_params[0], arr.contact_params[1]
+    xa, xb = x[arr.contact_a], x[arr.contact_b]
+    d = jnp.sqrt(jnp.sum((xa[:, None] - xb[None]) ** 2, axis=-1) + 1e-30)
+    return 0.5 * k * jnp.sum(jnp.where(d < r0, (r0 - d) ** 2, 0.0))
+
+
 def _external_force(arr: Arrays, loads: Loads, cfg: Config, frame, frac, x):
     """External nodal force at time t_frame + frac·frame_dt (frac ∈ (0, 1])."""
     n = arr.points.shape[0]
@@ -511,13 +581,15 @@ def _simulate_impl(arr: Arrays, m: Material, loads: Loads, cfg: Config) -> Resul
     zero = jnp.zeros((), mass.dtype)
     state0 = State(x0, v0, a0, f_ext0, visco0, zero, zero, zero, jnp.array(-1, jnp.int32), jnp.array(jnp.nan, mass.dtype))
 
-    def substep(frame, s: State, j):
+    def substep(frame, s: State, j, pairs=None):
         v_half = s.v + 0.5 * h * s.a
         if cfg.damping:
             v_half = v_half - 0.5 * h * alpha * s.v
         x = s.x + h * v_half
         f_ext = _external_force(arr, loads, cfg, frame, (j + 1.0) / cfg.n_sub, x)
         f_int, visco, j_min, k_min, diss = _internal(arr, m, hg, x, s.visco, cfg, h)
+        if cfg.contact_capacity:
+            f_ext = f_ext + _contact_force(arr, pairs, x)
         a = (f_ext - f_int) * inv_mass
         if cfg.damping:
             v = (v_half + 0.5 * h * a) / (1.0 + 0.5 * h * alpha)
@@ -533,23 +605,33 @@ def _simulate_impl(arr: Arrays, m: Material, loads: Loads, cfg: Config) -> Resul
         inv_t = jnp.where(newly, t, s.inversion_time)
         return State(x, v, a, f_ext, visco, w_ext, s.w_visc + h * diss, w_damp, inverted, inv_t)
 
-    def frame_fn(s: State, frame):
-        s, _ = jax.lax.scan(lambda c, j: (substep(frame, c, j), None), s, jnp.arange(cfg.n_sub, dtype=mass.dtype))
-        return s, _outputs(s)
+    def frame_fn(carry, frame):
+        s, overflow = carry
+        pairs = None
+        if cfg.contact_capacity:
+            pairs, over = _contact_pairs(arr, s.x, cfg.contact_capacity)
+            overflow = overflow | over
+        s, _ = jax.lax.scan(lambda c, j: (substep(frame, c, j, pairs), None), s,
+                            jnp.arange(cfg.n_sub, dtype=mass.dtype))
+        if cfg.contact_capacity:
+            overflow = overflow | _pairs_missed(arr, pairs, s.x)
+        return (s, overflow), _outputs(s)
 
     def _outputs(s: State):
         sig = _nodal_stress(arr, _element_stress(arr, m, s.x, s.visco, cfg))
         kin = 0.5 * jnp.sum(mass[:, None] * s.v ** 2)
         stored = _stored_energy(arr, m, s.x, s.visco, hg, cfg)
+        if cfg.contact_capacity:
+            stored = stored + _contact_energy(arr, s.x)
         return s.x, s.v, sig, Energies(kin, stored, s.w_visc, s.w_damp, s.w_ext)
 
     body = jax.checkpoint(frame_fn) if cfg.checkpoint else frame_fn
-    state, outs = jax.lax.scan(body, state0, jnp.arange(cfg.n_frames))
+    (state, overflow), outs = jax.lax.scan(body, (state0, jnp.array(False)), jnp.arange(cfg.n_frames))
     first = _outputs(state0)
     stack = lambda a, b: jnp.concatenate([a[None], b])
     q, v, sig, en = jax.tree_util.tree_map(stack, first, outs)
     t = jnp.arange(cfg.n_frames + 1) * cfg.frame_dt
-    return Result(t, q, v, sig, en, state.inverted, state.inversion_time)
+    return Result(t, q, v, sig, en, state.inverted, state.inversion_time, overflow)
 
 
 _simulate = jax.jit(_simulate_impl, static_argnames=("cfg",))

@@ -1,0 +1,114 @@
+"""FEM against the Abaqus reference beam data: relative L2 errors of u = q − q0, v and σ (free nodes).
+
+    python benchmarks/abaqus_agreement.py --ours PATH_FROM_tignn_generate_beam-reference [--identification JSON]
+
+Metric (as in ../shared/data/README.md): per frame, sqrt(Σ (ours − ref)² / Σ ref²) over nodes, then the mean over
+frames 1..20 (frame 0 is the common initial state). Writes benchmarks/results/abaqus_agreement.{md,png,json}.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from _machine import describe  # noqa: E402
+
+ROOT = Path(__file__).resolve().parents[1]
+REFERENCE = ROOT.parent / "shared" / "data" / "abaqus_beam.npz"
+RESULTS = Path(__file__).resolve().parent / "results"
+
+
+def rel_l2(a, b, mask=None):
+    """[cases, frames] relative L2 error over nodes (and components)."""
+    if mask is not None:
+        a, b = a[:, :, mask], b[:, :, mask]
+    return np.sqrt(np.sum((a - b) ** 2, axis=(-2, -1)) / np.maximum(np.sum(b ** 2, axis=(-2, -1)), 1e-30))
+
+
+def errors(ours, ref):
+    q0 = ref["q0"]
+    zo, zr = ours["z"], ref["z"]
+    free = ref["node_type"] == 0
+    e = {"u": rel_l2(zo[..., :3] - q0, zr[..., :3] - q0), "q": rel_l2(zo[..., :3], zr[..., :3]),
+         "v": rel_l2(zo[..., 3:6], zr[..., 3:6]), "sigma_free": rel_l2(zo[..., 6:], zr[..., 6:], free),
+         "sigma_all": rel_l2(zo[..., 6:], zr[..., 6:])}
+    return {k: v[:, 1:] for k, v in e.items()}
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--ours", required=True, help="our beam-reference data set (.npz)")
+    ap.add_argument("--reference", default=str(REFERENCE))
+    ap.add_argument("--identification", default=None, help="JSON history of fem.identify (optional)")
+    ap.add_argument("--out", default=str(RESULTS))
+    args = ap.parse_args(argv)
+    ref, ours = np.load(args.reference), np.load(args.ours)
+    if not np.allclose(ours["q0"], ref["q0"], atol=1e-6):
+        raise SystemExit("node order differs from the reference (q0 mismatch)")
+    e = errors(ours, ref)
+    test_idx = np.asarray(ref["split_test"]) - 1
+    train_idx = np.asarray(ref["split_train"]) - 1
+    table = {}
+    for split, idx in (("all 52", np.arange(52)), ("test", test_idx), ("train", train_idx)):
+        table[split] = {k: float(np.mean(v[idx])) for k, v in e.items()}
+    meta = json.loads(str(ours["metadata"]))
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    ident = json.loads(Path(args.identification).read_text()) if args.identification else None
+    payload = {"machine": describe(), "fem": {k: meta.get(k) for k in ("material", "damping", "n_sub", "load_interp",
+                                                                       "wall_time_s")},
+               "mean_relative_l2": table, "per_case_u": e["u"].mean(1).tolist(), "identification": ident}
+    (out / "abaqus_agreement.json").write_text(json.dumps(payload, indent=1))
+    targets = {"u": 0.05, "v": 0.05, "sigma_free": 0.10}
+    lines = ["# FEM against the Abaqus beam data", "",
+             "Mean over frames 1–20 of the relative L2 error over nodes (σ: free nodes; 'all' includes the clamped face).",
+             "", "| split | u = q − q0 | v | σ (free nodes) | σ (all nodes) | q |", "|---|---|---|---|---|---|"]
+    for split, row in table.items():
+        lines.append(f"| {split} | {row['u']:.4f} | {row['v']:.4f} | {row['sigma_free']:.4f} | {row['sigma_all']:.4f} | {row['q']:.5f} |")
+    lines += ["", "Targets: u ≤ %.2f, v ≤ %.2f, σ (free) ≤ %.2f — all 52: %s" % (
+        targets["u"], targets["v"], targets["sigma_free"],
+        ", ".join(f"{k} {'met' if table['all 52'][k] <= t else 'NOT met'}" for k, t in targets.items())), "",
+        f"FEM settings: {json.dumps(payload['fem'])}", ""]
+    if ident:
+        lines += ["Identification history (train cases only; loss = mean relative L2 error of u):", "",
+                  "| iter | loss | density | damping α | Prony time scale s |", "|---|---|---|---|---|"]
+        lines += [f"| {h['iter']} | {h['loss']:.4f} | {h['density']:.4g} | {h['damping']:.4g} | {h['tau_scale']:.4g} |" for h in ident]
+    (out / "abaqus_agreement.md").write_text("\n".join(lines) + "\n")
+    _plot(out / "abaqus_agreement.png", ours, ref, e)
+    print("\n".join(lines))
+
+
+def _plot(path, ours, ref, e):
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    q0 = ref["q0"]
+    t = np.arange(21) * float(ref["dt"])
+    tip = q0[:, 0] == q0[:, 0].max()
+    fig, ax = plt.subplots(1, 3, figsize=(15, 4))
+    for sim, col in ((1, "C0"), (7, "C1"), (13, "C2"), (40, "C3")):
+        i = sim - 1
+        comp = int(np.argmax(np.abs(ref["z"][i, -1, tip, :3] - q0[tip]).mean(0)))
+        ax[0].plot(t, (ref["z"][i, :, tip, comp] - q0[tip, comp]).mean(0), col + "-", label=f"Abaqus sim {sim}")
+        ax[0].plot(t, (ours["z"][i, :, tip, comp] - q0[tip, comp]).mean(0), col + "--", label=f"ours sim {sim}")
+        node = int(np.argmax(np.abs(ref["z"][i, -1, :, 6]) * (ref["node_type"] == 0)))
+        ax[1].plot(t, ref["z"][i, :, node, 6], col + "-")
+        ax[1].plot(t, ours["z"][i, :, node, 6], col + "--")
+    ax[0].set(xlabel="t", ylabel="mean tip displacement (load axis)", title="tip displacement: — Abaqus, -- FEM")
+    ax[0].legend(fontsize=7)
+    ax[1].set(xlabel="t", ylabel="S11", title="S11 at the most stressed free node")
+    ax[2].boxplot([e["u"].ravel(), e["v"].ravel(), e["sigma_free"].ravel()], labels=["u", "v", "σ free"])
+    ax[2].set(yscale="log", title="relative L2 error per case and frame")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+if __name__ == "__main__":
+    main()
