@@ -6,8 +6,10 @@ table plane) and a fingertip track. ``run`` plays it frame by frame:
 
     unproject fingertips -> fingertip + contact forces -> step every body -> render -> write frame
 
-Each stage is one jitted function compiled on the first frame; shapes never change afterwards (the track is
-padded to a fixed number of fingertips), so nothing is recompiled. ``run`` returns per-stage timings (p50/p99).
+timed as the stages ``forces`` (unprojection + fingertip + contact forces), ``step``, ``render`` (shade,
+rasterise, hand proxy, occlusion), ``write`` (copy to the host + the caller's writer) and the whole ``frame``.
+Each stage is jitted and compiled on the first frame; shapes never change afterwards (the track is padded to a
+fixed number of fingertips), so nothing is recompiled. ``run`` returns per-stage timings (p50/p99).
 
 Units: the world and the camera are in metres (the depth camera's unit). A body's state lives in its model frame
 and units (q and forces as the body's model was trained); ``Body.model`` maps model to world (with a scale).
@@ -371,6 +373,8 @@ def validate(scene: Scene) -> None:
         tri = np.asarray(b.triangles)
         if tri.ndim != 2 or tri.shape[1] != 3 or tri.min() < 0 or tri.max() >= n:
             raise ValueError(f"bodies[{k}].triangles must be [T,3] indices below {n}")
+        if scene.step is None and not callable(b.step_fn):
+            raise ValueError(f"bodies[{k}].step_fn must be callable (or give the scene a step), got {b.step_fn!r}")
         if not (b.tip_radius > 0 and b.vmax > 0):
             raise ValueError(f"bodies[{k}] needs tip_radius > 0 and vmax > 0, got {b.tip_radius}, {b.vmax}")
 
