@@ -14,6 +14,7 @@ import sys
 COMMAND_MODULES = (
     "fem.cli",
     "tignn_jax.commands_model",
+    "tignn_jax.commands_demo",
 )
 
 
