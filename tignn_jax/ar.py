@@ -158,9 +158,11 @@ def fingertip_forces(tips, positions, normals, radius, magnitude) -> Array:
     for interior nodes, as ``vertex_normals`` gives); radius: contact radius (model units); magnitude: force
     per node (model force units).
 
-    The rule (the paper's prescribed fingertip load): every node within ``radius`` of a fingertip receives
-    a force of constant ``magnitude`` along its inward normal ``-n_i`` (the finger pushes into the surface);
-    there is no falloff inside the radius and the force is exactly zero outside it. A node touched by
+    The rule: every node within ``radius`` of a fingertip receives a force of constant ``magnitude`` along its
+    inward normal ``-n_i`` (the finger pushes into the surface, like the training data's loads: a fixed force
+    per node on a patch of the surface, into the body); there is no falloff inside the radius and the force is
+    exactly zero outside it. (The mixed-reality paper prescribes a load at the tracked fingertip but does not
+    spell out a falloff; this choice keeps the loads inside the distribution the model was trained on.) A node touched by
     several fingertips receives one such force per fingertip. Interior nodes have n = 0 and receive nothing.
     """
     distance = jnp.linalg.norm(positions[None, :, :] - tips[:, None, :], axis=-1)  # [K,N]
