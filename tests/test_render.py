@@ -3,7 +3,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from tignn_jax.render import rasterize, fragment_capacity, surface_nodes, surface_triangles
+from tignn_jax.render import draw_mesh, fragment_capacity, rasterize, surface_nodes, surface_triangles
 
 W, H = 64, 48
 
@@ -262,3 +262,42 @@ def test_demo_command_writes_gif_and_timings_and_labels_the_stand_in(tmp_path):
     assert gif.stat().st_size > 0
     assert summary["dynamics"].startswith("STAND-IN") and summary["frames"] == 2
     assert {"p50_ms", "p99_ms"} <= set(summary["render"])
+
+
+def _box_view():
+    points, cells = _box_hex(4, 2, 2)
+    tris = surface_triangles(cells, points)
+    model = ar.model_matrix([-0.04, 0.0, -0.02], np.eye(3), 0.02)
+    world = ar.transform_points(model, jnp.asarray(points, jnp.float32))
+    view = ar.look_at([0.05, 0.12, 0.2], [0.0, 0.02, 0.0], [0.0, 1.0, 0.0])
+    vp = ar.perspective(np.deg2rad(50.0), W / H, 0.02, 2.0) @ view
+    return points, tris, model, world, vp
+
+
+def test_fingertip_at_a_rendered_nodes_pixel_and_depth_lands_on_the_node():
+    # A tracker reads a pixel and the depth image there; unprojecting it recovers the surface point it sees.
+    points, tris, model, world, vp = _box_view()
+    raster = jax.jit(lambda q: draw_mesh(q, jnp.asarray(tris), jnp.ones_like(q) * 0.5, vp, jnp.zeros(3),
+                                         jnp.array([0.0, -1.0, 0.0]), width=W, height=H, capacity=32768))(world)
+    pixels, depth = ar.project(world, vp, (0.0, 0.0, W, H))
+    node = int(np.flatnonzero(np.all(points == [2.0, 2.0, 1.0], axis=1))[0])  # centre of the top face, seen from above
+    i, j = np.floor(np.asarray(pixels[node])).astype(int)
+    seen = float(raster.depth[j, i])
+    assert abs(seen - float(depth[node])) < 0.01 * float(depth[node])
+    tip = ar.unproject(jnp.array([[i + 0.5, j + 0.5]]), jnp.array([seen]), vp, (0.0, 0.0, W, H))
+    pixel_size = float(depth[node]) * 2 * np.tan(np.deg2rad(25.0)) / H   # metres per pixel at that depth
+    assert float(jnp.linalg.norm(tip[0] - world[node])) < 2 * pixel_size
+
+
+def test_virtual_body_behind_a_real_wall_is_not_drawn():
+    # The whole render path: a real wall nearer than the body hides it; moved behind the body, it shows it.
+    points, tris, model, world, vp = _box_view()
+    raster = draw_mesh(world, jnp.asarray(tris), jnp.ones_like(world), vp, jnp.zeros(3),
+                       jnp.array([0.0, -1.0, 0.0]), width=W, height=H, capacity=32768)
+    real_rgb = jnp.zeros((H, W, 3))
+    drawn = np.isfinite(np.asarray(raster.depth))
+    assert drawn.sum() > 50
+    hidden = ar.occlude(raster.rgb, raster.depth, real_rgb, jnp.full((H, W), 0.05))   # wall at 5 cm
+    shown = ar.occlude(raster.rgb, raster.depth, real_rgb, jnp.full((H, W), 1.5))     # wall at 1.5 m
+    assert float(jnp.abs(hidden).max()) == 0.0
+    np.testing.assert_array_equal(np.asarray(shown)[drawn], np.asarray(raster.rgb)[drawn])
