@@ -134,16 +134,20 @@ def main():
     parser.add_argument("--repeats", type=int, default=200)
     args = parser.parse_args()
     results = {"machine": {"platform": platform.platform(), "cpu_count": os.cpu_count(), "jax": jax.__version__,
-                           "backend": jax.default_backend()},
+                           "backend": jax.default_backend(), "load_average_at_start": os.getloadavg()},
                "radius": RADIUS, "stiffness": STIFFNESS, "repeats": args.repeats}
     for name, (a, b) in cases().items():
         results[name] = bench_case(a, b, args.repeats)
         print(name, json.dumps(results[name], indent=1))
+    results["machine"]["load_average_at_end"] = os.getloadavg()
     RESULTS.mkdir(parents=True, exist_ok=True)
     (RESULTS / "ar_contact.json").write_text(json.dumps(results, indent=2))
     lines = ["# Contact forces between two bodies: p50 / p99 ms per call", "",
              f"Machine: {results['machine']['platform']}, {results['machine']['cpu_count']} CPUs, jax {jax.__version__} "
-             f"({jax.default_backend()}); {args.repeats} calls after compilation; CPU shared with other work.", "",
+             f"({jax.default_backend()}); {args.repeats} calls after compilation. The 2 CPUs were shared with other jobs "
+             f"(load average {results['machine']['load_average_at_start'][0]:.1f} at start, "
+             f"{results['machine']['load_average_at_end'][0]:.1f} at end): p99 is mostly other jobs; min times "
+             "are in the JSON.", "",
              "| case | nodes | pairs in contact | dense | dense + bbox cond | pruned (library, scenes) | pruned, bodies "
              "apart | jax-md cell list | jax-md no cell list | fastest |",
              "|---|---|---|---|---|---|---|---|---|---|"]
