@@ -110,25 +110,77 @@ def parse_split(text: str) -> str | list[int]:
 def normalization(data: Dataset, rows: np.ndarray) -> dict:
     """Per-feature statistics of the rows' cases (the training split), float32 numpy arrays.
 
-    z_mean, z_std [12]: node state; dz_std [12]: per-frame increment z[k+1]-z[k] (the step scale c of the
-    model's output coordinates); f_std [3]: force; dq_std [3] and dqn_mean, dqn_std [1]: edge vector
-    q_i - q_j and its length over all frames.
+    z_mean, z_std [12]: node state; dz_std [12]: per-frame increment z[k+1]-z[k] of free nodes' q, v and all
+    nodes' stress (the output scale); f_std [3]: force; dq_std [3] and dqn_mean, dqn_std [1]: edge vector
+    q_j - q_i and its length over all frames. Vectors (q, v, their increments, f, dq) get one isotropic scale
+    (RMS over components), so a direction unseen in training is not blown up; stress components get their own
+    std, floored at 1e-2 of the largest; every scale is positive.
     """
-    z, f = data.z[rows], data.f[rows]
+    z, f = data.z[rows].astype(np.float64), data.f[rows].astype(np.float64)
     s, r = data.edges
     dq = z[..., s, :3] - z[..., r, :3]
     dqn = np.linalg.norm(dq, axis=-1)
     free = data.node_type == 0
-    dz = (z[:, 1:] - z[:, :-1])
-    dz_std = np.concatenate([dz[:, :, free, :6].reshape(-1, 6).std(0), dz[..., 6:].reshape(-1, 6).std(0)])
-    eps = 1e-8
+    dz = z[:, 1:] - z[:, :-1]
+    flat = z.reshape(-1, STATE_DIM)
+    z_std = np.concatenate([_iso(flat[:, :3] - flat[:, :3].mean(0)), _iso(flat[:, 3:6] - flat[:, 3:6].mean(0)),
+                            _floored(flat[:, 6:].std(0))])
+    dz_free = dz[:, :, free].reshape(-1, STATE_DIM)
+    dz_std = np.concatenate([_iso(dz_free[:, :3]), _iso(dz_free[:, 3:6]),
+                             _floored(dz.reshape(-1, STATE_DIM)[:, 6:].std(0))])
+    dqn_mean = dqn.mean()
     stats = dict(
-        z_mean=z.reshape(-1, STATE_DIM).mean(0),
-        z_std=z.reshape(-1, STATE_DIM).std(0) + eps,
-        dz_std=dz_std + eps,
-        f_std=np.sqrt((f.reshape(-1, 3) ** 2).mean(0)) + eps,
-        dq_std=np.sqrt((dq.reshape(-1, 3) ** 2).mean(0)) + eps,
-        dqn_mean=np.array([dqn.mean()]),
-        dqn_std=np.array([dqn.std()]) + eps,
+        z_mean=flat.mean(0),
+        z_std=z_std,
+        dz_std=dz_std,
+        f_std=_iso(f.reshape(-1, 3)),
+        dq_std=_iso(dq.reshape(-1, 3)),
+        dqn_mean=np.array([dqn_mean]),
+        dqn_std=np.array([max(dqn.std(), 1e-3 * dqn_mean, 1e-12)]),
     )
     return {k: np.asarray(v, np.float32) for k, v in stats.items()}
+
+
+def _iso(x) -> np.ndarray:
+    """One scale for a vector quantity [M,3]: RMS over all entries, repeated 3 times (1 if all zero)."""
+    rms = float(np.sqrt(np.mean(np.square(x)))) if np.size(x) else 0.0
+    return np.full(3, rms if rms > 0 else 1.0)
+
+
+def _floored(std) -> np.ndarray:
+    top = float(np.max(std))
+    return np.maximum(std, 1e-2 * top) if top > 0 else np.ones_like(std)
+
+
+def synthetic_beam(nx: int = 4, ny: int = 2, nz: int = 2, cases: int = 3, frames: int = 4, seed: int = 0,
+                   dt: float = 0.05) -> Dataset:
+    """A small smooth data set on a grid of nx×ny×nz nodes (spacing 1), clamped at x = 0, for tests and examples.
+
+    Each case bends the bar in y with tip displacement a·t² (a from the seed): u_y = a t² (x/L)², v = du/dt,
+    stress S11 = -k y' ∂²u_y/∂x² (y' = y − y_mid) and S12 = k ∂u_y/∂x, the other components 0; the force is a
+    constant push on the tip nodes. Not a physical solution, just smooth and learnable."""
+    rng = np.random.default_rng(seed)
+    g = np.stack(np.meshgrid(np.arange(nx), np.arange(ny), np.arange(nz), indexing="ij"), -1).reshape(-1, 3)
+    q0 = g.astype(np.float32)
+    index = {tuple(p): i for i, p in enumerate(g.tolist())}
+    pairs = [(i, index[tuple(p + d)]) for i, p in enumerate(g) for d in np.eye(3, dtype=int)
+             if tuple(p + d) in index]
+    edges = np.array(pairs + [(b, a) for a, b in pairs], np.int32).T
+    node_type = (g[:, 0] == 0).astype(np.int8)
+    length = float(nx - 1)
+    x, y = q0[:, 0] / length, q0[:, 1] - (ny - 1) / 2
+    t = np.arange(frames + 1) * dt
+    amp = rng.uniform(0.5, 1.5, cases)
+    z = np.zeros((cases, frames + 1, len(q0), STATE_DIM), np.float32)
+    f = np.zeros((cases, frames, len(q0), 3), np.float32)
+    for c in range(cases):
+        uy = amp[c] * t[:, None] ** 2 * x[None] ** 2
+        z[c, :, :, :3] = q0
+        z[c, :, :, 1] += uy
+        z[c, :, :, 4] = 2 * amp[c] * t[:, None] * x[None] ** 2
+        z[c, :, :, 6] = -100.0 * y[None] * 2 * amp[c] * t[:, None] ** 2 / length ** 2
+        z[c, :, :, 9] = 100.0 * 2 * amp[c] * t[:, None] ** 2 * x[None] / length
+        f[c, :, g[:, 0] == nx - 1, 1] = 10.0 * amp[c]
+    ids = np.arange(1, cases + 1, dtype=np.int32)
+    return Dataset(q0=q0, edges=edges, node_type=node_type, z=z, f=f, dt=dt, sim_id=ids,
+                   splits={"train": ids[:max(cases - 1, 1)], "val": ids[-1:], "test": ids[-1:]})

@@ -8,6 +8,7 @@ first state and runs on the true forces; statistics are over snapshots 1..T (t =
 from __future__ import annotations
 
 import json
+from functools import partial
 from pathlib import Path
 
 import jax
@@ -48,9 +49,13 @@ def rollout_cases(params: dict, data: D.Dataset, rows) -> np.ndarray:
     config = M.ModelConfig(**params["config"])
     nt = jnp.asarray(data.node_type, jnp.int32)
     topo = M.topology(data.edges[0], data.edges[1], len(data.node_type))
-    run = jax.jit(jax.vmap(lambda z0, f: api.rollout_states(params["weights"], config, params["norm"], z0, f,
-                                                            nt, topo)))
-    return np.asarray(run(jnp.asarray(data.z[rows, 0]), jnp.asarray(data.f[rows])))
+    return np.asarray(_rollout_many(params["weights"], config, params["norm"], jnp.asarray(data.z[rows, 0]),
+                                    jnp.asarray(data.f[rows]), nt, topo))
+
+
+@partial(jax.jit, static_argnames="config")
+def _rollout_many(weights, config, norm, z0, forces, node_type, topo):
+    return jax.vmap(lambda a, b: api.rollout_states(weights, config, norm, a, b, node_type, topo))(z0, forces)
 
 
 def split_errors(params: dict, data: D.Dataset, rows, pred=None) -> dict:
@@ -81,22 +86,26 @@ def structure_along_rollouts(params: dict, data: D.Dataset, rows, pred) -> dict:
     config = M.ModelConfig(**params["config"])
     nt = jnp.asarray(data.node_type, jnp.int32)
     topo = M.topology(data.edges[0], data.edges[1], len(data.node_type))
-
-    def one(z, f):
-        rt = M.rates(params["weights"], config, params["norm"], z, f, nt, topo)
-        size = jnp.linalg.norm(rt.dw) + 1e-12
-        _, m_op = M.operators(params["weights"], config, params["norm"], z, f, nt, topo)
-        dissipation = jnp.einsum("ni,nij,nj->", rt.grad_s, m_op, rt.grad_s)
-        return jnp.stack([jnp.linalg.norm(rt.deg_l) / size, jnp.linalg.norm(rt.deg_m) / size,
-                          rt.entropy_rate, dissipation])
-
-    fn = jax.jit(jax.vmap(jax.vmap(one)))
-    res = np.asarray(fn(jnp.asarray(pred[:, :-1]), jnp.asarray(data.f[rows])))
+    res = np.asarray(_structure_many(params["weights"], config, params["norm"], jnp.asarray(pred[:, :-1]),
+                                     jnp.asarray(data.f[rows]), nt, topo))
     names = ("deg_l_rel", "deg_m_rel", "entropy_rate", "dissipation")
     out = {n: {"mean": float(res[..., i].mean()), "max": float(res[..., i].max()),
                "min": float(res[..., i].min())} for i, n in enumerate(names)}
     out["entropy_rate_negative_fraction"] = float(np.mean(res[..., 2] < 0))
     return out
+
+
+@partial(jax.jit, static_argnames="config")
+def _structure_many(weights, config, norm, states, forces, node_type, topo):
+    def one(z, f):
+        rt = M.rates(weights, config, norm, z, f, node_type, topo)
+        size = jnp.linalg.norm(rt.dw) + 1e-12
+        _, m_op = M.operators(weights, config, norm, z, f, node_type, topo)
+        dissipation = jnp.einsum("ni,nij,nj->", rt.grad_s, m_op, rt.grad_s)
+        return jnp.stack([jnp.linalg.norm(rt.deg_l) / size, jnp.linalg.norm(rt.deg_m) / size,
+                          rt.entropy_rate, dissipation])
+
+    return jax.vmap(jax.vmap(one))(states, forces)
 
 
 def evaluate(params: dict, data: D.Dataset, splits=("train", "val", "test"), structure: bool = True) -> dict:

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import json
 import time
+from functools import partial
 from pathlib import Path
 from typing import NamedTuple
 
@@ -94,20 +95,21 @@ def loss_fn(weights, batch: Batch, key, norm, cfg: TrainConfig, node_type, topo)
     return loss, metrics
 
 
-def make_train_step(cfg: TrainConfig, optimizer, norm, node_type, topo):
-    """jit-compiled ``(state, batch) -> (state, metrics)``; the noise key is derived from the step count."""
-    base = jax.random.PRNGKey(cfg.seed)
+def make_train_step(cfg: TrainConfig, total_steps: int, norm, node_type, topo):
+    """``(state, batch) -> (state, metrics)``, jit-compiled once per (cfg, total_steps, shapes); the noise
+    key is derived from the step count."""
+    return lambda state, batch: _train_step(state, batch, norm, node_type, topo, cfg=cfg, total_steps=total_steps)
 
-    @jax.jit
-    def train_step(state, batch):
-        key = jax.random.fold_in(base, state["step"])
-        (_, metrics), grads = jax.value_and_grad(loss_fn, has_aux=True)(
-            state["weights"], batch, key, norm, cfg, node_type, topo)
-        updates, opt_state = optimizer.update(grads, state["opt_state"], state["weights"])
-        weights = optax.apply_updates(state["weights"], updates)
-        return {"step": state["step"] + 1, "weights": weights, "opt_state": opt_state}, metrics
 
-    return train_step
+@partial(jax.jit, static_argnames=("cfg", "total_steps"))
+def _train_step(state, batch, norm, node_type, topo, cfg, total_steps):
+    optimizer = make_optimizer(cfg, total_steps)
+    key = jax.random.fold_in(jax.random.PRNGKey(cfg.seed), state["step"])
+    (_, metrics), grads = jax.value_and_grad(loss_fn, has_aux=True)(
+        state["weights"], batch, key, norm, cfg, node_type, topo)
+    updates, opt_state = optimizer.update(grads, state["opt_state"], state["weights"])
+    weights = optax.apply_updates(state["weights"], updates)
+    return {"step": state["step"] + 1, "weights": weights, "opt_state": opt_state}, metrics
 
 
 def data_mesh(devices=None) -> Mesh:
@@ -145,7 +147,8 @@ def train(data: D.Dataset, cfg: TrainConfig, run_dir: str | Path, train_split="t
     steps_per_epoch = n_samples // bs
     if steps_per_epoch == 0:
         raise ValueError(f"batch_size {bs} exceeds the {n_samples} training transitions")
-    optimizer = make_optimizer(cfg, cfg.epochs * steps_per_epoch)
+    total_steps = cfg.epochs * steps_per_epoch
+    optimizer = make_optimizer(cfg, total_steps)
 
     mesh = data_mesh(devices)
     if bs % mesh.size:
@@ -168,7 +171,7 @@ def train(data: D.Dataset, cfg: TrainConfig, run_dir: str | Path, train_split="t
         log(f"resumed from epoch {start_epoch} (step {int(state['step'])})")
     _truncate_log(run_dir / "metrics.jsonl", start_epoch)
     state = jax.device_put(state, replicated)
-    train_step = make_train_step(cfg, optimizer, norm, node_type, topo)
+    train_step = make_train_step(cfg, total_steps, norm, node_type, topo)
 
     z_train, f_train = data.z[rows], data.f[rows]
     last_epoch = cfg.epochs if stop_after_epoch is None else min(cfg.epochs, stop_after_epoch)

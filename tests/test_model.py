@@ -1,0 +1,206 @@
+"""The GENERIC graph network: structure of L and M, gradients, degeneracy, clamping, the public API."""
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from tignn_jax import api
+from tignn_jax import data as D
+from tignn_jax import graph as G
+from tignn_jax import model as M
+
+REFERENCE = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "abaqus_beam.npz"
+CONFIG = M.ModelConfig(hidden=8, mlp_layers=2, passes=2)
+
+
+@pytest.fixture(scope="module")
+def toy():
+    """A tiny untrained model on a 4x2x2 synthetic bar (4 clamped nodes) and a mid-rollout state."""
+    data = D.synthetic_beam(nx=4, ny=2, nz=2, cases=3, frames=4)
+    norm = D.normalization(data, D.split_rows(data, "train"))
+    topo = M.topology(data.edges[0], data.edges[1], len(data.q0))
+    z, f = jnp.asarray(data.z[0, 2]), jnp.asarray(data.f[0, 2])
+    nt = jnp.asarray(data.node_type, jnp.int32)
+    jnorm = {k: jnp.asarray(v) for k, v in norm.items()}
+    weights = M.init_weights(jax.random.PRNGKey(1), CONFIG, jnorm, z, f, nt, topo)
+    params = api.make_params(CONFIG, norm, weights, data.q0, data.edges, data.node_type)
+    return dict(data=data, params=params, norm=jnorm, topo=topo, z=z, f=f, nt=nt, weights=weights)
+
+
+def _args(t):
+    return t["weights"], CONFIG, t["norm"], t["z"], t["f"], t["nt"], t["topo"]
+
+
+def test_L_is_skew_symmetric_and_M_symmetric_positive_semidefinite(toy):
+    # GENERIC: L conserves energy (skew), M dissipates (symmetric PSD), at every node.
+    big_l, big_m = M.operators(*_args(toy))
+    scale_l, scale_m = float(jnp.max(jnp.abs(big_l))), float(jnp.max(jnp.abs(big_m)))
+    assert scale_l > 0 and scale_m > 0
+    assert float(jnp.max(jnp.abs(big_l + jnp.swapaxes(big_l, 1, 2)))) <= 1e-6 * scale_l
+    assert float(jnp.max(jnp.abs(big_m - jnp.swapaxes(big_m, 1, 2)))) <= 1e-6 * scale_m
+    eig = np.linalg.eigvalsh(np.asarray(big_m, np.float64))
+    assert eig.min() >= -1e-6 * scale_m
+    assert np.all(np.abs(np.diagonal(np.asarray(big_l), axis1=1, axis2=2)) == 0)
+
+
+def test_energy_gradient_matches_finite_differences(toy):
+    # dz/dt uses ∇E, ∇S from autodiff; check them along random directions by central differences in float64.
+    with jax.enable_x64(True):
+        w64 = jax.tree_util.tree_map(lambda x: jnp.asarray(x, jnp.float64), toy["weights"])
+        n64 = {k: jnp.asarray(v, jnp.float64) for k, v in toy["norm"].items()}
+        z64, f64 = jnp.asarray(toy["z"], jnp.float64), jnp.asarray(toy["f"], jnp.float64)
+        rt = M.rates(w64, CONFIG, n64, z64, f64, toy["nt"], toy["topo"])
+        scale = M.state_scale(n64)
+        potentials = lambda z: M.energy_entropy(w64, CONFIG, n64, z, f64, toy["nt"], toy["topo"])
+        rng = np.random.default_rng(0)
+        for _ in range(3):
+            direction = jnp.asarray(rng.normal(size=z64.shape)) * scale   # a step in w = z / s
+            h = 1e-6
+            fd = (potentials(z64 + h * direction) - potentials(z64 - h * direction)) / (2 * h)
+            unit = direction / scale
+            analytic = jnp.stack([jnp.sum(rt.grad_e * unit), jnp.sum(rt.grad_s * unit)])
+            np.testing.assert_allclose(np.asarray(analytic), np.asarray(fd), rtol=1e-6, atol=1e-9)
+
+
+def test_degeneracy_residuals_on_a_hand_built_case():
+    # L∇S and M∇E with L = l - lᵀ, M = m mᵀ: one node, l with l[1,0] = 2, m with m[0,0] = 1, m[2,0] = 3.
+    l_mat = np.zeros((1, 12, 12), np.float32)
+    l_mat[0, 1, 0] = 2.0
+    m_mat = np.zeros((1, 12, 12), np.float32)
+    m_mat[0, 0, 0], m_mat[0, 2, 0] = 1.0, 3.0
+    grad_s = np.zeros((1, 12), np.float32)
+    grad_s[0, 0], grad_s[0, 1] = 1.0, 5.0
+    grad_e = np.zeros((1, 12), np.float32)
+    grad_e[0, 2] = 1.0
+    # L = [[0,-2],[2,0]] on (0,1): L∇S = (-2*5, 2*1); M = [[1,3],[3,9]] on (0,2): M∇E = (3, 9)
+    expected_l = np.zeros(12)
+    expected_l[0], expected_l[1] = -10.0, 2.0
+    expected_m = np.zeros(12)
+    expected_m[0], expected_m[2] = 3.0, 9.0
+    np.testing.assert_allclose(np.asarray(M._apply_l(jnp.asarray(l_mat), jnp.asarray(grad_s)))[0], expected_l)
+    np.testing.assert_allclose(np.asarray(M._apply_m(jnp.asarray(m_mat), jnp.asarray(grad_e)))[0], expected_m)
+
+
+def test_rates_residuals_equal_operators_times_gradients(toy):
+    # The residuals reported in training are exactly L∇S and M∇E of the assembled per-node operators.
+    rt = M.rates(*_args(toy))
+    big_l, big_m = M.operators(*_args(toy))
+    np.testing.assert_allclose(np.asarray(rt.deg_l), np.asarray(jnp.einsum("nij,nj->ni", big_l, rt.grad_s)),
+                               rtol=1e-4, atol=1e-6 * float(jnp.max(jnp.abs(rt.deg_l))))
+    np.testing.assert_allclose(np.asarray(rt.deg_m), np.asarray(jnp.einsum("nij,nj->ni", big_m, rt.grad_e)),
+                               rtol=1e-4, atol=1e-6 * float(jnp.max(jnp.abs(rt.deg_m))))
+    free = np.asarray(toy["nt"]) == 0
+    dw = np.asarray(jnp.einsum("nij,nj->ni", big_l, rt.grad_e) + jnp.einsum("nij,nj->ni", big_m, rt.grad_s))
+    np.testing.assert_allclose(np.asarray(rt.dw)[free], dw[free], rtol=1e-4, atol=1e-6 * np.abs(dw).max())
+
+
+def test_neighbor_gather_gradient_matches_plain_gather(toy):
+    # The slot gather's hand-written transpose (a gather through reverse edges) is its true adjoint.
+    topo = toy["topo"]
+    x = jax.random.normal(jax.random.PRNGKey(0), (len(toy["nt"]), 5))
+    ct = jax.random.normal(jax.random.PRNGKey(1), topo.nbr.shape + (5,))
+    plain = lambda x: x[topo.nbr] * topo.mask[..., None]
+    _, vjp_fast = jax.vjp(lambda x: M.gather_neighbors(x, topo), x)
+    _, vjp_plain = jax.vjp(plain, x)
+    np.testing.assert_allclose(np.asarray(vjp_fast(ct)[0]), np.asarray(vjp_plain(ct)[0]), rtol=1e-5, atol=1e-5)
+    np.testing.assert_array_equal(np.asarray(M.gather_neighbors(x, topo)), np.asarray(plain(x)))
+
+
+def test_topology_rejects_one_directional_edges():
+    # The reverse-edge transpose needs every edge in both directions (the data format's contract).
+    with pytest.raises(ValueError, match="both directions"):
+        M.topology(np.array([0, 1]), np.array([1, 2]), 3)
+
+
+def test_step_keeps_clamped_position_and_velocity_but_evolves_their_stress(toy):
+    # Clamped nodes are prescribed (q, v fixed); their stress is predicted, not copied.
+    graph = G.from_state(toy["z"], toy["data"].edges, toy["data"].node_type)
+    new = api.step(toy["params"], graph, toy["f"])
+    clamped = np.asarray(toy["nt"]) == 1
+    z0, z1 = np.asarray(toy["z"]), np.asarray(new.nodes["z"])
+    np.testing.assert_array_equal(z1[clamped, :6], z0[clamped, :6])
+    assert np.abs(z1[clamped, 6:] - z0[clamped, 6:]).max() > 0
+    assert np.abs(z1[~clamped, :6] - z0[~clamped, :6]).max() > 0
+
+
+def test_rollout_equals_repeated_steps(toy):
+    # lax.scan rollout is the same map as calling step in a Python loop.
+    data = toy["data"]
+    graph = G.from_data(data, 0, 0)
+    states = api.rollout(toy["params"], graph, data.f[0])
+    assert states.shape == (data.f.shape[1] + 1, len(data.q0), 12)
+    np.testing.assert_array_equal(np.asarray(states[0]), data.z[0, 0])
+    g = graph
+    for k in range(data.f.shape[1]):
+        g = api.step(toy["params"], g, data.f[0, k])
+        np.testing.assert_allclose(np.asarray(states[k + 1]), np.asarray(g.nodes["z"]), rtol=1e-5, atol=1e-5)
+
+
+def test_batched_copies_step_like_separate_graphs(toy):
+    # Two bodies of the model's mesh in one graph (jraph-style batch) evolve independently.
+    data = toy["data"]
+    g1, g2 = G.from_data(data, 0, 1), G.from_data(data, 1, 2)
+    both = api.step(toy["params"], G.batch([g1, g2]), np.concatenate([data.f[0, 1], data.f[1, 2]]))
+    n = len(data.q0)
+    np.testing.assert_allclose(np.asarray(both.nodes["z"][:n]),
+                               np.asarray(api.step(toy["params"], g1, data.f[0, 1]).nodes["z"]), atol=1e-5)
+    np.testing.assert_allclose(np.asarray(both.nodes["z"][n:]),
+                               np.asarray(api.step(toy["params"], g2, data.f[1, 2]).nodes["z"]), atol=1e-5)
+
+
+def test_step_rejects_bad_inputs_naming_them(toy):
+    # Validation at the public boundary: shapes, NaN forces, and graphs of another mesh.
+    data, params = toy["data"], toy["params"]
+    graph = G.from_data(data, 0, 0)
+    n = len(data.q0)
+    with pytest.raises(ValueError, match="forces"):
+        api.step(params, graph, np.zeros((n, 2)))
+    bad = np.zeros((n, 3))
+    bad[3, 1] = np.nan
+    with pytest.raises(ValueError, match="NaN"):
+        api.step(params, graph, bad)
+    with pytest.raises(ValueError, match="forces_seq"):
+        api.rollout(params, graph, np.zeros((n, 3)))
+    other = D.synthetic_beam(nx=5, ny=2, nz=2)
+    with pytest.raises(ValueError, match="n_node"):
+        api.step(params, G.from_data(other), np.zeros((len(other.q0), 3)))
+    rewired = G.from_state(data.z[0, 0], data.edges[:, ::-1], data.node_type)
+    with pytest.raises(ValueError, match="senders/receivers"):
+        api.step(params, rewired, np.zeros((n, 3)))
+    retyped = G.from_state(data.z[0, 0], data.edges, np.zeros(n, np.int8))
+    with pytest.raises(ValueError, match="node_type"):
+        api.step(params, retyped, np.zeros((n, 3)))
+
+
+def test_saved_model_loads_and_steps_identically(toy, tmp_path):
+    # A model file round-trips: same config, normalisation and weights give the same step.
+    path = api.save_model(toy["params"], tmp_path / "m" / "model.npz")
+    params, rest = api.load_pretrained(str(path.parent))
+    np.testing.assert_array_equal(np.asarray(rest.nodes["z"][:, :3]), toy["data"].q0)
+    assert np.all(np.asarray(rest.nodes["z"][:, 3:]) == 0)
+    graph = G.from_data(toy["data"], 0, 2)
+    a = api.step(toy["params"], graph, toy["f"]).nodes["z"]
+    b = api.step(params, graph, toy["f"]).nodes["z"]
+    np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+
+
+def test_load_pretrained_unknown_name_lists_shipped_models():
+    with pytest.raises(ValueError, match="no model named"):
+        api.load_pretrained("no-such-model")
+
+
+def test_loader_reads_the_reference_beam():
+    # The Abaqus reference data: 52 sims, 756 nodes, 3960 directed edges, published split 41/5/6.
+    if not REFERENCE.exists():
+        pytest.skip(f"reference data not found at {REFERENCE}")
+    data = D.load(REFERENCE)
+    assert data.z.shape == (52, 21, 756, 12) and data.f.shape == (52, 20, 756, 3)
+    assert data.edges.shape == (2, 3960) and int(data.node_type.sum()) == 36
+    assert sorted(data.splits["test"].tolist()) == [9, 10, 12, 13, 38, 44]
+    assert len(D.split_rows(data, "train")) == 41
+    topo = M.topology(data.edges[0], data.edges[1], 756)
+    assert int(topo.mask.sum()) == 3960
+    norm = D.normalization(data, D.split_rows(data, "train"))
+    assert all(np.all(v > 0) for k, v in norm.items() if k.endswith("std"))
