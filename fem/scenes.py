@@ -92,7 +92,7 @@ def setup_scene(scene: Scene, **kwargs):
 
 
 TWO_BEAMS_GAP = 10.0
-TWO_BEAMS_CONTACT = {"r0": 2.0, "stiffness": 1e6, "skin": 1.5, "capacity": 4096}
+TWO_BEAMS_CONTACT = {"r0": 2.0, "stiffness": 2.5e5, "skin": 1.5, "capacity": 4096}
 
 
 def two_beams_scene(density: float = BEAM_DENSITY, damping: float = BEAM_DAMPING, prony: bool = BEAM_PRONY) -> Scene:

@@ -1,0 +1,139 @@
+"""Scenes, load cases, body-body contact and data generation (issue: scenes and data)."""
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import fem
+from fem import cases, scenes, solver
+from fem.generate import run_cases
+
+REFERENCE = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "abaqus_beam.npz"
+
+
+def test_beam_scene_is_the_papers_beam():
+    """500 hex8, 756 nodes, 36 clamped on x = 0, the paper's Mooney–Rivlin and Prony constants."""
+    sc = scenes.beam_scene()
+    assert sc.points.shape == (756, 3) and sc.cells.shape == (500, 8)
+    assert sc.node_type.sum() == 36 and np.all(sc.points[sc.node_type == 1, 0] == 0)
+    m = sc.material
+    np.testing.assert_allclose([m.c10, m.c01, m.d1], [1.5e5, 5e3, 1e-7], rtol=1e-6)
+    np.testing.assert_allclose(m.g, [0.3, 0.49]); np.testing.assert_allclose(m.tau, [0.2, 0.5])
+
+
+@pytest.mark.skipif(not REFERENCE.exists(), reason="reference data ../shared/data/abaqus_beam.npz not present")
+def test_reference_forces_equal_the_abaqus_forces():
+    """Our 52 load cases are exactly the reference's nodal forces (same nodes, direction, ramp)."""
+    ref = np.load(REFERENCE)
+    ours = scenes.beam_reference_forces(scenes.beam_scene(), np.arange(1, 53))
+    np.testing.assert_allclose(ours, ref["f"], rtol=0, atol=1e-3)
+
+
+def test_fingertip_cases_are_patches_pushing_inwards():
+    """Patches of 1–6 free surface nodes, direction within 30° of the inward normal, peak ≤ the reference max."""
+    sc = scenes.beam_scene()
+    f, described = cases.fingertip_forces(sc, 24, seed=3)
+    f2, _ = cases.fingertip_forces(sc, 24, seed=3)
+    np.testing.assert_array_equal(f, f2)
+    nodes, normals = fem.meshes.surface_nodes_and_normals(sc.points, sc.cells)
+    normal_of = dict(zip(nodes.tolist(), normals))
+    assert {d["profile"] for d in described} <= set(cases.PROFILES)
+    for c, d in enumerate(described):
+        assert 1 <= len(d["nodes"]) <= 6
+        assert np.all(sc.node_type[d["nodes"]] == 0)
+        assert np.all(f[c][:, sc.node_type == 1] == 0)
+        total = np.linalg.norm(f[c].sum(axis=1), axis=-1).max()
+        assert total <= 600_000 * (1 + 1e-9)
+        cosang = -np.dot(d["direction"], normal_of[d["nodes"][0]])
+        assert cosang >= np.cos(np.radians(30)) - 1e-9
+
+
+def test_bunny_point_loads_are_unit_and_normal():
+    """Each case is one unit force on one free surface node, along the inward normal, over all frames."""
+    sc = scenes.bunny_scene()
+    f, picked = cases.point_load_forces(sc, 10, seed=1)
+    assert len(set(picked.tolist())) == 10
+    mags = np.linalg.norm(f, axis=-1)
+    assert np.all((mags > 0).sum(axis=-1) == 1)
+    np.testing.assert_allclose(mags.max(axis=-1), 1.0)
+    with pytest.raises(ValueError, match="not free surface nodes"):
+        cases.point_load_forces(sc, load_nodes=[int(np.where(sc.node_type == 1)[0][0])])
+
+
+def _two_cubes(gap=0.5, contact=True):
+    pts, cells = fem.box_hex_mesh((1.0, 1.0, 1.0), (2, 2, 2))
+    pts_b = pts + np.array([0.0, 0.0, 1.0 + gap])
+    points = np.concatenate([pts, pts_b])
+    allc = np.concatenate([cells, cells + len(pts)])
+    mat = fem.mooney_rivlin(10.0, 0.0, 0.01, density=1.0)
+    ctc = dict(a=np.arange(len(pts)), b=np.arange(len(pts), 2 * len(pts)), r0=0.3, stiffness=500.0, skin=0.3,
+               capacity=512) if contact else None
+    return points, allc, mat, ctc
+
+
+def test_contact_forces_are_equal_and_opposite():
+    """Penalty contact is an internal force of the pair of bodies: the forces sum to zero (momentum)."""
+    points, cells, mat, ctc = _two_cubes(gap=0.1)
+    pb = fem.setup(points, cells, material=mat, frame_dt=0.01, n_frames=1, contact=ctc)
+    pairs, over = solver._contact_pairs(pb.arrays, jnp.asarray(points), 512)
+    f = solver._contact_force(pb.arrays, pairs, jnp.asarray(points))
+    assert not bool(over)
+    assert float(jnp.abs(f).max()) > 0
+    np.testing.assert_allclose(np.asarray(f.sum(0)), 0.0, atol=1e-9 * float(jnp.abs(f).max()))
+
+
+def test_contact_force_is_minus_gradient_of_contact_energy():
+    """The penalty force derives from the potential ½k(r0−d)², so energy is conserved through contact."""
+    with jax.enable_x64(True):
+        points, cells, mat, ctc = _two_cubes(gap=0.1)
+        pb = fem.setup(points, cells, material=mat, frame_dt=0.01, n_frames=1, contact=ctc)
+        x = jnp.asarray(points) + 0.01 * jax.random.normal(jax.random.PRNGKey(0), points.shape)
+        pairs, _ = solver._contact_pairs(pb.arrays, x, 512)
+        g = jax.grad(lambda y: solver._contact_energy(pb.arrays, y))(x)
+        np.testing.assert_allclose(np.asarray(solver._contact_force(pb.arrays, pairs, x)), -np.asarray(g), atol=1e-9)
+
+
+def test_colliding_bodies_conserve_momentum_and_energy():
+    """Two free cubes thrown at each other: total momentum is constant and the energy balance closes."""
+    with jax.enable_x64(True):
+        points, cells, mat, ctc = _two_cubes(gap=0.5)
+        pb = fem.setup(points, cells, material=mat, frame_dt=0.05, n_frames=10, contact=ctc)
+        n = len(points) // 2
+        v0 = np.zeros_like(points)
+        v0[:n, 2], v0[n:, 2] = 1.0, -1.0
+        res = fem.simulate(pb, mat, fem.Loads(v0=jnp.asarray(v0)))
+        m = np.asarray(fem.lumped_mass(pb, mat))[:, None]
+        p = (m * np.asarray(res.v)).sum(axis=1)
+        assert np.abs(p - p[0]).max() < 1e-9
+        e = res.energies
+        total = np.asarray(e.kinetic + e.strain + e.viscous + e.damping - e.external)
+        assert np.abs(total - total[0]).max() < 1e-2 * total[0]
+        assert float(e.strain.max()) > 0.05 * total[0], "the bodies never touched"
+        gap_end = np.asarray(res.q[-1, n:, 2]).min() - np.asarray(res.q[-1, :n, 2]).max()
+        assert gap_end > 0.0, "the bodies interpenetrated"
+        assert not bool(res.contact_overflow)
+
+
+def test_generation_writes_the_data_format_and_resumes(tmp_path, monkeypatch):
+    """A generated file has the reference keys plus cells/cell_type/metadata; finished cases are not rerun."""
+    pts, cells = fem.box_hex_mesh((4.0, 1.0, 1.0), (4, 1, 1))
+    mat = fem.mooney_rivlin(100.0, 0.0, 0.01, density=1.0)
+    node_type = (pts[:, 0] == 0).astype(np.int8)
+    edges = fem.meshes.mesh_edges(cells)
+    sc = scenes.Scene("bar", pts, cells, "hexahedron", edges, node_type, mat, 0.05, 3, 0.0, "step")
+    pb = scenes.setup_scene(sc)
+    forces = np.zeros((3, 3, len(pts), 3))
+    forces[:, :, pts[:, 0] == 4.0, 1] = np.array([1.0, 2.0, 3.0])[:, None, None]
+    out = run_cases(sc, pb, forces, tmp_path / "d.npz", batch_size=2, progress=False)
+    d = np.load(out)
+    assert d["z"].shape == (3, 4, len(pts), 12) and d["f"].shape == (3, 3, len(pts), 3)
+    assert str(d["cell_type"]) == "hexahedron" and '"scene": "bar"' in str(d["metadata"])
+    np.testing.assert_allclose(d["z"][:, :, :, 3:6], np.gradient(d["z"][:, :, :, :3], 0.05, axis=1, edge_order=2), atol=1e-4)
+    tip = np.abs(d["z"][:, -1, pts[:, 0] == 4.0, 1]).mean(1)
+    assert tip[0] < tip[1] < tip[2]
+    calls = []
+    monkeypatch.setattr("fem.generate.simulate_batch", lambda *a, **k: calls.append(1))
+    run_cases(sc, pb, forces, tmp_path / "d.npz", batch_size=2, progress=False)
+    assert calls == []
