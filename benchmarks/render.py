@@ -7,8 +7,8 @@ deformed differently every frame (a travelling bend) so nothing is cached betwee
 
 Measured per frame, medians / p99 over repeats after compilation:
 - ``raster_jax``: ``rasterize`` alone (projected vertices in, image out), JAX jit;
-- ``raster_numpy``: the same fragment algorithm written in NumPy (fragments generated with ``np.repeat``,
-  z-buffer with ``np.minimum.at``), no capacity needed;
+- ``raster_numpy``: the same row/span fragment algorithm written in NumPy (rows and fragments generated with
+  ``np.repeat``, z-buffer with ``np.minimum.at``), no capacity needed;
 - ``draw_jax``: the render stage of the real-time loop as ``scene.py`` runs it: ``draw_mesh`` (normals, Phong,
   projection, rasterise) then, as a second program, ``ar.occlude`` against a real depth image and conversion
   to uint8.
@@ -58,24 +58,33 @@ def tet_blob():
 
 
 def rasterize_numpy(pixels, depth, colours, triangles, width, height):
-    """NumPy version of ``tignn_jax.render.rasterize`` (same rules), returning (rgb, depth)."""
+    """NumPy version of ``tignn_jax.render.rasterize`` (same rows/spans, rules and z-buffer), returning
+    (rgb, depth); fragments are generated with ``np.repeat`` (exact sizes, no capacity)."""
     p = pixels[triangles]
     w = depth[triangles]
     x, y = p[..., 0], p[..., 1]
     area = (x[:, 1] - x[:, 0]) * (y[:, 2] - y[:, 0]) - (x[:, 2] - x[:, 0]) * (y[:, 1] - y[:, 0])
     visible = (area < 0) & np.all(w > 1e-6, axis=1)
-    i0 = np.clip(np.ceil(x.min(1) - 0.5), 0, width).astype(np.int64)
-    i1 = np.clip(np.floor(x.max(1) - 0.5) + 1, 0, width).astype(np.int64)
     j0 = np.clip(np.ceil(y.min(1) - 0.5), 0, height).astype(np.int64)
     j1 = np.clip(np.floor(y.max(1) - 0.5) + 1, 0, height).astype(np.int64)
-    bw = np.maximum(i1 - i0, 0)
-    count = np.where(visible, bw * np.maximum(j1 - j0, 0), 0)
-    ids = np.flatnonzero(count)
-    t = np.repeat(ids, count[ids])
-    start = np.cumsum(count[ids]) - count[ids]
-    local = np.arange(len(t)) - np.repeat(start, count[ids])
-    px = i0[t] + local % bw[t]
-    py = j0[t] + local // bw[t]
+    count = np.where(visible, np.maximum(j1 - j0, 0), 0)
+    t = np.repeat(np.arange(len(triangles)), count)                        # one entry per row
+    j = j0[t] + np.arange(len(t)) - np.repeat(np.cumsum(count) - count, count)
+    yc = (j + 0.5)[:, None]
+    ya, yb = y[t], np.roll(y[t], -1, axis=1)
+    xa, xb = x[t], np.roll(x[t], -1, axis=1)
+    crosses = ((ya <= yc) != (yb <= yc)) | ((ya == yc) & (yb == yc))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        xc = np.where(yb != ya, xa + (yc - ya) / (yb - ya) * (xb - xa), xa)
+    lo = np.where(crosses, np.minimum(xc, np.where(ya == yb, np.minimum(xa, xb), xc)), np.inf).min(1)
+    hi = np.where(crosses, np.maximum(xc, np.where(ya == yb, np.maximum(xa, xb), xc)), -np.inf).max(1)
+    lo, hi = np.where(np.isfinite(lo), lo, 0.0), np.where(np.isfinite(hi), hi, -1.0)
+    i_start = np.clip(np.ceil(lo - 0.5 - 1e-3), 0, width).astype(np.int64)
+    span = np.maximum(np.clip(np.floor(hi - 0.5 + 1e-3) + 1, 0, width).astype(np.int64) - i_start, 0)
+    row = np.repeat(np.arange(len(t)), span)                                 # one entry per fragment
+    px = i_start[row] + np.arange(len(row)) - np.repeat(np.cumsum(span) - span, span)
+    py = j[row]
+    t = t[row]
     cx, cy = px + 0.5, py + 0.5
     xt, yt = x[t], y[t]
     inv_area = 1.0 / area[t]
@@ -87,11 +96,11 @@ def rasterize_numpy(pixels, depth, colours, triangles, width, height):
     wt = w[t]
     b = np.stack([l0[inside] / wt[:, 0], l1[inside] / wt[:, 1], l2[inside] / wt[:, 2]], axis=1)
     inv_w = b.sum(1)
-    frag_depth = 1.0 / inv_w
+    frag_depth = (1.0 / inv_w).astype(np.float32)
     pixel = py * width + px
     zbuf = np.full(width * height, np.inf, np.float32)
-    np.minimum.at(zbuf, pixel, frag_depth.astype(np.float32))
-    winner = np.flatnonzero(frag_depth.astype(np.float32) <= zbuf[pixel])
+    np.minimum.at(zbuf, pixel, frag_depth)
+    winner = np.flatnonzero(frag_depth <= zbuf[pixel])
     owner = np.full(width * height, -1, np.int64)
     owner[pixel[winner]] = winner
     drawn = np.flatnonzero(owner >= 0)

@@ -6,12 +6,14 @@ colour. Colours are per vertex (already shaded with ``ar.phong``: Phong reflecti
 the deformed surface and interpolated across each triangle). Pixel (i, j) is drawn by a triangle when its
 centre (i + 0.5, j + 0.5) lies inside it.
 
-How: every front-facing triangle's bounding box is expanded into candidate fragments laid out in one flat array
-of static length ``capacity`` (so the function compiles once); each fragment is tested with edge functions, the
-nearest fragment per pixel wins through two scatters (min depth, then the winner's index). On a 2-core CPU this
-JAX version measured faster than the same algorithm in NumPy (benchmarks/render.py). Choose ``capacity`` with
-``fragment_capacity`` outside jit, like a jax-md neighbour list; ``Raster.overflow`` says when it was too small
-(fragments beyond it are dropped) and the caller should re-size it.
+How: every front-facing triangle is cut into pixel rows, and each row into the span of pixels whose centres
+it may cover; the spans are laid out as candidate fragments in one flat array of static length ``capacity`` (so
+the function compiles once). Each fragment is tested with edge functions, and the nearest fragment per pixel
+wins through two scatters (min depth, then the winner's index). Spans instead of bounding boxes halve the
+fragments (1.5-2x faster, same image). On a 2-core CPU this JAX version measured faster than the same algorithm
+in NumPy (benchmarks/render.py). Choose ``capacity`` with ``fragment_capacity`` outside jit, like a jax-md
+neighbour list; ``Raster.overflow`` says when it was too small (fragments beyond it are dropped) and the caller
+should re-size it.
 
 ``surface_triangles`` extracts the outward-oriented boundary triangles of hex8 and tet4 volume meshes (VTK /
 meshio node order).
@@ -56,31 +58,19 @@ def rasterize(pixels, depth, colours, triangles, *, width: int, height: int, cap
     vertices at ``pixels`` [N,2] with camera ``depth`` [N] (``ar.project``'s output) and RGB ``colours`` [N,3].
 
     Triangles with a vertex at depth <= 0 (behind the camera) are not drawn, nor are back faces.
-    ``width``, ``height``, ``capacity`` are static: image size and the fragment buffer length.
+    ``width``, ``height``, ``capacity`` are static: image size and the fragment buffer length (the row buffer
+    is ``capacity // 2`` long).
     """
-    p = pixels[triangles]                  # [T,3,2]
-    w = depth[triangles]                   # [T,3]
-    x, y = p[..., 0], p[..., 1]
-    area = (x[:, 1] - x[:, 0]) * (y[:, 2] - y[:, 0]) - (x[:, 2] - x[:, 0]) * (y[:, 1] - y[:, 0])
-    # counter-clockwise in a y-up frame is clockwise in pixels (v down): front faces have area < 0
-    visible = (area < 0) & jnp.all(w > _MIN_DEPTH, axis=1)
-    i0 = jnp.clip(jnp.ceil(x.min(1) - 0.5), 0, width).astype(jnp.int32)
-    i1 = jnp.clip(jnp.floor(x.max(1) - 0.5) + 1, 0, width).astype(jnp.int32)
-    j0 = jnp.clip(jnp.ceil(y.min(1) - 0.5), 0, height).astype(jnp.int32)
-    j1 = jnp.clip(jnp.floor(y.max(1) - 0.5) + 1, 0, height).astype(jnp.int32)
-    box_w = jnp.maximum(i1 - i0, 0)
-    count = jnp.where(visible, box_w * jnp.maximum(j1 - j0, 0), 0)
-    end = jnp.cumsum(count)
-    total = end[-1]
+    x, y, w, area, visible = _setup(pixels, depth, triangles)
+    rows = _row_spans(x, y, visible, width, height, capacity // 2)
+    span_end = jnp.cumsum(rows.span)
+    total = span_end[-1]
 
     k = jnp.arange(capacity, dtype=jnp.int32)
-    # triangle of fragment k = number of triangles whose fragments end at or before k (a searchsorted)
-    t = jnp.cumsum(jnp.zeros((capacity,), jnp.int32).at[end].add(1, mode="drop"))
-    t = jnp.minimum(t, triangles.shape[0] - 1)
-    local = k - (end[t] - count[t])
-    bw = jnp.maximum(box_w[t], 1)
-    px = i0[t] + local % bw
-    py = j0[t] + local // bw
+    r = _owner_of(span_end, capacity)            # row of fragment k
+    t = rows.triangle[r]
+    px = rows.i_start[r] + k - (span_end[r] - rows.span[r])
+    py = rows.j[r]
     cx, cy = px + 0.5, py + 0.5
     xt, yt = x[t], y[t]
     inv_area = 1.0 / area[t]
@@ -106,8 +96,61 @@ def rasterize(pixels, depth, colours, triangles, *, width: int, height: int, cap
                 + b[:, 2:3] * colours[corner[:, 2]]) / inv_w[:, None]
     rgb = jnp.where(drawn[:, None], frag_rgb[f], 0.0).reshape(height, width, 3)
     tf = t[f]
+    overflow = (total > capacity) | (rows.total > capacity // 2)
     return Raster(rgb=rgb, depth=zbuf.reshape(height, width),
-                  triangle=jnp.where(drawn, tf, -1).reshape(height, width), overflow=total > capacity)
+                  triangle=jnp.where(drawn, tf, -1).reshape(height, width), overflow=overflow)
+
+
+class _Rows(NamedTuple):
+    triangle: Array   # [R] triangle of each row
+    j: Array          # [R] pixel row
+    i_start: Array    # [R] first pixel column of the span
+    span: Array       # [R] pixels in the span (0 for padding rows)
+    total: Array      # () rows needed (may exceed R)
+
+
+def _setup(pixels, depth, triangles):
+    p = pixels[triangles]                  # [T,3,2]
+    w = depth[triangles]                   # [T,3]
+    x, y = p[..., 0], p[..., 1]
+    area = (x[:, 1] - x[:, 0]) * (y[:, 2] - y[:, 0]) - (x[:, 2] - x[:, 0]) * (y[:, 1] - y[:, 0])
+    # counter-clockwise in a y-up frame is clockwise in pixels (v down): front faces have area < 0
+    visible = (area < 0) & jnp.all(w > _MIN_DEPTH, axis=1)
+    return x, y, w, area, visible
+
+
+def _row_spans(x, y, visible, width, height, n_rows) -> _Rows:
+    """The pixel rows each visible triangle crosses and, on each, the columns whose centres it may cover
+    (its exact extent on the row's centre line, widened by 1e-3 pixel; the edge test decides)."""
+    j0 = jnp.clip(jnp.ceil(y.min(1) - 0.5), 0, height).astype(jnp.int32)
+    j1 = jnp.clip(jnp.floor(y.max(1) - 0.5) + 1, 0, height).astype(jnp.int32)
+    count = jnp.where(visible, jnp.maximum(j1 - j0, 0), 0)
+    end = jnp.cumsum(count)
+    r = jnp.arange(n_rows, dtype=jnp.int32)
+    t = _owner_of(end, n_rows)
+    j = j0[t] + r - (end[t] - count[t])
+    yc = j + 0.5
+    xt, yt = x[t], y[t]
+    xa, ya = xt, yt
+    xb, yb = jnp.roll(xt, -1, axis=1), jnp.roll(yt, -1, axis=1)
+    crosses = ((ya <= yc[:, None]) != (yb <= yc[:, None])) | ((ya == yc[:, None]) & (yb == yc[:, None]))
+    s = jnp.where(yb != ya, (yc[:, None] - ya) / jnp.where(yb != ya, yb - ya, 1.0), 0.0)
+    xc = xa + s * (xb - xa)
+    lo = jnp.where(crosses, jnp.minimum(xc, jnp.where(ya == yb, jnp.minimum(xa, xb), xc)), jnp.inf).min(1)
+    hi = jnp.where(crosses, jnp.maximum(xc, jnp.where(ya == yb, jnp.maximum(xa, xb), xc)), -jnp.inf).max(1)
+    lo = jnp.where(jnp.isfinite(lo), lo, 0.0)
+    hi = jnp.where(jnp.isfinite(hi), hi, -1.0)
+    i_start = jnp.clip(jnp.ceil(lo - 0.5 - 1e-3), 0, width).astype(jnp.int32)
+    i_end = jnp.clip(jnp.floor(hi - 0.5 + 1e-3) + 1, 0, width).astype(jnp.int32)
+    span = jnp.where(r < end[-1], jnp.maximum(i_end - i_start, 0), 0)
+    return _Rows(triangle=t, j=j, i_start=i_start, span=span, total=end[-1])
+
+
+def _owner_of(end, size):
+    """For k in 0..size-1, the index of the segment containing k, given segment ends ``end`` (a cumsum):
+    the number of segments ending at or before k (a searchsorted, as a scatter and a cumsum)."""
+    owner = jnp.cumsum(jnp.zeros((size,), jnp.int32).at[end].add(1, mode="drop"))
+    return jnp.minimum(owner, end.shape[0] - 1)
 
 
 @partial(jax.jit, static_argnames=("width", "height", "capacity"))
@@ -128,22 +171,21 @@ def draw_mesh(positions, triangles, colours, view_projection, eye, light_dir, *,
 
 def fragment_capacity(pixels, depth, triangles, width: int, height: int, headroom: float = 1.5,
                       minimum: int = 65536) -> int:
-    """Fragment buffer length for ``rasterize``: ``headroom`` x the candidates of this frame (NumPy, not jit).
+    """Fragment buffer length for ``rasterize``: ``headroom`` x what this frame needs (not jit-able).
 
     Call once on a representative frame (e.g. the first), like allocating a neighbour list; a deforming
-    mesh seen from a fixed camera needs little headroom.
+    mesh seen from a fixed camera needs little headroom. Covers the row buffer (``capacity // 2``) too.
     """
     if headroom < 1.0:
         raise ValueError(f"headroom must be >= 1, got headroom={headroom}")
-    p = np.asarray(pixels, np.float64)[np.asarray(triangles)]
-    w = np.asarray(depth)[np.asarray(triangles)]
-    x, y = p[..., 0], p[..., 1]
-    area = (x[:, 1] - x[:, 0]) * (y[:, 2] - y[:, 0]) - (x[:, 2] - x[:, 0]) * (y[:, 1] - y[:, 0])
-    visible = (area < 0) & np.all(w > _MIN_DEPTH, axis=1)
-    box_w = np.clip(np.floor(x.max(1) - 0.5) + 1, 0, width) - np.clip(np.ceil(x.min(1) - 0.5), 0, width)
-    box_h = np.clip(np.floor(y.max(1) - 0.5) + 1, 0, height) - np.clip(np.ceil(y.min(1) - 0.5), 0, height)
-    total = int(np.sum(np.where(visible, np.maximum(box_w, 0) * np.maximum(box_h, 0), 0)))
-    return max(int(np.ceil(headroom * total)), minimum)
+    x, y, _, _, visible = _setup(jnp.asarray(pixels, jnp.float32), jnp.asarray(depth, jnp.float32),
+                                 jnp.asarray(triangles, jnp.int32))
+    j0 = np.clip(np.ceil(np.asarray(y).min(1) - 0.5), 0, height)
+    j1 = np.clip(np.floor(np.asarray(y).max(1) - 0.5) + 1, 0, height)
+    n_rows = int(np.sum(np.where(np.asarray(visible), np.maximum(j1 - j0, 0), 0)))
+    rows = jax.jit(_row_spans, static_argnums=(3, 4, 5))(x, y, visible, width, height, max(n_rows, 1))
+    needed = max(int(rows.span.sum()), 2 * n_rows)
+    return max(int(np.ceil(headroom * needed)), minimum)
 
 
 def surface_triangles(cells, points) -> np.ndarray:

@@ -224,14 +224,16 @@ def make_render_fn(scene: Scene, capacity: int):
     @jax.jit
     def draw(zs):
         positions, colours = _world_mesh(scene, zs)
-        return draw_mesh(positions, triangles, colours, vp, eye, light, width=cam.width, height=cam.height,
-                         capacity=capacity)
+        r = draw_mesh(positions, triangles, colours, vp, eye, light, width=cam.width, height=cam.height,
+                      capacity=capacity)
+        return r.rgb, r.depth, r.overflow  # not the triangle ids: unused here
 
     @jax.jit
     def composite(raster, tips, background):  # the background is an argument, not a baked-in constant
+        rgb, depth, overflow = raster
         real_rgb, real_depth = hand_proxy(*background, tips, cam, scene.hand_radius)
-        rgb = ar.occlude(raster.rgb, raster.depth, real_rgb, real_depth)
-        return (jnp.clip(rgb, 0.0, 1.0) * 255.0 + 0.5).astype(jnp.uint8), raster.overflow
+        rgb = ar.occlude(rgb, depth, real_rgb, real_depth)
+        return (jnp.clip(rgb, 0.0, 1.0) * 255.0 + 0.5).astype(jnp.uint8), overflow
 
     # two programs: fused into one, XLA CPU measured 2-3x slower (it fuses the pixel gathers into the epilogue)
     return lambda zs, tips: composite(draw(zs), tips, background)
