@@ -57,7 +57,8 @@ def rasterize(pixels, depth, colours, triangles, *, width: int, height: int, cap
     """Draw ``triangles`` [T,3] (int, counter-clockwise seen from the camera's side = front-facing) over
     vertices at ``pixels`` [N,2] with camera ``depth`` [N] (``ar.project``'s output) and RGB ``colours`` [N,3].
 
-    Triangles with a vertex at depth <= 0 (behind the camera) are not drawn, nor are back faces.
+    Triangles with a vertex at depth <= 0 (behind the camera) or a non-finite vertex are not drawn, nor are
+    back faces.
     ``width``, ``height``, ``capacity`` are static: image size and the fragment buffer length (the row buffer
     is ``capacity // 2`` long).
     """
@@ -115,7 +116,8 @@ def _setup(pixels, depth, triangles):
     x, y = p[..., 0], p[..., 1]
     area = (x[:, 1] - x[:, 0]) * (y[:, 2] - y[:, 0]) - (x[:, 2] - x[:, 0]) * (y[:, 1] - y[:, 0])
     # counter-clockwise in a y-up frame is clockwise in pixels (v down): front faces have area < 0
-    visible = (area < 0) & jnp.all(w > _MIN_DEPTH, axis=1)
+    finite = jnp.all(jnp.isfinite(p), axis=(1, 2)) & jnp.all(jnp.isfinite(w), axis=1)
+    visible = (area < 0) & jnp.all(w > _MIN_DEPTH, axis=1) & finite
     return x, y, w, area, visible
 
 

@@ -138,6 +138,7 @@ def run(scene: Scene, frames: int | None = None, write: Callable[[int, np.ndarra
     validate(scene)
     frames = len(scene.track) if frames is None else int(frames)
     forces_fn, step_fn, render_fn, capacity = build(scene)
+    max_capacity = 8 * scene.camera.width * scene.camera.height  # beyond this, drop fragments rather than grow
     zs = tuple(jnp.asarray(b.z, jnp.float32) for b in scene.bodies)
     track = _pad_frames(scene.track, frames)  # host array: a device index per frame would compile per index
     times = {k: [] for k in ("forces", "step", "render", "write", "frame")}
@@ -150,12 +151,12 @@ def run(scene: Scene, frames: int | None = None, write: Callable[[int, np.ndarra
         zs = jax.block_until_ready(step_fn(zs, forces))
         t2 = time.perf_counter()
         image, overflow = jax.block_until_ready(render_fn(zs, tips))
-        t3 = time.perf_counter()
-        if bool(overflow):  # rare: a body came much closer to the camera; grow the buffer (recompiles)
-            capacity = _grow(capacity)
-            render_fn = make_render_fn(scene, capacity)
-            image, _ = render_fn(zs, tips)
+        if bool(overflow) and capacity < max_capacity:  # rare: a body came much nearer the camera
+            capacity = min(2 * capacity, max_capacity)
+            render_fn = make_render_fn(scene, capacity)      # recompiles, once per doubling
+            image, _ = jax.block_until_ready(render_fn(zs, tips))
             reallocations += 1
+        t3 = time.perf_counter()
         frame = np.asarray(image)
         if write is not None:
             write(i, frame)
@@ -403,6 +404,3 @@ def _pad_frames(track, frames):
         return track[:frames]
     return np.concatenate([track, np.full((frames - len(track),) + track.shape[1:], np.nan, np.float32)])
 
-
-def _grow(capacity: int) -> int:
-    return int(capacity * 2)
