@@ -410,9 +410,12 @@ def _zero_visco(arr: Arrays, cfg: Config):
 
 
 def _hourglass_coordinates(geo, R, xe):
-    """g [12, K] = G Rᵀ x: hourglass coordinates of the co-rotated element nodes (index 3·mode + component)."""
-    xr = _sum_over(lambda j: R[j, :, None] * xe[j, None], 3)             # [3(i), 8, K] = Rᵀ x
-    return _sum_over(lambda a: geo.gamma[:, None, a] * xr[None, :, a], 8).reshape(12, -1)
+    """g [12, K] = G Rᵀ x: hourglass coordinates of the co-rotated element nodes (index 3·mode + component).
+
+    Computed as Rᵀ (Σ_a γ_a x_a): rotating the four mode vectors is cheaper than rotating the eight nodes.
+    """
+    gx = _sum_over(lambda a: geo.gamma[:, None, a] * xe[None, :, a], 8)   # [4, 3, K] in the global frame
+    return _sum_over(lambda j: R[j][None] * gx[:, j, None], 3).reshape(12, -1)
 
 
 def _internal(arr: Arrays, m: Material, hg, x, visco, cfg: Config, h):
@@ -454,9 +457,9 @@ def _internal(arr: Arrays, m: Material, hg, x, visco, cfg: Config, h):
             dkinv_hq = jnp.sum(dk_inv[None] * HQ[:, None], axis=2)       # [P, 12, K]
             diss = diss + jnp.sum((w / m.tau)[:, None, None] * HQ * dkinv_hq)
             new_visco = new_visco + (HQ, Q0)
-        Q = Q.reshape(4, 3, 1, -1)
-        fhat = _sum_over(lambda mo: geo.gamma[mo, None] * Q[mo], 4)         # [3, 8, K]
-        fe = fe + _sum_over(lambda j: R[:, j, None] * fhat[None, j], 3)
+        Q = Q.reshape(4, 3, -1)
+        RQ = _sum_over(lambda j: R[None, :, j] * Q[:, j, None], 3)           # [4, 3, K] = R Q_m
+        fe = fe + _sum_over(lambda mo: geo.gamma[mo, None] * RQ[mo, :, None], 4)
     f = _assemble(arr.incidence, fe)
     k_min = jnp.argmin(J)
     return f, new_visco, J[k_min], k_min, diss
