@@ -15,10 +15,10 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--frames", type=int, default=20, help="output frames of 0.05 (default: %(default)s)")
     p.set_defaults(func=run)
 
-    g = sub.add_parser("generate", help="generate FEM training data (beam-reference, beam-interactions, bunny)",
+    g = sub.add_parser("generate", help="generate FEM data (beam-reference, beam-interactions, bunny, two-beams)",
                        description="Generate a data set with the FEM. Resumable: finished cases are kept in "
                                    "OUT.parts/ and skipped when the command is run again.")
-    g.add_argument("scene", choices=("beam-reference", "beam-interactions", "bunny"))
+    g.add_argument("scene", choices=("beam-reference", "beam-interactions", "bunny", "two-beams"))
     g.add_argument("--out", required=True, help="output .npz path")
     g.add_argument("--cases", type=int, default=None, help="number of cases (interactions: 64, bunny: 100)")
     g.add_argument("--seed", type=int, default=0, help="random seed for load cases (default: %(default)s)")
@@ -34,7 +34,8 @@ def run_generate(args) -> int:
 
     from . import cases as cs
     from .generate import run_cases
-    from .scenes import beam_reference_forces, beam_scene, bunny_scene, setup_scene
+    from .scenes import (beam_reference_forces, beam_scene, bunny_scene, setup_scene, two_beams_contact,
+                         two_beams_forces, two_beams_scene)
 
     if args.cases is not None and args.cases < 1:
         raise SystemExit(f"--cases must be positive, got {args.cases}")
@@ -42,7 +43,16 @@ def run_generate(args) -> int:
         raise SystemExit(f"--batch must be positive, got {args.batch}")
     meta = {"seed": args.seed, "command": f"tignn generate {args.scene}"}
     sim_ids = None
-    if args.scene == "beam-reference":
+    setup_kwargs = {}
+    if args.scene == "two-beams":
+        scene = two_beams_scene()
+        forces = two_beams_forces(scene)
+        if args.cases:
+            forces = forces[: args.cases]
+        setup_kwargs["contact"] = two_beams_contact(scene)
+        meta["cases"] = "beam B pushed down onto beam A: load line on B's top face at x = 40, 36, 32; x1.0, x1.5 ramp"
+        meta["contact"] = {k: v for k, v in setup_kwargs["contact"].items() if k not in ("a", "b")}
+    elif args.scene == "beam-reference":
         scene = beam_scene()
         sim_ids = np.arange(1, 53)
         forces = beam_reference_forces(scene, sim_ids)
@@ -64,7 +74,7 @@ def run_generate(args) -> int:
         except ValueError as e:
             raise SystemExit(str(e))
         meta["load_nodes"] = np.asarray(picked).tolist()
-    problem = setup_scene(scene)
+    problem = setup_scene(scene, **setup_kwargs)
     print(f"{scene.name}: {len(forces)} cases, {len(scene.points)} nodes, {problem.config.n_frames} frames x "
           f"{problem.config.n_sub} sub-steps")
     out = run_cases(scene, problem, forces, args.out, batch_size=args.batch, progress=not args.no_progress,
