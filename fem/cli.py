@@ -24,7 +24,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     g.add_argument("--seed", type=int, default=0, help="random seed for load cases (default: %(default)s)")
     g.add_argument("--load-nodes", default=None, help="bunny: comma-separated node ids to load instead of --cases")
     g.add_argument("--batch", type=int, default=8, help="cases per vmapped batch (default: %(default)s)")
-    g.add_argument("--xdmf", action="store_true", help="also write one ParaView XDMF file per case")
+    g.add_argument("--xdmf", "--paraview", dest="xdmf", action="store_true", help="also write ParaView files per case (.pvd + VTU frames)")
     g.add_argument("--no-progress", action="store_true", help="no progress bar")
     g.set_defaults(func=run_generate)
 
@@ -87,7 +87,7 @@ def run(args) -> int:
     import jax
     import numpy as np
 
-    from . import Loads, simulate, write_xdmf
+    from . import Loads, simulate, write_series
     from .scenes import beam_reference_forces, beam_scene, setup_scene
 
     if not 1 <= args.sim <= 52:
@@ -104,12 +104,12 @@ def run(args) -> int:
     jax.block_until_ready(res.q)
     print(f"simulated in {time.perf_counter() - t0:.1f} s (including compilation)")
     out = Path(args.out)
-    xdmf = write_xdmf(out / "beam.xdmf", scene.points, scene.cells, scene.cell_type, np.asarray(res.t),
+    pvd = write_series(out / "beam.pvd", scene.points, scene.cells, scene.cell_type, np.asarray(res.t),
                       np.asarray(res.q), np.asarray(res.v), np.asarray(res.sigma))
     png = _plot(out / "beam.png", scene, res, forces)
     u_tip = np.asarray(res.q[-1] - scene.points)[scene.points[:, 0] == scene.points[:, 0].max()].mean(0)
     print(f"tip displacement at t = {float(res.t[-1]):.2f}: {np.round(u_tip, 3).tolist()}")
-    print(f"wrote {xdmf} (open in ParaView) and {png}")
+    print(f"wrote {pvd} (open in ParaView) and {png}")
     return 0
 
 

@@ -58,9 +58,9 @@ def run_cases(scene, problem, forces, out, *, batch_size: int = 8, progress: boo
             np.savez(parts / f"case_{c:05d}.npz", z=np.concatenate([q, v_fd, sig], -1), v_solver=v,
                      inverted=np.asarray(res.inverted[j]))
             if xdmf:
-                from .mesh import write_xdmf
+                from .mesh import write_series
 
-                write_xdmf(out.with_name(f"{out.stem}_case{int(sim_ids[c]):03d}.xdmf"), scene.points, scene.cells,
+                write_series(out.with_name(f"{out.stem}_case{int(sim_ids[c]):03d}.pvd"), scene.points, scene.cells,
                            scene.cell_type, np.asarray(res.t), q, v, sig)
         bar.update(len(idx))
     bar.close()

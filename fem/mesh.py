@@ -1,4 +1,4 @@
-"""Structured meshes, meshio reading, and ParaView output (XDMF time series)."""
+"""Structured meshes, meshio reading, and ParaView output (a VTU series with a .pvd time index)."""
 from __future__ import annotations
 
 from pathlib import Path
@@ -47,30 +47,35 @@ def read_mesh(path):
     raise ValueError(f"{path}: no hexahedron or tetra cells (found {[b.type for b in m.cells]})")
 
 
-def write_xdmf(path, points, cells, cell_type, t, q, v=None, sigma=None, extra=None):
-    """Write a frame sequence as an XDMF time series that ParaView opens.
+def write_series(path, points, cells, cell_type, t, q, v=None, sigma=None, extra=None):
+    """Write a frame sequence for ParaView: one VTU file per frame plus a ``.pvd`` collection indexed by time.
 
-    q [T, N, 3] current positions (written as point data 'u' = q − points, the mesh stays in the reference
-    configuration so ParaView's 'Warp By Vector' shows the motion); v [T, N, 3] and sigma [T, N, 6] (S11, S22,
-    S33, S12, S13, S23) as point data; extra: dict name → [T, N, ...].
+    ``path`` is the .pvd file; frames go to ``<stem>_frames/frame_XXXX.vtu`` beside it. q [T, N, 3] current
+    positions are written as point data ``u`` = q − points (the mesh stays in the reference configuration, so
+    ParaView's 'Warp By Vector' shows the motion); v [T, N, 3], sigma [T, N, 6] (S11, S22, S33, S12, S13, S23)
+    and its von Mises value as point data; extra: dict name → [T, N, ...]. VTU needs no HDF5 library.
     """
     import meshio
 
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    with meshio.xdmf.TimeSeriesWriter(str(path)) as writer:
-        writer.write_points_cells(np.asarray(points, float), [(cell_type, np.asarray(cells))])
-        for k in range(len(t)):
-            data = {"u": np.asarray(q[k] - points)}
-            if v is not None:
-                data["v"] = np.asarray(v[k])
-            if sigma is not None:
-                s = np.asarray(sigma[k])
-                data["sigma"] = s
-                data["von_mises"] = von_mises(s)
-            for name, arr in (extra or {}).items():
-                data[name] = np.asarray(arr[k])
-            writer.write_data(float(t[k]), point_data=data)
+    path = Path(path).with_suffix(".pvd")
+    frames_dir = path.with_name(path.stem + "_frames")
+    frames_dir.mkdir(parents=True, exist_ok=True)
+    entries = []
+    for k in range(len(t)):
+        data = {"u": np.asarray(q[k] - points, np.float64)}
+        if v is not None:
+            data["v"] = np.asarray(v[k], np.float64)
+        if sigma is not None:
+            data["sigma"] = np.asarray(sigma[k], np.float64)
+            data["von_mises"] = von_mises(data["sigma"])
+        for name, arr in (extra or {}).items():
+            data[name] = np.asarray(arr[k])
+        name = f"frame_{k:04d}.vtu"
+        meshio.write(frames_dir / name, meshio.Mesh(np.asarray(points, float), [(cell_type, np.asarray(cells))],
+                                                    point_data=data))
+        entries.append(f'    <DataSet timestep="{float(t[k])!r}" part="0" file="{frames_dir.name}/{name}"/>')
+    path.write_text('<?xml version="1.0"?>\n<VTKFile type="Collection" version="0.1">\n  <Collection>\n'
+                    + "\n".join(entries) + "\n  </Collection>\n</VTKFile>\n")
     return path
 
 

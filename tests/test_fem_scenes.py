@@ -137,3 +137,21 @@ def test_generation_writes_the_data_format_and_resumes(tmp_path, monkeypatch):
     monkeypatch.setattr("fem.generate.simulate_batch", lambda *a, **k: calls.append(1))
     run_cases(sc, pb, forces, tmp_path / "d.npz", batch_size=2, progress=False)
     assert calls == []
+
+
+def test_paraview_series_reads_back(tmp_path):
+    """The .pvd + VTU frames written for ParaView hold the displacement, velocity and stress of each frame."""
+    import meshio
+
+    pts, cells = fem.box_hex_mesh((2.0, 1.0, 1.0), (2, 1, 1))
+    T = 3
+    q = pts[None] + np.arange(T)[:, None, None] * 0.1
+    v = np.ones((T, len(pts), 3))
+    sig = np.zeros((T, len(pts), 6))
+    sig[..., 0] = 2.0
+    pvd = fem.write_series(tmp_path / "run.pvd", pts, cells, "hexahedron", np.arange(T) * 0.5, q, v, sig)
+    assert 'timestep="1.0"' in pvd.read_text()
+    m = meshio.read(tmp_path / "run_frames" / "frame_0002.vtu")
+    np.testing.assert_allclose(m.point_data["u"], 0.2)
+    np.testing.assert_allclose(m.point_data["von_mises"], 2.0)
+    assert m.cells[0].type == "hexahedron"
