@@ -615,8 +615,7 @@ def _simulate_impl(arr: Arrays, m: Material, loads: Loads, cfg: Config) -> Resul
             f_int = f_int - _contact_force(arr, pairs, x)
         a = (f_ext - f_int) * inv_mass
         if cfg.damping:
-            v = (v_half + 0.5 * h * a) / (1.0 + 0.5 * h * alpha)
-            a = a - alpha * v * arr.free
+            v = (v_half + 0.5 * h * a) / (1.0 + 0.5 * h * alpha)   # a stays the undamped acceleration
             w_damp = s.w_damp + 0.5 * h * alpha * (jnp.sum(mass[:, None] * s.v ** 2) + jnp.sum(mass[:, None] * v ** 2))
         else:
             v = v_half + 0.5 * h * a
