@@ -8,7 +8,7 @@ Measures, after compilation, the median of repeated jit-compiled calls of
 Variants are measured round-robin in the same process so the shared machine's load hits all alike.
 Writes benchmarks/results/model_step.{json,md}.
 
-    python benchmarks/model_step.py [--repeats 50] [--sizes 16x2,24x3,32x4,32x6,48x4] [--chosen 32x4]
+    python benchmarks/model_step.py [--repeats 50] [--sizes 16x2,24x3,32x4] [--chosen 24x3] [--model NAME]
 """
 from __future__ import annotations
 
@@ -59,7 +59,10 @@ def edge_list_features(norm, z, f, node_type, senders, receivers):
                               jax.nn.one_hot(node_type, 2), f / norm["f_std"]], axis=1)
     dq = q[senders] - q[receivers]
     length = jnp.linalg.norm(dq, axis=1, keepdims=True)
-    return x_node, jnp.concatenate([dq / norm["dq_std"], (length - norm["dqn_mean"]) / norm["dqn_std"]], axis=1)
+    dv = (v[senders] - v[receivers]) / norm["dv_std"]
+    grad = (dv[:, :, None] * (dq / norm["dqn_mean"])[:, None, :]).reshape(-1, 9)
+    return x_node, jnp.concatenate([dq / norm["dq_std"], (length - norm["dqn_mean"]) / norm["dqn_std"], dv, grad],
+                                   axis=1)
 
 
 def edge_list_rates(weights, config, norm, z, f, node_type, senders, receivers):
@@ -91,8 +94,9 @@ def main(argv=None):
     parser.add_argument("--repeats", type=int, default=50)
     parser.add_argument("--train-repeats", type=int, default=8)
     parser.add_argument("--batch", type=int, default=8)
-    parser.add_argument("--sizes", default="16x2,24x3,32x2,32x4,32x6,48x4")
-    parser.add_argument("--chosen", default="32x4")
+    parser.add_argument("--sizes", default="16x2,16x3,24x3,24x4,32x3,32x4,48x4,50x10")
+    parser.add_argument("--chosen", default="24x3")
+    parser.add_argument("--model", default="beam-abaqus", help="shipped model for the public api.step timing")
     args = parser.parse_args(argv)
 
     d = D.load(D.reference_path())
@@ -117,6 +121,16 @@ def main(argv=None):
     fn = jax.jit(lambda w, z, f: z + edge_list_rates(w, cfg, norm, z, f, nt, s, r)[0] * M.state_scale(norm))
     fns[f"edge-list {args.chosen}"] = (fn, (w_edge, z, f), M.count_params(w_edge))
 
+    try:
+        from tignn_jax import api
+        from tignn_jax import graph as G
+        params, _ = api.load_pretrained(args.model)
+        graph = G.from_state(z, d.edges, d.node_type)
+        f_np = np.asarray(f)
+        fns[f"api.step {args.model} (validated)"] = (lambda p, g, fo: api.step(p, g, fo).nodes["z"],
+                                                      (params, graph, f_np), M.count_params(params["weights"]))
+    except ValueError as err:
+        print(f"no shipped model timed: {err}")
     times = {k: [] for k in fns}
     for fn, a, _ in fns.values():
         jax.block_until_ready(fn(*a))

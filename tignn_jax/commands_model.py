@@ -45,7 +45,8 @@ def _train(args) -> int:
         key, _, value = item.partition("=")
         if key not in cfg._fields:
             raise SystemExit(f"--set {item!r}: unknown field; fields are {cfg._fields}")
-        cfg = cfg._replace(**{key: type(getattr(cfg, key))(value)})
+        kind = type(getattr(cfg, key))
+        cfg = cfg._replace(**{key: value.lower() in ("1", "true", "yes") if kind is bool else kind(value)})
     data = D.load(args.data)
     T.train(data, cfg, args.run_dir, train_split=D.parse_split(args.split),
             val_split=D.parse_split(args.val) if args.val else None, time_limit_s=args.time_limit,

@@ -166,3 +166,31 @@ def write_report(report: dict, path: str | Path) -> Path:
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_text(json.dumps(report, indent=1))
     return path
+
+
+def plot_learning_curve(metrics_path: str | Path, path: str | Path) -> Path:
+    """Training loss and validation rollout errors against wall-clock training time (from metrics.jsonl)."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    rec = [json.loads(x) for x in Path(metrics_path).read_text().splitlines() if x.strip()]
+    t = np.array([r["elapsed_s"] for r in rec]) / 60
+    fig, (a, b) = plt.subplots(1, 2, figsize=(10, 3.8))
+    a.semilogy(t, [r["mse"] for r in rec], label="one-step MSE (normalised)")
+    a.semilogy(t, [r["degeneracy"] for r in rec], label="degeneracy residual²")
+    a.set_xlabel("training time (min)")
+    a.legend()
+    ev = [r for r in rec if "val_u" in r]
+    te = np.array([r["elapsed_s"] for r in ev]) / 60
+    for v in VARIABLES:
+        b.semilogy(te, [r[f"val_{v}"] for r in ev], marker="o", ms=3, label=v)
+    b.set_xlabel("training time (min)")
+    b.set_ylabel("val rollout rel. L2 error (mean)")
+    b.legend()
+    fig.tight_layout()
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path

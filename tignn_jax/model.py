@@ -35,11 +35,14 @@ ACTIVATIONS = {"silu": nn.silu, "tanh": jnp.tanh, "softplus": nn.softplus, "gelu
 
 class ModelConfig(NamedTuple):
     """Static architecture. hidden: width of every MLP layer and latent; mlp_layers: Dense layers per MLP
-    (the last is linear); passes: message-passing steps; activation: a smooth one (∇E is trained)."""
+    (the last is linear); passes: message-passing steps; activation: a smooth one (∇E is trained);
+    edge_velocity: add the edge features v_j − v_i and (v_j − v_i) ⊗ (q_j − q_i) (a node's sum of the latter
+    is a velocity-gradient estimate, what stress rates depend on)."""
     hidden: int = 32
     mlp_layers: int = 2
     passes: int = 4
     activation: str = "silu"
+    edge_velocity: bool = True
 
 
 class Rates(NamedTuple):
@@ -85,7 +88,7 @@ def energy_entropy(weights, config: ModelConfig, norm: dict, z, f, node_type, to
 
 def init_weights(key, config: ModelConfig, norm: dict, z, f, node_type, topo):
     """Flax parameters of the network for graphs like the example (z [N,12], f [N,3])."""
-    x_node, x_edge = _features(norm, z, f, node_type, topo)
+    x_node, x_edge = _features(norm, z, f, node_type, topo, config.edge_velocity)
     return Network(config).init(key, x_node, x_edge, topo)["params"]
 
 
@@ -217,7 +220,7 @@ _L_EMBED = _embedding(strict=True)
 _M_EMBED = _embedding(strict=False)
 
 
-def _features(norm, z, f, node_type, topo):
+def _features(norm, z, f, node_type, topo, edge_velocity=False):
     q, v, sigma = z[:, :3], z[:, 3:6], z[:, 6:]
     mean, std = norm["z_mean"], norm["z_std"]
     one_hot = jax.nn.one_hot(node_type, 2, dtype=z.dtype)
@@ -226,12 +229,16 @@ def _features(norm, z, f, node_type, topo):
     dq = gather_neighbors(q, topo) - q[:, None, :]
     pad = (1.0 - topo.mask)[..., None]
     length = jnp.sqrt(jnp.sum(dq * dq, axis=-1, keepdims=True) + pad)
-    x_edge = jnp.concatenate([dq / norm["dq_std"], (length - norm["dqn_mean"]) / norm["dqn_std"]], axis=-1)
+    parts = [dq / norm["dq_std"], (length - norm["dqn_mean"]) / norm["dqn_std"]]
+    if edge_velocity:
+        dv = (gather_neighbors(v, topo) - v[:, None, :]) / norm["dv_std"]
+        parts += [dv, (dv[..., :, None] * (dq / norm["dqn_mean"])[..., None, :]).reshape(dv.shape[:2] + (9,))]
+    x_edge = jnp.concatenate(parts, axis=-1)
     return x_node, x_edge * topo.mask[..., None]
 
 
 def _network_out(weights, config, norm, z, f, node_type, topo):
-    x_node, x_edge = _features(norm, z, f, node_type, topo)
+    x_node, x_edge = _features(norm, z, f, node_type, topo, config.edge_velocity)
     return Network(config).apply({"params": weights}, x_node, x_edge, topo)
 
 
@@ -260,7 +267,8 @@ class Network(nn.Module):
     computed once per node and gathered (N products instead of E), and the linear W₂ commutes with the sum over
     neighbours, so it is folded into φ's first layer. An edge then costs one gather, an add and an activation;
     all matrix products act on the N nodes. Edges live in the receiver-major slots of ``topo`` ([N,K]); x_ij
-    are the (normalised) edge features q_j − q_i and |q_j − q_i|."""
+    are the (normalised) edge features q_j − q_i and |q_j − q_i| (and, with ``edge_velocity``, v_j − v_i and
+    its outer product with q_j − q_i)."""
     config: ModelConfig
 
     @nn.compact

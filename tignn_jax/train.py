@@ -34,16 +34,17 @@ class TrainConfig(NamedTuple):
     """Architecture (see ModelConfig) and optimisation settings. lr peaks after ``warmup_steps`` and decays
     by cosine to ``lr_end`` at the end of ``epochs``; ``noise`` is the input-noise std as a fraction of the
     per-feature increment std; ``eval_every``/``ckpt_every`` are in epochs."""
-    hidden: int = 32
+    hidden: int = 24
     mlp_layers: int = 2
     passes: int = 3
     activation: str = "silu"
-    lr: float = 2e-3
+    edge_velocity: bool = True
+    lr: float = 3e-3
     lr_end: float = 2e-5
     weight_decay: float = 1e-6
-    batch_size: int = 4
-    epochs: int = 60
-    warmup_steps: int = 200
+    batch_size: int = 2
+    epochs: int = 30
+    warmup_steps: int = 100
     noise: float = 0.2
     deg_weight: float = 1.0
     seed: int = 0
@@ -52,7 +53,7 @@ class TrainConfig(NamedTuple):
 
     @property
     def model(self) -> M.ModelConfig:
-        return M.ModelConfig(self.hidden, self.mlp_layers, self.passes, self.activation)
+        return M.ModelConfig(self.hidden, self.mlp_layers, self.passes, self.activation, self.edge_velocity)
 
 
 CONFIGS = {
