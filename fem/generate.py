@@ -14,6 +14,7 @@ is done, and a rerun skips the cases already there before assembling the final f
 from __future__ import annotations
 
 import json
+import os
 import time
 from pathlib import Path
 
@@ -21,7 +22,6 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from . import __name__ as _pkg  # noqa: F401
 from .solver import Loads, check, simulate_batch
 
 
@@ -65,7 +65,9 @@ def run_cases(scene, problem, forces, out, *, batch_size: int = 8, progress: boo
         bar.update(len(idx))
     bar.close()
     wall = time.perf_counter() - t_start
-    return assemble(scene, problem, forces, parts, out, metadata=dict(metadata or {}, wall_time_s=wall), sim_ids=sim_ids)
+    meta = dict(metadata or {}, wall_time_s=wall, cases_run=len(todo),
+                load_average_1m_at_end=round(os.getloadavg()[0], 2), cpu_count=os.cpu_count())
+    return assemble(scene, problem, forces, parts, out, metadata=meta, sim_ids=sim_ids)
 
 
 def assemble(scene, problem, forces, parts: Path, out: Path, *, metadata: dict, sim_ids) -> Path:
