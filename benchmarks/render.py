@@ -5,7 +5,8 @@ tet4 solid (a 13x13x8-node blob, each hex split into 6 tets) and, when fem/data/
 1330-node bunny (2000 surface triangles). Each is shown about 0.2 m across, 0.45 m in front of the camera, and
 deformed differently every frame (a travelling bend) so nothing is cached between frames.
 
-Measured per frame, medians / p99 over repeats after compilation:
+Measured per frame, medians / p99 / min over repeats after compilation, the variants interleaved frame by frame
+(so each sees the same load from other jobs on the machine):
 - ``raster_jax``: ``rasterize`` alone (projected vertices in, image out), JAX jit;
 - ``raster_numpy``: the same row/span fragment algorithm written in NumPy (rows and fragments generated with
   ``np.repeat``, z-buffer with ``np.minimum.at``), no capacity needed;
@@ -126,14 +127,17 @@ def deformed(points, frame):
     return out
 
 
-def timings(fn, repeats):
-    out = []
+def timings(fns, repeats):
+    """Per-call ms of each function in ``fns`` ({name: fn(frame)}), interleaved frame by frame so that every
+    variant sees the same background load; {name: {p50_ms, p99_ms, min_ms}}."""
+    out = {name: [] for name in fns}
     for i in range(repeats):
-        t0 = time.perf_counter()
-        fn(i)
-        out.append((time.perf_counter() - t0) * 1e3)
-    a = np.asarray(out)
-    return {"p50_ms": float(np.median(a)), "p99_ms": float(np.percentile(a, 99)), "min_ms": float(a.min())}
+        for name, fn in fns.items():
+            t0 = time.perf_counter()
+            fn(i)
+            out[name].append((time.perf_counter() - t0) * 1e3)
+    return {name: {"p50_ms": float(np.median(a)), "p99_ms": float(np.percentile(a, 99)), "min_ms": float(np.min(a))}
+            for name, a in out.items()}
 
 
 def bunny():
@@ -199,9 +203,7 @@ def bench_mesh(name, points, cells, repeats):
         "fragment_capacity": int(capacity),
         "max_abs_diff_jax_vs_numpy": float(np.abs(ref_rgb - jax_rgb).max()),
         "overflow": bool(render(frames_j[0])[1]),
-        "raster_jax": timings(raster_jax, repeats),
-        "raster_numpy": timings(raster_np, repeats),
-        "draw_jax": timings(draw_jax, repeats),
+        **timings({"raster_jax": raster_jax, "raster_numpy": raster_np, "draw_jax": draw_jax}, repeats),
     }
     result["numpy_over_jax_p50"] = result["raster_numpy"]["p50_ms"] / result["raster_jax"]["p50_ms"]
     print(name, json.dumps(result, indent=1))

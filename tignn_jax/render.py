@@ -172,7 +172,7 @@ def draw_mesh(positions, triangles, colours, view_projection, eye, light_dir, *,
 
 
 def fragment_capacity(pixels, depth, triangles, width: int, height: int, headroom: float = 1.5,
-                      minimum: int = 65536) -> int:
+                      minimum: int = 4096) -> int:
     """Fragment buffer length for ``rasterize``: ``headroom`` x what this frame needs (not jit-able).
 
     Call once on a representative frame (e.g. the first), like allocating a neighbour list; a deforming
