@@ -152,32 +152,46 @@ def _dynamics(model_name, stand_in, q0, cells, edges, clamped, copies):
         "STAND-IN spring dynamics (not the learned model)", q0
 
 
-def stand_in_step(q0, cells, clamped, stiffness=1.0e4, mass=1.5e2, damping=0.1, dt=0.05, modulus=9.3e5):
-    """STAND-IN dynamics, not the learned model: damped springs between every pair of nodes of each element
-    (a stable truss for hex8 and tet4), clamped nodes fixed; sigma gets ``modulus`` x the mean absolute spring
-    strain at each node in S11 (a colourable stand-in for stress). (z [N,12], f [N,3]) -> z."""
+def stand_in_step(q0, cells, clamped, stiffness=5.0e4, damping=0.03, dt=0.05, substeps=8, modulus=9.3e5):
+    """STAND-IN dynamics, not the learned model: damped springs (axial stiffness ``stiffness`` / rest length)
+    between every pair of nodes of each element (a stable truss for hex8 and tet4), clamped nodes fixed, each
+    node's mass lumped from its springs so that each of the ``substeps`` explicit sub-steps of a frame ``dt`` is
+    stable on any mesh (omega_max dt_sub <= 1); sigma gets ``modulus`` x the mean absolute spring strain at each
+    node in S11 (a colourable stand-in for stress). (z [N,12], f [N,3]) -> z."""
+    import jax
     import jax.numpy as jnp
     import numpy as np
 
     k = cells.shape[1]
     local = np.array([(a, b) for a in range(k) for b in range(a + 1, k)])
     pairs = np.unique(np.sort(np.asarray(cells)[:, local].reshape(-1, 2), axis=1), axis=0)
+    rest_np = np.linalg.norm(q0[pairs[:, 1]] - q0[pairs[:, 0]], axis=1)
+    spring = stiffness / rest_np
+    node_k = np.zeros(len(q0))
+    np.add.at(node_k, pairs[:, 0], spring)
+    np.add.at(node_k, pairs[:, 1], spring)
+    h = dt / substeps
+    mass = jnp.asarray(4.0 * h ** 2 * np.maximum(node_k, 1e-12), jnp.float32)[:, None]  # Gershgorin bound
     i, j = jnp.asarray(pairs[:, 0]), jnp.asarray(pairs[:, 1])
-    rest = jnp.linalg.norm(jnp.asarray(q0[pairs[:, 1]] - q0[pairs[:, 0]]), axis=1)
+    rest = jnp.asarray(rest_np, jnp.float32)
     free = jnp.asarray(~np.asarray(clamped), jnp.float32)[:, None]
     degree = jnp.maximum(jnp.zeros(len(q0)).at[i].add(1.0).at[j].add(1.0), 1.0)
 
     def step(z, f):
-        q, v = z[:, :3], z[:, 3:6]
-        d = q[j] - q[i]
-        length = jnp.linalg.norm(d, axis=1)
-        tension = stiffness * (length - rest) / rest
-        fe = (tension / length)[:, None] * d
-        f_int = jnp.zeros_like(q).at[i].add(fe).at[j].add(-fe)
-        v = free * ((1.0 - damping) * v + dt * (f_int + f) / mass)
+        def sub(_, qv):
+            q, v = qv
+            d = q[j] - q[i]
+            length = jnp.linalg.norm(d, axis=1)
+            fe = (stiffness * (length - rest) / (rest * length))[:, None] * d
+            f_int = jnp.zeros_like(q).at[i].add(fe).at[j].add(-fe)
+            v = free * ((1.0 - damping) * v + h * (f_int + f) / mass)
+            return q + h * v, v
+
+        q, v = jax.lax.fori_loop(0, substeps, sub, (z[:, :3], z[:, 3:6]))
+        length = jnp.linalg.norm(q[j] - q[i], axis=1)
         strain = jnp.abs(length - rest) / rest
         s11 = modulus * jnp.zeros(len(q)).at[i].add(strain).at[j].add(strain) / degree
         sigma = jnp.zeros((len(q), 6)).at[:, 0].set(s11)
-        return jnp.concatenate([q + dt * v, v, sigma], axis=1)
+        return jnp.concatenate([q, v, sigma], axis=1)
 
     return step
