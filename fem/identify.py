@@ -30,7 +30,7 @@ def identify_beam(reference_path, sim_ids, *, n_frames: int = 10, steps: int = 8
     bad = [s for s in sim_ids if s not in train]
     if bad:
         raise ValueError(f"identification must use train-split cases only; not in the train split: {bad}")
-    scene = beam_scene(density=rho_min, damping=1.0)._replace(n_frames=n_frames)
+    scene = beam_scene(density=rho_min, damping=1.0, tau_scale=1.0)._replace(n_frames=n_frames)
     problem = setup_scene(scene)
     forces = jnp.asarray(beam_reference_forces(scene, sim_ids), jnp.float32)
     q0 = jnp.asarray(ref["q0"], jnp.float32)
