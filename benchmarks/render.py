@@ -10,9 +10,8 @@ Measured per frame, medians / p99 / min over repeats after compilation, the vari
 - ``raster_jax``: ``rasterize`` alone (projected vertices in, image out), JAX jit;
 - ``raster_numpy``: the same row/span fragment algorithm written in NumPy (rows and fragments generated with
   ``np.repeat``, z-buffer with ``np.minimum.at``), no capacity needed;
-- ``draw_jax``: the render stage of the real-time loop as ``scene.py`` runs it: ``draw_mesh`` (normals, Phong,
-  projection, rasterise) then, as a second program, ``ar.occlude`` against a real depth image and conversion
-  to uint8.
+- ``draw_jax``: the render stage of the real-time loop as ``scene.py`` runs it, one jitted program:
+  ``draw_mesh`` (normals, Phong, projection, rasterise), ``ar.occlude`` against a real depth image, uint8.
 
 Run: ``python benchmarks/render.py [--repeats 200]``; writes benchmarks/results/render.{json,md}.
 """
@@ -178,16 +177,14 @@ def bench_mesh(name, points, cells, repeats):
         p, d = pix_np[i % 16]
         rasterize_numpy(p, d, shaded, tris, W, H)
 
-    draw = jax.jit(lambda q: draw_mesh(q, tris_j, colours, vp, eye, light, width=W, height=H,
-                                       capacity=capacity))
-
     @jax.jit
-    def composite(r, real_rgb, real_depth):
+    def render_stage(q, real_rgb, real_depth):
+        r = draw_mesh(q, tris_j, colours, vp, eye, light, width=W, height=H, capacity=capacity)
         rgb = ar.occlude(r.rgb, r.depth, real_rgb, real_depth)
         return (jnp.clip(rgb, 0.0, 1.0) * 255.0 + 0.5).astype(jnp.uint8), r.overflow
 
     def render(q):
-        return composite(draw(q), real_rgb, real_depth)
+        return render_stage(q, real_rgb, real_depth)
 
     def draw_jax(i):
         render(frames_j[i % 16])[0].block_until_ready()
@@ -246,7 +243,7 @@ def main():
                      f"{r['numpy_over_jax_p50']:.2f} | "
                      f"{r['draw_jax']['p50_ms']:.2f} / {r['draw_jax']['p99_ms']:.2f} / {r['draw_jax']['min_ms']:.2f} |")
     lines += ["", "Render stage = vertex normals + Phong + projection + rasterise, then occlusion against a real depth "
-              "image + uint8 (two jitted programs, as in tignn_jax/scene.py). Target: <= 10 ms so the simulation keeps "
+              "image + uint8 (one jitted program, as in tignn_jax/scene.py). Target: <= 10 ms so the simulation keeps "
               ">= 23 ms of the 33 ms frame. The NumPy rasteriser is the same algorithm; the library keeps the JAX one."]
     (RESULTS / "render.md").write_text("\n".join(lines) + "\n")
     print("\n".join(lines))

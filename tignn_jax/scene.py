@@ -223,21 +223,15 @@ def make_render_fn(scene: Scene, capacity: int):
     background = (jnp.asarray(scene.background.rgb, jnp.float32), jnp.asarray(scene.background.depth, jnp.float32))
 
     @jax.jit
-    def draw(zs):
+    def render(zs, tips, background):  # the image-sized background is an argument, not a baked-in constant
         positions, colours = _world_mesh(scene, zs)
-        r = draw_mesh(positions, triangles, colours, vp, eye, light, width=cam.width, height=cam.height,
-                      capacity=capacity)
-        return r.rgb, r.depth, r.overflow  # not the triangle ids: unused here
-
-    @jax.jit
-    def composite(raster, tips, background):  # the background is an argument, not a baked-in constant
-        rgb, depth, overflow = raster
+        raster = draw_mesh(positions, triangles, colours, vp, eye, light, width=cam.width, height=cam.height,
+                           capacity=capacity)
         real_rgb, real_depth = hand_proxy(*background, tips, cam, scene.hand_radius)
-        rgb = ar.occlude(rgb, depth, real_rgb, real_depth)
-        return (jnp.clip(rgb, 0.0, 1.0) * 255.0 + 0.5).astype(jnp.uint8), overflow
+        rgb = ar.occlude(raster.rgb, raster.depth, real_rgb, real_depth)
+        return (jnp.clip(rgb, 0.0, 1.0) * 255.0 + 0.5).astype(jnp.uint8), raster.overflow
 
-    # two programs: fused into one, XLA CPU measured 2-3x slower (it fuses the pixel gathers into the epilogue)
-    return lambda zs, tips: composite(draw(zs), tips, background)
+    return lambda zs, tips: render(zs, tips, background)
 
 
 # ------------------------------------------------------------------------------------- scene pieces
