@@ -331,11 +331,11 @@ def load_track(path, max_tips: int = 5) -> np.ndarray:
 
 
 def save_track(path, track) -> None:
-    """Write a track [F,K,3] (NaN rows = no fingertip) as JSON lines."""
+    """Write a track [F,K,3] (NaN rows = no fingertip) as JSON lines, to 1e-5 pixel / 1e-5 m."""
     with open(path, "w") as f:
         for i, tips in enumerate(np.asarray(track)):
             keep = np.all(np.isfinite(tips), axis=1)
-            f.write(json.dumps({"frame": i, "tips": tips[keep].round(5).tolist()}) + "\n")
+            f.write(json.dumps({"frame": i, "tips": tips[keep].astype(np.float64).round(5).tolist()}) + "\n")
 
 
 def von_mises(sigma) -> jax.Array:
