@@ -190,11 +190,18 @@ def _demo_scene(frames=10, width=160, height=120):
 def test_scene_loop_compiles_only_on_the_first_frame():
     # Real time needs fixed shapes: after frame 0 no stage (nor the fingertip padding) triggers a compile.
     compiles = []
-    jax.monitoring.register_event_duration_secs_listener(
-        lambda event, duration, **kw: compiles.append(event) if "backend_compile" in event else None)
-    scene, _ = _demo_scene(frames=6)
-    seen = []
-    sc.run(scene, write=lambda i, rgb: seen.append(len(compiles)))
+
+    def listener(event, duration, **kw):
+        if "backend_compile" in event:
+            compiles.append(event)
+
+    jax.monitoring.register_event_duration_secs_listener(listener)
+    try:
+        scene, _ = _demo_scene(frames=6)
+        seen = []
+        sc.run(scene, write=lambda i, rgb: seen.append(len(compiles)))
+    finally:
+        jax.monitoring.unregister_event_duration_listener(listener)
     assert seen[0] > 0 and seen[-1] == seen[0]
 
 
