@@ -204,3 +204,15 @@ def test_loader_reads_the_reference_beam():
     assert int(topo.mask.sum()) == 3960
     norm = D.normalization(data, D.split_rows(data, "train"))
     assert all(np.all(v > 0) for k, v in norm.items() if k.endswith("std"))
+
+
+def test_shipped_beam_model_loads_with_its_mesh():
+    # The shipped model is small and brings the rest-state graph of the Abaqus beam mesh.
+    path = Path(api.MODELS_DIR) / "beam-abaqus" / "model.npz"
+    if not path.exists():
+        pytest.skip("no shipped beam-abaqus model in this checkout")
+    assert path.stat().st_size <= 5 * 2 ** 20
+    params, graph = api.load_pretrained("beam-abaqus")
+    assert graph.nodes["z"].shape == (756, 12) and int(np.sum(graph.nodes["node_type"])) == 36
+    moved = api.step(params, graph, np.zeros((756, 3), np.float32))
+    assert np.all(np.isfinite(np.asarray(moved.nodes["z"])))
