@@ -78,7 +78,7 @@ def mooney_rivlin(c10, c01=0.0, d1=1e-3, density=1.0, g=(), tau=()) -> Material:
     if np.any(g_arr < 0.0) or not np.all(np.isfinite(g_arr)):
         raise ValueError(f"Prony weights g must be finite and non-negative, got g={g_arr.tolist()}")
     if g_arr.sum() >= 1.0:
-        raise ValueError(f"Prony weights must sum to less than 1 (long-term modulus > 0), got sum(g)={g_arr.sum()!r}")
+        raise ValueError(f"Prony weights must sum to less than 1 (long-term modulus > 0), got sum(g)={float(g_arr.sum())!r}")
     if np.any(tau_arr <= 0.0) or not np.all(np.isfinite(tau_arr)):
         raise ValueError(f"Prony relaxation times tau must be positive, got tau={tau_arr.tolist()}")
     as_arr = lambda x: jnp.asarray(x, dtype=jnp.result_type(float))
