@@ -75,8 +75,8 @@ def main(argv=None):
              "", "| split | u = q − q0 | v | σ (free nodes) | σ (all nodes) | q |", "|---|---|---|---|---|---|"]
     for split, row in table.items():
         lines.append(f"| {split} | {row['u']:.4f} | {row['v']:.4f} | {row['sigma_free']:.4f} | {row['sigma_all']:.4f} | {row['q']:.5f} |")
-    lines += ["", "Targets: u ≤ %.2f, v ≤ %.2f, σ (free) ≤ %.2f — all 52: %s" % (
-        targets["u"], targets["v"], targets["sigma_free"],
+    lines += ["", "Targets: u ≤ %.2f, v ≤ %.2f, σ (free) ≤ %.2f — %s: %s" % (
+        targets["u"], targets["v"], targets["sigma_free"], next(iter(table)),
         ", ".join(f"{k} {'met' if next(iter(table.values()))[k] <= t else 'NOT met'}" for k, t in targets.items())), "",
         f"FEM settings: {json.dumps(payload['fem'])}", ""]
     if ident:
