@@ -189,22 +189,3 @@ def incidence_table(cells: np.ndarray, n_nodes: int) -> np.ndarray:
     rank = np.arange(flat.size) - np.repeat(starts, counts)
     table[flat[order], rank] = order
     return table
-
-
-def boundary_faces(cells: np.ndarray, cell_type: str) -> np.ndarray:
-    """Faces that belong to exactly one element, with outward orientation: [F, 4] (hex) or [F, 3] (tet)."""
-    local = HEX_FACES if cell_type == "hexahedron" else TET_FACES
-    faces = cells[:, local].reshape(-1, local.shape[1])
-    key = np.sort(faces, axis=1)
-    _, inverse, counts = np.unique(key, axis=0, return_inverse=True, return_counts=True)
-    return faces[counts[inverse.ravel()] == 1]
-
-
-def mesh_edges(cells: np.ndarray, cell_type: str) -> np.ndarray:
-    """Unique undirected element edges [E, 2] (sorted pairs)."""
-    if cell_type == "hexahedron":
-        local = [(0, 1), (1, 2), (2, 3), (3, 0), (4, 5), (5, 6), (6, 7), (7, 4), (0, 4), (1, 5), (2, 6), (3, 7)]
-    else:
-        local = [(0, 1), (1, 2), (2, 0), (0, 3), (1, 3), (2, 3)]
-    e = np.concatenate([cells[:, [i, j]] for i, j in local])
-    return np.unique(np.sort(e, axis=1), axis=0)
