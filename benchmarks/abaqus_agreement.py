@@ -116,7 +116,8 @@ def _plot(path, ours, ref, e, done):
     t = np.arange(21) * float(ref["dt"])
     tip = q0[:, 0] == q0[:, 0].max()
     fig, ax = plt.subplots(1, 3, figsize=(15, 4))
-    for k, col in zip(range(0, len(done), max(1, len(done) // 4)), ("C0", "C1", "C2", "C3")):
+    picks = [k for k, c in enumerate(done) if c in (0, 4, 8, 12)] or list(range(min(4, len(done))))  # 4 positions
+    for k, col in zip(picks, ("C0", "C1", "C2", "C3")):
         i, sim = k, done[k] + 1
         zr, zo = ref["z"][i], ours["z"][i]                      # [21, N, 12]
         comp = int(np.argmax(np.abs(zr[-1][tip, :3] - q0[tip]).mean(0)))
