@@ -15,12 +15,12 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--frames", type=int, default=20, help="output frames of 0.05 (default: %(default)s)")
     p.set_defaults(func=run)
 
-    g = sub.add_parser("generate", help="generate FEM data (beam-reference, beam-interactions, bunny, two-beams)",
+    g = sub.add_parser("generate", help="generate FEM data (beam-reference, beam-interactions, bunny, bunny-interactions, two-beams)",
                        description="Generate a data set with the FEM. Resumable: finished cases are kept in "
                                    "OUT.parts/ and skipped when the command is run again.")
-    g.add_argument("scene", choices=("beam-reference", "beam-interactions", "bunny", "two-beams"))
+    g.add_argument("scene", choices=("beam-reference", "beam-interactions", "bunny", "bunny-interactions", "two-beams"))
     g.add_argument("--out", required=True, help="output .npz path")
-    g.add_argument("--cases", type=int, default=None, help="number of cases (interactions: 64, bunny: 100)")
+    g.add_argument("--cases", type=int, default=None, help="number of cases (interactions: 64, bunny: 100, two-beams: 6)")
     g.add_argument("--seed", type=int, default=0, help="random seed for load cases (default: %(default)s)")
     g.add_argument("--load-nodes", default=None, help="bunny: comma-separated node ids to load instead of --cases")
     g.add_argument("--batch", type=int, default=8, help="cases per vmapped batch (default: %(default)s)")
@@ -57,9 +57,10 @@ def run_generate(args) -> int:
         sim_ids = np.arange(1, 53)
         forces = beam_reference_forces(scene, sim_ids)
         meta["cases"] = "the 52 reference load cases (13 positions x 4 faces, 5000*(k+1) per node)"
-    elif args.scene == "beam-interactions":
-        scene = beam_scene()
-        forces, described = cs.fingertip_forces(scene, args.cases or 64, args.seed)
+    elif args.scene in ("beam-interactions", "bunny-interactions"):
+        # Peak totals up to the reference maximum: 6 nodes x 100 000 on the beam, 6 unit point loads on the bunny.
+        scene, peak = (beam_scene(), 600_000.0) if args.scene == "beam-interactions" else (bunny_scene(), 6.0)
+        forces, described = cs.fingertip_forces(scene, args.cases or 64, args.seed, peak_total=peak)
         meta["cases"] = described
     else:
         scene = bunny_scene()
