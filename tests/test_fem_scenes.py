@@ -156,3 +156,12 @@ def test_paraview_series_reads_back(tmp_path):
     np.testing.assert_allclose(m.point_data["u"], 0.2)
     np.testing.assert_allclose(m.point_data["von_mises"], 2.0)
     assert m.cells[0].type == "hexahedron"
+
+
+def test_bunny_fingertip_cases_stay_on_the_free_surface():
+    """Fingertip patches on the bunny avoid the clamped base and stay within the peak of six unit loads."""
+    sc = scenes.bunny_scene()
+    f, described = cases.fingertip_forces(sc, 8, seed=2, peak_total=6.0)
+    for c, d in enumerate(described):
+        assert np.all(sc.node_type[d["nodes"]] == 0)
+        assert np.linalg.norm(f[c].sum(axis=1), axis=-1).max() <= 6.0 * (1 + 1e-9)
