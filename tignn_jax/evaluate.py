@@ -143,12 +143,7 @@ def box_plot(raw: dict, path: str | Path, splits=("train", "test"), nodes: str =
     ax.set_ylabel("relative L2 error per snapshot")
     ax.set_title(f"rollout errors ({nodes} nodes)")
     ax.legend()
-    fig.tight_layout()
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
-    return path
+    return _save(fig, path, dpi=120)
 
 
 def format_table(report: dict) -> str:
@@ -188,9 +183,16 @@ def plot_learning_curve(metrics_path: str | Path, path: str | Path) -> Path:
     b.set_xlabel("training time (min)")
     b.set_ylabel("val rollout rel. L2 error (mean)")
     b.legend()
+    return _save(fig, path, dpi=110)
+
+
+def _save(fig, path, dpi):
+    """Write a figure (creating the folder) and close it."""
+    import matplotlib.pyplot as plt
+
     fig.tight_layout()
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=110)
+    fig.savefig(path, dpi=dpi)
     plt.close(fig)
     return path
