@@ -65,6 +65,14 @@ def edge_list_features(norm, z, f, node_type, senders, receivers):
                                    axis=1)
 
 
+def _embedding(strict: bool) -> jnp.ndarray:
+    """The entries → 12x12 matrix map as a 0/1 matrix [entries, 144] (the straightforward way: a matmul)."""
+    rows, cols = np.tril_indices(12, k=-1 if strict else 0)
+    e = np.zeros((len(rows), 144), np.float32)
+    e[np.arange(len(rows)), rows * 12 + cols] = 1.0
+    return jnp.asarray(e)
+
+
 def edge_list_rates(weights, config, norm, z, f, node_type, senders, receivers):
     """Straightforward GENERIC increment: two separate reverse passes, dense L and M built per node."""
     net = EdgeListNetwork(config)
@@ -79,8 +87,8 @@ def edge_list_rates(weights, config, norm, z, f, node_type, senders, receivers):
     n = z.shape[0]
     scale = M.state_scale(norm)
     g_e, g_s = g_e * scale, g_s * scale
-    l_mat = (heads[:, 2:2 + M.N_L] @ M._L_EMBED).reshape(n, 12, 12)
-    m_mat = (heads[:, 2 + M.N_L:] @ M._M_EMBED).reshape(n, 12, 12)
+    l_mat = (heads[:, 2:2 + M.N_L] @ _embedding(strict=True)).reshape(n, 12, 12)
+    m_mat = (heads[:, 2 + M.N_L:] @ _embedding(strict=False)).reshape(n, 12, 12)
     big_l = l_mat - jnp.swapaxes(l_mat, 1, 2)
     big_m = m_mat @ jnp.swapaxes(m_mat, 1, 2)
     dw = jnp.einsum("nij,nj->ni", big_l, g_e) + jnp.einsum("nij,nj->ni", big_m, g_s)
@@ -104,7 +112,7 @@ def main(argv=None):
     norm = {k: jnp.asarray(v) for k, v in D.normalization(d, rows).items()}
     nt = jnp.asarray(d.node_type, jnp.int32)
     s, r = jnp.asarray(d.edges[0]), jnp.asarray(d.edges[1])
-    topo = M.topology(d.edges[0], d.edges[1], len(d.node_type))
+    topo = M.topology(d.edges[0], d.edges[1], len(d.node_type), d.q0)
     z, f = jnp.asarray(d.z[rows[0], 10]), jnp.asarray(d.f[rows[0], 10])
 
     fns = {}

@@ -216,3 +216,65 @@ def test_shipped_beam_model_loads_with_its_mesh():
     assert graph.nodes["z"].shape == (756, 12) and int(np.sum(graph.nodes["node_type"])) == 36
     moved = api.step(params, graph, np.zeros((756, 3), np.float32))
     assert np.all(np.isfinite(np.asarray(moved.nodes["z"])))
+
+
+def _irregular_graph(n=40, seed=0):
+    """Symmetric random graph with degrees from 1 to ~20 (an irregular mesh's spread of degrees)."""
+    rng = np.random.default_rng(seed)
+    pairs = {(0, i) for i in range(1, 20)}          # one hub of degree 19
+    pairs |= {tuple(sorted(rng.choice(n, 2, replace=False))) for _ in range(3 * n)}
+    a, b = np.array(sorted(pairs)).T
+    return np.concatenate([a, b]), np.concatenate([b, a]), n
+
+
+def test_row_layout_aggregates_like_a_segment_sum_on_an_irregular_graph():
+    # Nodes of high degree own several rows of K slots; the sum of messages over rows must be the plain
+    # sum over incoming edges, and the gather's custom transpose must be its adjoint.
+    s, r, n = _irregular_graph()
+    topo = M.topology(s, r, n)
+    assert topo.nbr.shape[0] > n and topo.nbr.shape[1] < np.bincount(r).max()   # extra rows are used
+    x = jax.random.normal(jax.random.PRNGKey(0), (n, 4))
+    ref = jax.ops.segment_sum(x[s], r, n)
+    got = M.reduce_rows(jnp.sum(M.gather_neighbors(x, topo), axis=1), topo)
+    np.testing.assert_allclose(got, ref, atol=1e-5)
+    y = jax.random.normal(jax.random.PRNGKey(1), topo.nbr.shape + (4,)) * topo.mask[..., None]
+    assert abs(float(jnp.vdot(M.gather_neighbors(x, topo), y) - jnp.vdot(x, M.sum_reverse(y, topo)))) < 1e-4
+    loss = lambda fn: jax.grad(lambda x_: jnp.sum(jnp.sin(fn(x_))))(x)
+    np.testing.assert_allclose(loss(lambda x_: M.reduce_rows(jnp.sum(M.gather_neighbors(x_, topo) ** 2, 1), topo)),
+                               loss(lambda x_: jax.ops.segment_sum(x_[s] ** 2, r, n)), atol=1e-4)
+
+
+def test_tiled_row_layout_equals_separate_copies():
+    s, r, n = _irregular_graph(seed=1)
+    topo = M.topology(s, r, n, q0=np.random.default_rng(0).normal(size=(n, 3)))
+    tiled = M.tile_topology(topo, 3)
+    x = jax.random.normal(jax.random.PRNGKey(2), (n, 4))
+    xs = jnp.concatenate([x, 2 * x, -x])
+    agg = lambda x_, t: M.reduce_rows(jnp.sum(M.gather_neighbors(x_, t), axis=1), t)
+    one = agg(x, topo)
+    np.testing.assert_allclose(agg(xs, tiled), jnp.concatenate([one, 2 * one, -one]), atol=1e-5)
+    dx = lambda t: M.reduce_rows(jnp.sum(t.dx0, axis=1), t)
+    np.testing.assert_allclose(dx(tiled), jnp.concatenate([dx(topo)] * 3), atol=1e-5)
+
+
+def test_edge_strain_features_vanish_at_rest(toy):
+    # The displacement-difference features measure deformation against the rest mesh: zero in the rest state.
+    data = toy["data"]
+    topo = M.topology(data.edges[0], data.edges[1], len(data.q0), data.q0)
+    z0 = jnp.concatenate([jnp.asarray(data.q0), jnp.zeros((len(data.q0), 9))], axis=1)
+    norm = {**toy["norm"], "du_std": jnp.ones(3)}
+    _, x_edge = M._features(norm, z0, toy["f"], toy["nt"], topo, edge_velocity=False, edge_strain=True)
+    assert float(jnp.max(jnp.abs(x_edge[..., -4:]))) < 1e-6
+    _, x_def = M._features(norm, toy["z"], toy["f"], toy["nt"], topo, edge_velocity=False, edge_strain=True)
+    assert float(jnp.max(jnp.abs(x_def[..., -4:]))) > 1e-3
+
+
+def test_stepper_matches_validated_step(toy):
+    params, data = toy["params"], toy["data"]
+    graph = G.batch([G.from_state(data.z[0, 2], data.edges, data.node_type)] * 2)
+    forces = np.concatenate([data.f[0, 2], 2 * data.f[0, 2]])
+    fn = api.stepper(params, copies=2)
+    np.testing.assert_allclose(fn(graph.nodes["z"], jnp.asarray(forces)),
+                               api.step(params, graph, forces).nodes["z"], rtol=1e-6, atol=1e-6)
+    with pytest.raises(ValueError, match="copies"):
+        api.stepper(params, copies=0)

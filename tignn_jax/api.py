@@ -45,6 +45,30 @@ def rollout(params: dict, graph: jraph.GraphsTuple, forces_seq) -> jax.Array:
                           graph.nodes["node_type"], topo)
 
 
+def stepper(params: dict, copies: int = 1):
+    """A jit-compiled step without per-call checks, for real-time loops: ``z_next = fn(z, forces)``.
+
+    ``z`` [copies·N, 12] and ``forces`` [copies·N, 3] hold ``copies`` bodies of the model's mesh, stacked
+    (N = the mesh's nodes). The arguments are checked once here (copies) and by shape at the first call's
+    trace; values are not checked per call (use ``step`` for that). The static graph data (topology, node
+    types, normalisation) is put on the device once and closed over."""
+    if not isinstance(copies, (int, np.integer)) or copies < 1:
+        raise ValueError(f"copies must be a positive integer, got {copies!r}")
+    config, weights, norm = _config(params), params["weights"], params["norm"]
+    topo = _tile_topology(params["topo"], int(copies))
+    node_type = jnp.tile(jnp.asarray(params["mesh"]["node_type"], jnp.int32), int(copies))
+    n = int(node_type.shape[0])
+
+    @jax.jit
+    def fn(z, forces):
+        if z.shape != (n, M.STATE_DIM) or forces.shape != (n, 3):
+            raise ValueError(f"stepper for {copies} bodies of {n // copies} nodes expects z [{n}, {M.STATE_DIM}]"
+                             f" and forces [{n}, 3], got {z.shape} and {forces.shape}")
+        return M.step_state(weights, config, norm, z, forces, node_type, topo)
+
+    return fn
+
+
 def load_pretrained(name: str = "beam-abaqus"):
     """A shipped model by name (a folder of ``tignn_jax/models``) or a path to a model folder/file.
 
@@ -72,7 +96,7 @@ def make_params(config: M.ModelConfig, norm: dict, weights, q0, edges, node_type
         "weights": weights,
         "mesh": {"senders": np.asarray(edges[0], np.int32), "receivers": np.asarray(edges[1], np.int32),
                  "node_type": np.asarray(node_type, np.int32), "q0": np.asarray(q0, np.float32)},
-        "topo": M.topology(edges[0], edges[1], len(node_type)),
+        "topo": M.topology(edges[0], edges[1], len(node_type), q0),
     }
 
 
@@ -163,8 +187,4 @@ def _check(params, graph, forces, seq: bool):
 
 
 def _tile_topology(topo: M.Topology, k: int) -> M.Topology:
-    if k == 1:
-        return topo
-    n, slots = topo.nbr.shape
-    return M.Topology(jnp.concatenate([topo.nbr + i * n for i in range(k)]), jnp.tile(topo.mask, (k, 1)),
-                      jnp.concatenate([topo.rev + i * n * slots for i in range(k)]))
+    return M.tile_topology(topo, k)

@@ -1,9 +1,10 @@
 """`tignn demo`: a fingertip in a (synthetic) camera image pushes virtual solids; writes a GIF and timings.
 
 Scenes:
-- ``two-beams``: two copies of the paper's 40x10x10 beam (0.2 m long), cantilevered side by side 1 cm apart; the
-  fingertip pushes the front beam's free end sideways into the back one; both step in one batched graph and
-  interact through ``ar.contact_forces``.
+- ``two-beams``: the paper's configuration (``fem.scenes.two_beams_scene``): two copies of the 40x10x10 beam
+  (shown 0.2 m long), the lower one A clamped at x = 0, the upper one B turned 90° about the vertical and lying
+  across A's free half with a gap of 10 (5 cm). The fingertip presses B's free end down onto A; both step in one
+  batched graph, each in its own model frame, and interact through ``ar.contact_forces``.
 - ``bunny``: the Stanford bunny (10 cm tall) standing on the table, base clamped, pushed on its back.
 
 Dynamics: the shipped learned model (``--model``, default per scene). If no shipped model is found, a clearly
@@ -86,10 +87,13 @@ def build_scene(name: str, frames: int, model: str | None = None, stand_in: bool
         clamped = np.zeros(len(q0), bool)
         clamped[clamped_nodes(q0)] = True
         scale = 0.005
-        poses = [ar.model_matrix([0.0, 0.03, 0.0], np.eye(3), scale),
-                 ar.model_matrix([0.0, 0.03, -0.06], np.eye(3), scale)]
-        eye, target = [0.26, 0.26, 0.30], [0.1, 0.04, -0.01]
-        press_at, normal = [38.0, 5.0, 10.0], [0.0, 0.0, 1.0]   # model coords on beam 0: free end, front face
+        up = ar.rotation_matrix([1.0, 0.0, 0.0], -np.pi / 2)        # model z (the load axis) -> world y (up)
+        turn = ar.rotation_matrix([0.0, 0.0, 1.0], np.pi / 2)       # B: x_B = 36 - y, y_B = x - 25, z_B = z + 20
+        offset_b = np.asarray(up) @ np.array([36.0, -25.0, 20.0]) * scale
+        base = np.array([0.0, 0.02, 0.0])
+        poses = [ar.model_matrix(base, up, scale), ar.model_matrix(base + offset_b, np.asarray(up) @ turn, scale)]
+        eye, target = [0.33, 0.27, 0.28], [0.13, 0.06, -0.03]
+        press_body, press_at, normal = 1, [38.0, 5.0, 10.0], [0.0, 0.0, 1.0]  # B's free end, top face
         tip_radius, tip_force, vmax = 3.0, 2.0e4, 6.0e4
     elif name == "bunny":
         q0, cells, edges = bunny_mesh()
@@ -99,7 +103,7 @@ def build_scene(name: str, frames: int, model: str | None = None, stand_in: bool
         poses = [ar.model_matrix([0.1, 0.0, 0.0], ar.rotation_matrix([1.0, 0.0, 0.0], -np.pi / 2), scale)]
         eye, target = [0.17, 0.16, 0.22], [0.1, 0.05, 0.0]
         top = np.argmax(q0[:, 2] - 0.3 * np.abs(q0[:, 0]))
-        press_at, normal = q0[top], [0.0, 0.0, 1.0]
+        press_body, press_at, normal = 0, q0[top], [0.0, 0.0, 1.0]
         tip_radius, tip_force, vmax = 1.5, 2.0e3, 2.0e4
     else:
         raise ValueError(f"scene must be 'two-beams' or 'bunny', got {name!r}")
@@ -113,8 +117,9 @@ def build_scene(name: str, frames: int, model: str | None = None, stand_in: bool
     z0 = np.concatenate([q0, np.zeros((len(q0), 9), np.float32)], axis=1)
     bodies = tuple(sc.Body(q0=q0, triangles=triangles, model=np.asarray(m), z=z0, step_fn=None,
                            tip_radius=tip_radius, tip_force=tip_force, vmax=vmax) for m in poses)
-    world_point = np.asarray(ar.transform_points(poses[0], jnp.asarray([press_at], jnp.float32)))[0]
-    world_normal = np.asarray(poses[0])[:3, :3] @ np.asarray(normal, np.float64)
+    world_point = np.asarray(ar.transform_points(poses[press_body], jnp.asarray([press_at], jnp.float32)))[0]
+    world_normal = np.asarray(poses[press_body])[:3, :3] @ np.asarray(normal, np.float64)
+    world_normal /= np.linalg.norm(world_normal)
     track = sc.press_track(cam, world_point, world_normal, frames, approach=0.03, press=0.012)
     scene = sc.Scene(bodies=bodies, camera=cam, background=sc.table_background(cam), track=track,
                      contact_radius=0.006, contact_stiffness=5e7, step=step_fn)
@@ -129,21 +134,16 @@ def _dynamics(model_name, stand_in, q0, cells, edges, clamped, copies):
     if not stand_in:
         try:
             from tignn_jax import api
-            from tignn_jax import model as M
             params, graph = api.load_pretrained(model_name)
         except (ValueError, FileNotFoundError, ImportError, AttributeError) as err:
             print(f"no shipped model {model_name!r} ({err}); using the STAND-IN dynamics")
         else:
             mesh_q0 = np.asarray(params["mesh"]["q0"], np.float32)
             if mesh_q0.shape == q0.shape and np.allclose(mesh_q0, q0, atol=1e-4):
-                config, weights, norm = api._config(params), params["weights"], params["norm"]
-                topo = api._tile_topology(params["topo"], copies)
-                node_type = jnp.tile(jnp.asarray(params["mesh"]["node_type"], jnp.int32), copies)
+                fn = api.stepper(params, copies)
 
                 def step(zs, forces):
-                    z = M.step_state(weights, config, norm, jnp.concatenate(zs), jnp.concatenate(forces),
-                                     node_type, topo)
-                    return tuple(jnp.split(z, copies))
+                    return tuple(jnp.split(fn(jnp.concatenate(zs), jnp.concatenate(forces)), copies))
 
                 return step, f"model {model_name}", q0
             print(f"model {model_name!r} was trained on another mesh; using the STAND-IN dynamics")

@@ -112,7 +112,8 @@ def normalization(data: Dataset, rows: np.ndarray) -> dict:
 
     z_mean, z_std [12]: node state; dz_std [12]: per-frame increment z[k+1]-z[k] of free nodes' q, v and all
     nodes' stress (the output scale); f_std [3]: force; dq_std [3] and dqn_mean, dqn_std [1]: edge vector
-    q_j - q_i and its length over all frames; dv_std [3]: edge velocity difference v_j - v_i. Vectors (q, v, their increments, f, dq) get one isotropic scale
+    q_j - q_i and its length over all frames; dv_std [3]: edge velocity difference v_j - v_i; du_std [3]: edge displacement
+    difference (q_j - q_i) - (X_j - X_i). Vectors (q, v, their increments, f, dq) get one isotropic scale
     (RMS over components), so a direction unseen in training is not blown up; stress components get their own
     std, floored at 1e-2 of the largest; every scale is positive.
     """
@@ -136,6 +137,7 @@ def normalization(data: Dataset, rows: np.ndarray) -> dict:
         f_std=_iso(f.reshape(-1, 3)),
         dq_std=_iso(dq.reshape(-1, 3)),
         dv_std=_iso((z[..., s, 3:6] - z[..., r, 3:6]).reshape(-1, 3)),
+        du_std=_iso((dq - (data.q0[s] - data.q0[r])).reshape(-1, 3)),
         dqn_mean=np.array([dqn_mean]),
         dqn_std=np.array([max(dqn.std(), 1e-3 * dqn_mean, 1e-12)]),
     )

@@ -43,6 +43,7 @@ class ModelConfig(NamedTuple):
     passes: int = 4
     activation: str = "silu"
     edge_velocity: bool = True
+    edge_strain: bool = False
 
 
 class Rates(NamedTuple):
@@ -88,7 +89,8 @@ def energy_entropy(weights, config: ModelConfig, norm: dict, z, f, node_type, to
 
 def init_weights(key, config: ModelConfig, norm: dict, z, f, node_type, topo):
     """Flax parameters of the network for graphs like the example (z [N,12], f [N,3])."""
-    x_node, x_edge = _features(norm, z, f, node_type, topo, config.edge_velocity)
+    x_node, x_edge = _features(norm, z, f, node_type, topo, config.edge_velocity,
+                                config.edge_strain)
     return Network(config).init(key, x_node, x_edge, topo)["params"]
 
 
@@ -102,45 +104,143 @@ def count_params(weights) -> int:
 
 
 class Topology(NamedTuple):
-    """A symmetric directed graph in receiver-major slots, built outside jit by ``topology``.
+    """A symmetric directed graph in receiver-major rows of K slots, built outside jit by ``topology``.
 
-    nbr [N,K] int32: sender of node i's k-th incoming edge (i itself in padding slots); mask [N,K] float32: 1
-    for real edges; rev [N,K] int32: flat slot index (j*K + k') of the reverse edge of slot (i,k)."""
+    Every node owns at least one row; a node with more than K incoming edges owns extra rows (so K can be
+    near the mean degree instead of the maximum: an irregular tet mesh wastes fewer padding slots). Rows
+    0..N-1 are the nodes' first rows; extra rows follow.
+    nbr [R,K] int32: sender of the row's k-th incoming edge (the row's node itself in padding slots);
+    mask [R,K] float32: 1 for real edges; rev [R,K] int32: flat slot index (r'*K + k') of the reverse edge of
+    slot (r,k); dx0 [R,K,3] float32: rest edge vector X_j − X_i (zero in padding; None without a rest mesh);
+    row_node [R] int32: the node that owns each row; node_rows [N,X] int32: each node's extra rows (R = a
+    zero row in padding; X = 0 when every node has one row, R = N)."""
     nbr: jax.Array
     mask: jax.Array
     rev: jax.Array
+    dx0: jax.Array | None = None
+    row_node: jax.Array | None = None
+    node_rows: jax.Array | None = None
 
 
-def topology(senders, receivers, n_nodes: int) -> Topology:
-    """Slot layout of a graph whose edges come in both directions (each mesh edge twice), numpy → Topology.
+def topology(senders, receivers, n_nodes: int, q0=None, slots: int | None = None) -> Topology:
+    """Row/slot layout of a graph whose edges come in both directions (each mesh edge twice), numpy → Topology.
 
-    Raises ValueError when an edge lacks its reverse or appears twice."""
+    ``slots`` (K) defaults to the width that minimises the number of slots R·K (the maximum degree when that
+    is as good, e.g. a structured hex mesh). With the rest positions ``q0`` [N,3] the rest edge vectors are
+    stored too (needed by ``edge_strain``). Raises ValueError when an edge lacks its reverse or appears twice."""
     senders, receivers = np.asarray(senders, np.int64), np.asarray(receivers, np.int64)
     order = np.lexsort((senders, receivers))
     s, r = senders[order], receivers[order]
     deg = np.bincount(r, minlength=n_nodes)
     k_max = max(int(deg.max()) if len(r) else 1, 1)
-    start = np.concatenate([[0], np.cumsum(deg)[:-1]])
-    slot = np.arange(len(r)) - start[r]
-    nbr = np.tile(np.arange(n_nodes)[:, None], (1, k_max))
-    mask = np.zeros((n_nodes, k_max), np.float32)
-    nbr[r, slot] = s
-    mask[r, slot] = 1.0
+    if slots is None:   # slot work R·K plus the per-node gather over extra rows, K at least the mean degree
+        k_min = min(k_max, max(1, int(np.ceil(deg.mean())) if n_nodes else 1))
+        cost = {k: int(np.sum(np.maximum(1, -(-deg // k)))) * k + 2 * n_nodes * int(np.max(-(-deg // k)) - 1)
+                for k in range(k_min, k_max + 1)}
+        slots = min(cost, key=lambda k: (cost[k], -k))
+    k_w = int(slots)
+    if k_w < 1:
+        raise ValueError(f"slots must be positive, got {slots}")
+    n_rows = np.maximum(1, -(-deg // k_w))
+    extra = n_rows - 1
+    extra_start = n_nodes + np.concatenate([[0], np.cumsum(extra)[:-1]])
+    rank = np.arange(len(r)) - np.concatenate([[0], np.cumsum(deg)[:-1]])[r]   # position among r's edges
+    chunk, slot = rank // k_w, rank % k_w
+    row = np.where(chunk == 0, r, extra_start[r] + chunk - 1)
+    total_rows = n_nodes + int(extra.sum())
+    row_node = np.concatenate([np.arange(n_nodes), np.repeat(np.arange(n_nodes), extra)])
+    nbr = np.tile(row_node[:, None], (1, k_w))
+    mask = np.zeros((total_rows, k_w), np.float32)
+    nbr[row, slot] = s
+    mask[row, slot] = 1.0
     keys = r * n_nodes + s
     if len(np.unique(keys)) != len(keys):
         raise ValueError("graph has duplicate edges")
-    lookup = dict(zip(keys.tolist(), (r * k_max + slot).tolist()))
-    rev = np.zeros((n_nodes, k_max), np.int64)
+    lookup = dict(zip(keys.tolist(), (row * k_w + slot).tolist()))
+    rev = np.zeros((total_rows, k_w), np.int64)
     try:
-        rev[r, slot] = [lookup[int(a) * n_nodes + int(b)] for a, b in zip(s, r)]
+        rev[row, slot] = [lookup[int(a) * n_nodes + int(b)] for a, b in zip(s, r)]
     except KeyError as err:
         raise ValueError("graph edges must come in both directions (senders/receivers symmetric)") from err
-    return Topology(jnp.asarray(nbr, jnp.int32), jnp.asarray(mask), jnp.asarray(rev, jnp.int32))
+    x_max = int(extra.max()) if n_nodes else 0
+    node_rows = np.full((n_nodes, x_max), total_rows, np.int64)
+    for x in range(x_max):
+        has = extra > x
+        node_rows[has, x] = extra_start[has] + x
+    dx0 = None
+    if q0 is not None:
+        q0 = np.asarray(q0, np.float64)
+        if q0.shape != (n_nodes, 3):
+            raise ValueError(f"q0 has shape {q0.shape}, expected ({n_nodes}, 3)")
+        dx0 = jnp.asarray((q0[nbr] - q0[row_node][:, None, :]) * mask[..., None], jnp.float32)
+    return Topology(jnp.asarray(nbr, jnp.int32), jnp.asarray(mask), jnp.asarray(rev, jnp.int32), dx0,
+                    jnp.asarray(row_node, jnp.int32), jnp.asarray(node_rows, jnp.int32))
+
+
+def tile_topology(topo: Topology, copies: int) -> Topology:
+    """The Topology of ``copies`` disjoint copies of a graph (nodes of copy c offset by c·N), laid out so that
+    the nodes' first rows still come first: [first rows of every copy, then the extra rows of every copy]."""
+    if copies == 1:
+        return topo
+    nbr, mask, rev = (np.asarray(a) for a in (topo.nbr, topo.mask, topo.rev))
+    rows, k_w = nbr.shape
+    n = rows if topo.row_node is None else int(np.asarray(topo.node_rows).shape[0])
+    e = rows - n
+    c = np.arange(copies)[:, None]
+
+    def new_row(r):   # [copies, ...] new index of old row r in each copy
+        r = np.asarray(r)
+        c_ = c.reshape((copies,) + (1,) * r.ndim)
+        return np.where(r < n, c_ * n + r, copies * n + c_ * e + (r - n))
+
+    def stack(a):     # per-row array [copies, R, ...] (or [R, ...], the same in every copy) → new row order
+        a = np.asarray(a)
+        if a.shape[:2] != (copies, rows):
+            a = np.broadcast_to(a, (copies,) + a.shape)
+        return np.concatenate([a[:, :n].reshape((-1,) + a.shape[2:]), a[:, n:].reshape((-1,) + a.shape[2:])])
+
+    offsets = (c * n).reshape(copies, 1, 1)
+    nbr_t = stack(nbr[None] + offsets)
+    rev_t = stack(new_row(rev // k_w) * k_w + (rev % k_w)[None])
+    row_node = np.arange(rows) if topo.row_node is None else np.asarray(topo.row_node)
+    row_node_t = stack(row_node[None] + c * n)   # [copies, R]
+    node_rows = np.asarray(topo.node_rows) if topo.node_rows is not None else np.zeros((n, 0), np.int64)
+    padded = np.where(node_rows >= rows, copies * rows, new_row(np.minimum(node_rows, rows - 1)))
+    node_rows_t = padded.reshape(copies * n, -1)
+    dx0 = None if topo.dx0 is None else jnp.asarray(stack(np.asarray(topo.dx0)))
+    return Topology(jnp.asarray(nbr_t, jnp.int32), jnp.asarray(stack(mask)), jnp.asarray(rev_t, jnp.int32), dx0,
+                    jnp.asarray(row_node_t, jnp.int32), jnp.asarray(node_rows_t, jnp.int32))
+
+
+def _one_row_per_node(topo: Topology, n: int) -> bool:
+    return topo.nbr.shape[0] == n
+
+
+@jax.custom_vjp
+def expand_rows(x, topo: Topology):
+    """x [N,F] → [R,F]: each row gets its node's value (identity when R = N)."""
+    return x if _one_row_per_node(topo, x.shape[0]) else x[topo.row_node]
+
+
+@jax.custom_vjp
+def reduce_rows(y, topo: Topology):
+    """The transpose of ``expand_rows``: y [R,F] → [N,F], each node's rows summed (gathers only)."""
+    n = topo.node_rows.shape[0] if topo.node_rows is not None else y.shape[0]
+    if y.shape[0] == n:
+        return y
+    padded = jnp.concatenate([y, jnp.zeros((1,) + y.shape[1:], y.dtype)])
+    return y[:n] + jnp.sum(padded[topo.node_rows], axis=1)
+
+
+expand_rows.defvjp(lambda x, topo: (expand_rows(x, topo), topo),
+                   lambda topo, ct: (reduce_rows(ct, topo), None))
+reduce_rows.defvjp(lambda y, topo: (reduce_rows(y, topo), topo),
+                   lambda topo, g: (expand_rows(g, topo), None))
 
 
 @jax.custom_vjp
 def gather_neighbors(x, topo: Topology):
-    """x [N,F] → [N,K,F]: the sender's row for every incoming-edge slot (zero in padding).
+    """x [N,F] → [R,K,F]: the sender's row for every incoming-edge slot (zero in padding).
 
     Its transpose is again a gather (through the reverse-edge index), so gradients of any order avoid
     scatter-adds, which are slow on CPU."""
@@ -157,9 +257,10 @@ def _gather_bwd(topo, ct):
 
 @jax.custom_vjp
 def sum_reverse(ct, topo: Topology):
-    """The transpose of ``gather_neighbors``: ct [N,K,F] → [N,F], out[j] = Σ over edges j→i of ct[i, slot]."""
-    n, k, f = ct.shape
-    return jnp.sum(ct.reshape(n * k, f)[topo.rev] * topo.mask[..., None], axis=1)
+    """The transpose of ``gather_neighbors``: ct [R,K,F] → [N,F], out[j] = Σ over edges j→i of ct[slot]."""
+    r, k, f = ct.shape
+    per_row = jnp.sum(ct.reshape(r * k, f)[topo.rev] * topo.mask[..., None], axis=1)
+    return reduce_rows(per_row, topo)
 
 
 def _sum_fwd(ct, topo):
@@ -185,18 +286,27 @@ def _generic(weights, config, norm, z, f, node_type, topo):
 
 
 def _potentials_and_grads(weights, config, norm, z, f, node_type, topo):
-    """∇_w E, ∇_w S [N,12] from one forward pass and one reverse pass vmapped over the two cotangents."""
+    """∇_w E, ∇_w S [N,12] from one forward pass and one reverse pass vmapped over the two cotangents.
+
+    The decoder's last layer is applied in two parts (E, S columns | l, m columns) so the reverse pass only
+    runs through the two potential columns; l and m are read out of the heads with a gather (no matmul)."""
     def potentials(z_):
-        out = _network_out(weights, config, norm, z_, f, node_type, topo)
-        return jnp.stack([out[:, 0].sum(), out[:, 1].sum()]), out[:, 2:]
+        es, heads = _network_out(weights, config, norm, z_, f, node_type, topo, split=True)
+        return jnp.stack([es[:, 0].sum(), es[:, 1].sum()]), heads
 
     (_, pullback, heads) = jax.vjp(potentials, z, has_aux=True)
     (grads,) = jax.vmap(pullback)(jnp.eye(2, dtype=z.dtype))
     scale = state_scale(norm)
-    n = z.shape[0]
-    l_mat = (heads[:, :N_L] @ _L_EMBED).reshape(n, STATE_DIM, STATE_DIM)
-    m_mat = (heads[:, N_L:] @ _M_EMBED).reshape(n, STATE_DIM, STATE_DIM)
-    return grads[0] * scale, grads[1] * scale, (l_mat, m_mat)
+    return grads[0] * scale, grads[1] * scale, _matrices(heads)
+
+
+def _matrices(heads):
+    """heads [N, 66 + 78] → (l, m) [N,12,12]: strictly-lower l and lower m filled from the entries."""
+    n = heads.shape[0]
+    padded = jnp.concatenate([jnp.zeros((n, 1), heads.dtype), heads], axis=1)
+    l_mat = jnp.take(padded, _L_INDEX, axis=1).reshape(n, STATE_DIM, STATE_DIM)
+    m_mat = jnp.take(padded, _M_INDEX, axis=1).reshape(n, STATE_DIM, STATE_DIM)
+    return l_mat, m_mat
 
 
 def _apply_l(l_mat, g):
@@ -209,46 +319,58 @@ def _apply_m(m_mat, g):
     return jnp.einsum("nij,nj->ni", m_mat, jnp.einsum("nji,nj->ni", m_mat, g))
 
 
-def _embedding(strict: bool) -> jnp.ndarray:
+def _embedding(strict: bool, offset: int) -> np.ndarray:
+    """Column of the padded heads (0 = the zero column) for each of the 144 entries of a 12x12 matrix."""
     rows, cols = np.tril_indices(STATE_DIM, k=-1 if strict else 0)
-    e = np.zeros((len(rows), STATE_DIM * STATE_DIM), np.float32)
-    e[np.arange(len(rows)), rows * STATE_DIM + cols] = 1.0
-    return jnp.asarray(e)
+    index = np.zeros(STATE_DIM * STATE_DIM, np.int32)
+    index[rows * STATE_DIM + cols] = offset + 1 + np.arange(len(rows))
+    return index
 
 
-_L_EMBED = _embedding(strict=True)
-_M_EMBED = _embedding(strict=False)
+_L_INDEX = _embedding(strict=True, offset=0)
+_M_INDEX = _embedding(strict=False, offset=N_L)
 
 
-def _features(norm, z, f, node_type, topo, edge_velocity=False):
+def _features(norm, z, f, node_type, topo, edge_velocity=False, edge_strain=False):
     q, v, sigma = z[:, :3], z[:, 3:6], z[:, 6:]
     mean, std = norm["z_mean"], norm["z_std"]
     one_hot = jax.nn.one_hot(node_type, 2, dtype=z.dtype)
     x_node = jnp.concatenate(
         [(v - mean[3:6]) / std[3:6], (sigma - mean[6:]) / std[6:], one_hot, f / norm["f_std"]], axis=1)
-    dq = gather_neighbors(q, topo) - q[:, None, :]
+    dq = gather_neighbors(q, topo) - expand_rows(q, topo)[:, None, :]
     pad = (1.0 - topo.mask)[..., None]
     length = jnp.sqrt(jnp.sum(dq * dq, axis=-1, keepdims=True) + pad)
     parts = [dq / norm["dq_std"], (length - norm["dqn_mean"]) / norm["dqn_std"]]
     if edge_velocity:
-        dv = (gather_neighbors(v, topo) - v[:, None, :]) / norm["dv_std"]
+        dv = (gather_neighbors(v, topo) - expand_rows(v, topo)[:, None, :]) / norm["dv_std"]
         parts += [dv, (dv[..., :, None] * (dq / norm["dqn_mean"])[..., None, :]).reshape(dv.shape[:2] + (9,))]
+    if edge_strain:
+        if topo.dx0 is None:
+            raise ValueError("this model needs the rest edge vectors: build its Topology with q0")
+        length0 = jnp.sqrt(jnp.sum(topo.dx0 * topo.dx0, axis=-1, keepdims=True) + pad)
+        parts += [(dq - topo.dx0) / norm["du_std"], (length - length0) / norm["du_std"][:1]]
     x_edge = jnp.concatenate(parts, axis=-1)
     return x_node, x_edge * topo.mask[..., None]
 
 
-def _network_out(weights, config, norm, z, f, node_type, topo):
-    x_node, x_edge = _features(norm, z, f, node_type, topo, config.edge_velocity)
-    return Network(config).apply({"params": weights}, x_node, x_edge, topo)
+def _network_out(weights, config, norm, z, f, node_type, topo, split=False):
+    """[N, 2 + 66 + 78] decoder outputs, or with ``split`` the pair ([N,2] E_i, S_i; [N,144] l, m entries)."""
+    x_node, x_edge = _features(norm, z, f, node_type, topo, config.edge_velocity,
+                                config.edge_strain)
+    es, heads = Network(config).apply({"params": weights}, x_node, x_edge, topo)
+    return (es, heads) if split else jnp.concatenate([es, heads], axis=1)
 
 
 class MLP(nn.Module):
-    """Dense layers of width ``hidden`` with the activation between them; the last layer has ``out`` units."""
+    """Dense layers of width ``hidden`` with the activation between them; the last layer has ``out`` units.
+    With ``split`` = k the output is returned as the pair (first k columns, the rest), computed as two
+    products with the two column blocks of the same last-layer parameters."""
     hidden: int
     out: int
     layers: int
     activation: str
     out_scale: float = 1.0
+    split: int = 0
 
     @nn.compact
     def __call__(self, x):
@@ -256,17 +378,34 @@ class MLP(nn.Module):
         for _ in range(self.layers - 1):
             x = act(nn.Dense(self.hidden)(x))
         init = nn.initializers.variance_scaling(self.out_scale ** 2, "fan_in", "truncated_normal")
-        return nn.Dense(self.out, kernel_init=init)(x)
+        if not self.split:
+            return nn.Dense(self.out, kernel_init=init)(x)
+        return SplitDense(self.out, self.split, kernel_init=init, name=f"Dense_{self.layers - 1}")(x)
+
+
+class SplitDense(nn.Module):
+    """A Dense layer (parameters ``kernel`` [in, features], ``bias`` [features], as ``nn.Dense``) whose output
+    is returned in two column blocks (first ``split`` | rest), each its own product."""
+    features: int
+    split: int
+    kernel_init: callable = nn.initializers.lecun_normal()
+
+    @nn.compact
+    def __call__(self, x):
+        kernel = self.param("kernel", self.kernel_init, (x.shape[-1], self.features))
+        bias = self.param("bias", nn.initializers.zeros_init(), (self.features,))
+        k = self.split
+        return x @ kernel[:, :k] + bias[:k], x @ kernel[:, k:] + bias[k:]
 
 
 class Network(nn.Module):
-    """Encode-process-decode. Returns [N, 2 + 66 + 78]: E_i, S_i, l_i entries, m_i entries.
+    """Encode-process-decode. Returns ([N, 2] E_i, S_i; [N, 66 + 78] l_i entries, m_i entries).
 
     Each pass is a residual node update h ← h + φ([h, Σ_j ψ(x_ij, h_i, h_j) / K, f_i]) with a one-hidden-layer
     edge MLP ψ = W₂·act(A x_ij + B h_j + C h_i + b). Its first layer is split per operand: B h and C h are
     computed once per node and gathered (N products instead of E), and the linear W₂ commutes with the sum over
     neighbours, so it is folded into φ's first layer. An edge then costs one gather, an add and an activation;
-    all matrix products act on the N nodes. Edges live in the receiver-major slots of ``topo`` ([N,K]); x_ij
+    all matrix products act on the N nodes. Edges live in the receiver-major slots of ``topo`` ([R,K]); x_ij
     are the (normalised) edge features q_j − q_i and |q_j − q_i| (and, with ``edge_velocity``, v_j − v_i and
     its outer product with q_j − q_i)."""
     config: ModelConfig
@@ -281,7 +420,7 @@ class Network(nn.Module):
         inv_k = 1.0 / topo.mask.shape[1]
         for _ in range(c.passes):
             a = nn.Dense(hid)(x_edge) + gather_neighbors(nn.Dense(hid, use_bias=False)(h), topo) \
-                + nn.Dense(hid, use_bias=False)(h)[:, None, :]
-            msg = jnp.sum(act(a) * mask, axis=1) * inv_k
+                + expand_rows(nn.Dense(hid, use_bias=False)(h), topo)[:, None, :]
+            msg = reduce_rows(jnp.sum(act(a) * mask, axis=1), topo) * inv_k
             h = h + MLP(hid, hid, c.mlp_layers, c.activation)(jnp.concatenate([h, msg, f], axis=1))
-        return MLP(hid, 2 + N_L + N_M, c.mlp_layers, c.activation, out_scale=0.1)(h)
+        return MLP(hid, 2 + N_L + N_M, c.mlp_layers, c.activation, out_scale=0.1, split=2)(h)

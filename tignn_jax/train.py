@@ -39,6 +39,7 @@ class TrainConfig(NamedTuple):
     passes: int = 3
     activation: str = "silu"
     edge_velocity: bool = True
+    edge_strain: bool = False
     lr: float = 3e-3
     lr_end: float = 2e-5
     weight_decay: float = 1e-6
@@ -53,7 +54,8 @@ class TrainConfig(NamedTuple):
 
     @property
     def model(self) -> M.ModelConfig:
-        return M.ModelConfig(self.hidden, self.mlp_layers, self.passes, self.activation, self.edge_velocity)
+        return M.ModelConfig(self.hidden, self.mlp_layers, self.passes, self.activation, self.edge_velocity,
+                             self.edge_strain)
 
 
 CONFIGS = {
@@ -141,7 +143,7 @@ def train(data: D.Dataset, cfg: TrainConfig, run_dir: str | Path, train_split="t
     norm_np = D.normalization(data, rows)
     norm = {k: jnp.asarray(v) for k, v in norm_np.items()}
     node_type = jnp.asarray(data.node_type, jnp.int32)
-    topo = M.topology(data.edges[0], data.edges[1], len(data.node_type))
+    topo = M.topology(data.edges[0], data.edges[1], len(data.node_type), data.q0)
     frames = data.f.shape[1]
     n_samples = len(rows) * frames
     bs = cfg.batch_size
