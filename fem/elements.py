@@ -1,10 +1,11 @@
 """Element technology for nearly incompressible solids: one-point hex8 with physical hourglass control, and
-average-nodal-pressure tet4.
+tet4 with nodal pressure and a stabilised nodally averaged deformation gradient.
 
 Both paper scenes are nearly incompressible (K/μ ≈ 64 for the beam, ≈ 78 for the bunny). A fully integrated
 trilinear hexahedron locks twice there: volumetrically (eight independent J constraints per element) and in
 bending (parasitic shear: an element of aspect ratio 1 bent in its plane is ~30 % too stiff at ν ≈ 0.5). A
-constant-strain tetrahedron locks volumetrically (one J constraint per element, more elements than nodes).
+constant-strain tetrahedron locks twice as well: volumetrically (one J constraint per element, more elements
+than nodes) and in bending (a constant strain per element cannot represent the linear strain of bending).
 
 hex8 — uniform-gradient one-point quadrature with physical (enhanced-strain) hourglass stabilisation:
     * F = Σ_a x_a ⊗ b̄_a with the uniform gradients b̄_a = (1/V) ∫ ∇N_a dV (Flanagan–Belytschko); the full
@@ -23,10 +24,54 @@ hex8 — uniform-gradient one-point quadrature with physical (enhanced-strain) h
     This is the element family of Abaqus's C3D8R with enhanced hourglass control; the reported stress is the
     centre-point stress (volume average of the single integration point).
 
-tet4 — average nodal pressure (Bonet & Burton 1998): the volumetric energy Σ_a V_a U(J_a) is evaluated with
-nodal Jacobians J_a = v_a / V_a from the lumped nodal volumes, so there is one volume constraint per node
-instead of per element; the deviatoric part uses the element's constant F. The element pressure is the mean of
-its nodes' pressures.
+tet4 — two formulations, chosen with ``fem.setup(tet_formulation=...)``. Both evaluate the volumetric energy at
+the nodes, Σ_a V_a U(J_a) with J_a = Σ_{e∋a} (V_e/4) J_e / V_a the nodal Jacobian from the lumped nodal volumes
+V_a = Σ_{e∋a} V_e/4 (average nodal pressure, Bonet & Burton 1998): one volume constraint per node instead of
+per element, which removes volumetric locking. They differ in the isochoric (deviatoric) part:
+
+"anp" (the formulation until 2026-11-21): the element's constant F_e. A constant-strain tetrahedron still locks
+    in bending on coarse meshes (parasitic shear: a linear field cannot bend an element): the 40 × 2 × 2
+    cantilever of tests/test_fem_elements.py, six tets per hex of an 80 × 2 × 2 grid, is 31.8 % too stiff at
+    the tip (first frequency +14.7 %); at ν = 0.36 it is still −34 % on the 40 × 2 × 2 grid, so this is not
+    volumetric locking.
+
+"nodal": stabilised averaged-nodal deformation gradient, the finite-strain form of the αFEM of Liu,
+    Nguyen-Thoi & Lam (CMAME 197, 2008, 3883) with a selective (nodal) volumetric part::
+
+        Π = Σ_a V_a U(J_a) + α Σ_e V_e Ψ_iso(F_e) + (1 − α) Σ_a V_a Ψ_iso(F_a),
+        F_a = Σ_{e∋a} (V_e/4) F_e / V_a.
+
+    * The nodal term alone is the averaged nodal deformation gradient tetrahedron of Bonet, Marriott & Hassan
+      (IJNME 50, 2001), i.e. node-based smoothed FEM (NS-FEM; Liu et al. 2009): strains are smoothed over the
+      cell around each node, so bending no longer has to be carried by constant-strain elements. NS-FEM is too
+      soft (it is an upper bound of the compliance where FEM is a lower bound) and has spurious low-energy
+      modes — patterns whose element strains cancel in every nodal average — which in explicit dynamics are
+      excited and grow into hourglass-like noise (Puso & Solberg, IJNME 67, 2006).
+    * The element term with weight α gives every such mode the stiffness α K_FEM > 0 and brings the stiffness
+      between the two bounds. The energy is a convex combination of two objective energies of the same
+      deformation, so: a linear field (every F_e = F_a = A) is reproduced exactly (patch test, uniform
+      stress); rigid rotations are stress-free; the forces are the exact gradient of Π. At small strain each
+      nodal quadratic form is bounded by the element ones (Jensen: V_a ψ(ε_a) ≤ Σ_{e∋a} (V_e/4) ψ(ε_e) for
+      convex ψ), so the stiffness is bounded by that of the constant-strain element and the element-size
+      stable time step below still holds.
+    * α = 0.3, measured on the cantilever (tip deflection vs Timoshenko; stiffness is linear in α):
+
+          grid (six tets per hex)   α = 0 (NS)   α = 0.3    α = 0.35   α = 1 (ANP)   α for exact tip
+          40 × 2 × 2  (cubes)         +32.8 %     ≈ −5 %     −9.4 %     −40.6 %       0.25
+          80 × 2 × 2  (the test)      +35.4 %     +2.3 %     −1.4 %     −31.8 %       0.33
+          80 × 4 × 4                  +9.7 %      ≈ +0.3 %   −1.1 %     TODO          0.31
+
+      (≈: from the linear dependence of the stiffness on α.) α = 0.3 minimises the largest of the three
+      errors; the literature's general-purpose choice for αFEM tetrahedra (about 0.6–0.7 in their convention)
+      is tuned for elasticity on finer meshes and is too stiff for a beam two elements thick.
+    * Viscoelasticity: each term keeps its own Prony history (elements: [n_prony, 3, 3, K], nodes:
+      [n_prony, 3, 3, N]), weighted α and 1 − α in the stress, the stored energy and the dissipation.
+    * Reported stress: the element Cauchy stress is α σ_iso(F_e) + (1 − α) × the mean of σ_iso(F_a) over the
+      element's four nodes + the mean nodal pressure (the same averaging that carries the nodal stresses into
+      the element forces); the solver's nodal output is, as for every element, the volume average of the
+      adjacent elements' stresses.
+    Cost: one more isochoric stress evaluation per node (N ≈ K/4 … K/6), one gather of F to the nodes and one
+    of the nodal stresses back to the elements.
 """
 from __future__ import annotations
 
@@ -42,6 +87,8 @@ TET_FACES = np.array([[0, 2, 1], [0, 1, 3], [1, 2, 3], [0, 3, 2]])
 HOURGLASS = np.stack([HEX_XI[:, 0] * HEX_XI[:, 1], HEX_XI[:, 1] * HEX_XI[:, 2],
                       HEX_XI[:, 2] * HEX_XI[:, 0], HEX_XI[:, 0] * HEX_XI[:, 1] * HEX_XI[:, 2]])  # [4, 8]
 _GAUSS = np.array([-1.0, 1.0]) / np.sqrt(3.0)
+TET_DEFAULT = "anp"     # tet4 formulation of fem.setup
+TET_BLEND = 0.3         # α of the "nodal" tet4 (module docstring)
 
 
 class HexGeometry(NamedTuple):
@@ -55,9 +102,12 @@ class HexGeometry(NamedTuple):
 
 
 class TetGeometry(NamedTuple):
-    b: np.ndarray        # [K, 4, 3]
-    volume: np.ndarray   # [K]
-    node_volume: np.ndarray  # [N] lumped reference nodal volumes Σ V_e / 4
+    """Reference-configuration data of tet4 elements (numpy arrays, K elements, N nodes)."""
+
+    b: np.ndarray              # [K, 4, 3] shape-function gradients ∂N_a/∂X
+    volume: np.ndarray         # [K] reference volumes
+    node_volume: np.ndarray    # [N] lumped reference nodal volumes V_a = Σ_{e∋a} V_e / 4
+    node_elements: np.ndarray  # [N, w] elements around each node, padded with K
 
 
 def element_volumes(points: np.ndarray, cells: np.ndarray, cell_type: str) -> np.ndarray:
@@ -154,7 +204,9 @@ def tet_geometry(points: np.ndarray, cells: np.ndarray) -> TetGeometry:
     volume = np.linalg.det(D) / 6.0
     node_volume = np.zeros(len(points))
     np.add.at(node_volume, cells.ravel(), np.repeat(volume / 4.0, 4))
-    return TetGeometry(b, volume, node_volume)
+    table = incidence_table(cells, len(points))
+    node_elements = np.where(table < cells.size, table % len(cells), len(cells)).astype(np.int32)
+    return TetGeometry(b, volume, node_volume, node_elements)
 
 
 def characteristic_lengths(points: np.ndarray, cells: np.ndarray, cell_type: str) -> np.ndarray:

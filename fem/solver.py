@@ -57,6 +57,8 @@ class Config(NamedTuple):
     load_interp: str
     checkpoint: bool
     contact_capacity: int = 0   # 0: no contact
+    tet_formulation: str = "anp"   # tet4 only: "anp" or "nodal" (see fem.elements)
+    tet_blend: float = 1.0         # tet4 "nodal": weight α of the element-wise isochoric energy
 
 
 class Arrays(NamedTuple):
@@ -144,7 +146,8 @@ class ElementInversionError(RuntimeError):
 
 def setup(points, cells, *, material: Material, frame_dt: float, n_frames: int, clamped=(),
           cell_type: Optional[str] = None, safety: float = 0.9, n_sub: Optional[int] = None, damping: float = 0.0,
-          pressure_faces=None, load_interp: str = "step", checkpoint: bool = True, contact=None) -> Problem:
+          pressure_faces=None, load_interp: str = "step", checkpoint: bool = True, contact=None,
+          tet_formulation: str = el.TET_DEFAULT, tet_blend: float = el.TET_BLEND) -> Problem:
     """Validate a mesh and build a :class:`Problem`.
 
     points [N, 3] reference coordinates [length]; cells [K, 8] (hex8, VTK order) or [K, 4] (tet4);
@@ -153,7 +156,10 @@ def setup(points, cells, *, material: Material, frame_dt: float, n_frames: int, 
     safety: fraction of the element-size stability limit; n_sub: sub-steps per frame (overrides the automatic
     choice); damping: Rayleigh mass-damping coefficient α [1/time]; pressure_faces [P, 4|3] node ids of loaded
     faces (outward orientation); contact: optional dict(a=node ids, b=node ids, r0=contact thickness,
-    stiffness=k [force/length], skin=search margin, capacity=max candidate pairs) for body–body contact.
+    stiffness=k [force/length], skin=search margin, capacity=max candidate pairs) for body–body contact;
+    tet_formulation: tet4 element, 'nodal' (stabilised averaged-nodal deformation gradient) or 'anp' (average
+    nodal pressure, the formulation before 2026-11-21); tet_blend: α ∈ [0, 1], the weight of the element-wise
+    isochoric energy in 'nodal' (see `fem.elements`).
     """
     pts = np.asarray(points, dtype=float)
     cl = np.asarray(cells)
@@ -174,6 +180,10 @@ def setup(points, cells, *, material: Material, frame_dt: float, n_frames: int, 
         raise ValueError(f"safety must be in (0, 1], got safety={safety!r}")
     if damping < 0.0:
         raise ValueError(f"damping must be non-negative, got damping={damping!r}")
+    if tet_formulation not in ("anp", "nodal"):
+        raise ValueError(f"tet_formulation must be 'anp' or 'nodal', got {tet_formulation!r}")
+    if not (isinstance(tet_blend, (int, float)) and 0.0 <= tet_blend <= 1.0):
+        raise ValueError(f"tet_blend must be a number in [0, 1], got tet_blend={tet_blend!r}")
     if load_interp not in ("step", "linear"):
         raise ValueError(f"load_interp must be 'step' or 'linear', got {load_interp!r}")
     clamped = np.asarray(clamped, dtype=int).ravel()
@@ -217,7 +227,8 @@ def setup(points, cells, *, material: Material, frame_dt: float, n_frames: int, 
         arrays = arrays._replace(contact_a=jnp.asarray(ca, jnp.int32), contact_b=jnp.asarray(cb, jnp.int32),
                                  contact_params=jnp.asarray([r0, k_c, skin]))
     config = Config(kind, int(n_frames), int(n_sub), float(frame_dt), material.n_prony, damping > 0.0,
-                    pf is not None, load_interp, bool(checkpoint), capacity)
+                    pf is not None, load_interp, bool(checkpoint), capacity,
+                    tet_formulation if kind == "tetra" else "anp", float(tet_blend) if kind == "tetra" else 1.0)
     return Problem(arrays, config)
 
 
@@ -334,7 +345,8 @@ def _element_last(geo):
         return el.HexGeometry(jnp.asarray(geo.b.transpose(2, 1, 0)), jnp.asarray(geo.volume),
                               jnp.asarray(geo.gamma.transpose(1, 2, 0)),
                               tuple(map(jnp.asarray, geo.hg_lam)), tuple(map(jnp.asarray, geo.hg_mu)))
-    return el.TetGeometry(jnp.asarray(geo.b.transpose(2, 1, 0)), jnp.asarray(geo.volume), jnp.asarray(geo.node_volume))
+    return el.TetGeometry(jnp.asarray(geo.b.transpose(2, 1, 0)), jnp.asarray(geo.volume), jnp.asarray(geo.node_volume),
+                          jnp.asarray(geo.node_elements))
 
 
 def _gather_sum(incidence, values):
@@ -406,6 +418,9 @@ def _zero_visco(arr: Arrays, cfg: Config):
     z = (jnp.zeros((cfg.n_prony, 3, 3, k)), jnp.zeros((3, 3, k)))
     if cfg.cell_type == "hexahedron":
         z = z + (jnp.zeros((cfg.n_prony, 12, k)), jnp.zeros((12, k)))
+    elif _nodal_tet(cfg):
+        n = arr.points.shape[0]
+        z = z + (jnp.zeros((cfg.n_prony, 3, 3, n)), jnp.zeros((3, 3, n)))
     return z
 
 
@@ -426,6 +441,11 @@ def _internal(arr: Arrays, m: Material, hg, x, visco, cfg: Config, h):
     geo = arr.geo
     xe = _gather_elements(x, arr.cells)
     F = _deformation_gradient(xe, geo.b)
+    if _nodal_tet(cfg):
+        P, J, new_visco, diss = _nodal_tet_stress(arr, m, F, visco, cfg, h)
+        fe = geo.volume * _sum_over(lambda j: P[:, j, None] * geo.b[None, j], 3)
+        k_min = jnp.argmin(J)
+        return _assemble(arr.incidence, fe), new_visco, J[k_min], k_min, diss
     S0, J, Cinv = isochoric_pk2(m, F)
     p = pressure(m, J) if cfg.cell_type == "hexahedron" else _anp_pressure(arr, m, J)
     S = (J * p) * Cinv
@@ -473,9 +493,76 @@ def _anp_pressure(arr: Arrays, m: Material, J):
     return jnp.mean(pressure(m, J_node)[arr.cells], axis=1)
 
 
+def _nodal_tet(cfg: Config) -> bool:
+    return cfg.cell_type == "tetra" and cfg.tet_formulation == "nodal"
+
+
+def _nodal_average(geo, value):
+    """Volume average over the elements around each node: [..., K] → [..., N], Σ_{e∋a} (V_e/4) value_e / V_a."""
+    w = value * (geo.volume / 4.0)
+    w = jnp.concatenate([w, jnp.zeros(w.shape[:-1] + (1,), w.dtype)], axis=-1)
+    return w[..., geo.node_elements].sum(axis=-1) / geo.node_volume
+
+
+def _element_mean(cells, nodal):
+    """Mean over each element's four nodes: [..., N] → [..., K]."""
+    return 0.25 * _sum_over(lambda a: nodal[..., cells[:, a]], 4)
+
+
+def _prony_step(m: Material, S0, hist, h):
+    """Isochoric PK2 g∞ S⁰ + Σ ḡ_i H_i with the history advanced over h, the new history (H, S⁰), and the
+    dissipation rate density Σ_i |ḡ_i H_i|²/(2 ḡ_i μ0 τ_i) [..]; S0 [3, 3, n]."""
+    decay = jnp.exp(-h / m.tau)
+    coef = m.tau / h * (1.0 - decay)
+    H, S0_prev = hist
+    H = decay[:, None, None, None] * H + coef[:, None, None, None] * (S0 - S0_prev)[None]
+    S = (1.0 - jnp.sum(m.g)) * S0 + jnp.sum(m.g[:, None, None, None] * H, axis=0)
+    rate = m.g / (2.0 * shear_modulus(m) * m.tau)
+    return S, (H, S0), jnp.sum(rate[:, None, None, None] * H * H, axis=(0, 1, 2))
+
+
+def _nodal_tet_stress(arr: Arrays, m: Material, F, visco, cfg: Config, h):
+    """First Piola–Kirchhoff stress [3, 3, K] of the stabilised nodal tet4, conjugate to its energy
+    α Σ_e V_e Ψ_iso(F_e) + (1 − α) Σ_a V_a Ψ_iso(F_a) + Σ_a V_a U(J_a), with F_a, J_a the nodal volume averages
+    of F_e, J_e: ∂/∂F_e of a nodal term is V_e/4 times the nodal stress, so each element carries the mean of its
+    four nodes' stresses. Returns (P, element J [K], new visco, dissipation rate)."""
+    geo, a = arr.geo, cfg.tet_blend
+    S0, J, Cinv = isochoric_pk2(m, F)
+    Fn = _nodal_average(geo, F)
+    S0n, _, _ = isochoric_pk2(m, Fn)
+    p = _element_mean(arr.cells, pressure(m, _nodal_average(geo, J)))
+    new_visco, diss = (), 0.0
+    if cfg.n_prony:
+        S0, he, de = _prony_step(m, S0, visco[:2], h)
+        S0n, hn, dn = _prony_step(m, S0n, visco[2:], h)
+        new_visco = he + hn
+        diss = a * jnp.sum(geo.volume * de) + (1.0 - a) * jnp.sum(geo.node_volume * dn)
+    P = matmul3(F, a * S0 + (J * p) * Cinv) + (1.0 - a) * _element_mean(arr.cells, matmul3(Fn, S0n))
+    return P, J, new_visco, diss
+
+
+def _nodal_tet_cauchy(arr: Arrays, m: Material, F, visco, cfg: Config):
+    """Element Cauchy stress [3, 3, K] of the stabilised nodal tet4: α σ_iso(F_e) + (1 − α) · mean over the
+    element's nodes of σ_iso(F_a) + mean nodal pressure; current viscous variables (no update)."""
+    geo, a = arr.geo, cfg.tet_blend
+    S0, J, _ = isochoric_pk2(m, F)
+    Fn = _nodal_average(geo, F)
+    S0n, Jn, _ = isochoric_pk2(m, Fn)
+    if cfg.n_prony:
+        ginf = 1.0 - jnp.sum(m.g)
+        S0 = ginf * S0 + jnp.sum(m.g[:, None, None, None] * visco[0], axis=0)
+        S0n = ginf * S0n + jnp.sum(m.g[:, None, None, None] * visco[2], axis=0)
+    cauchy = lambda F_, S_, J_: matmul3(matmul3(F_, S_), transpose3(F_)) / J_
+    p = _element_mean(arr.cells, pressure(m, _nodal_average(geo, J)))
+    return (a * cauchy(F, S0, J) + (1.0 - a) * _element_mean(arr.cells, cauchy(Fn, S0n, Jn))
+            + p * jnp.eye(3, dtype=F.dtype)[:, :, None])
+
+
 def _element_stress(arr: Arrays, m: Material, x, visco, cfg: Config):
     """Element Cauchy stress [K, 6] at x with the current viscous variables (no update)."""
     F = _deformation_gradient(_gather_elements(x, arr.cells), arr.geo.b)
+    if _nodal_tet(cfg):
+        return to_voigt(_nodal_tet_cauchy(arr, m, F, visco, cfg))
     S0, J, Cinv = isochoric_pk2(m, F)
     p = pressure(m, J) if cfg.cell_type == "hexahedron" else _anp_pressure(arr, m, J)
     if cfg.n_prony:
@@ -505,13 +592,22 @@ def _stored_energy(arr: Arrays, m: Material, x, visco, hg, cfg: Config, elastic:
         k_eq, dk, _ = hg
         k_use = k_eq + dk if (elastic and dk is not None) else k_eq
         e = e + 0.5 * jnp.sum(g * jnp.sum(k_use * g[None], axis=1))
+    elif _nodal_tet(cfg):
+        a = cfg.tet_blend
+        Fn = _nodal_average(geo, F)
+        e = ginf * (a * jnp.sum(geo.volume * isochoric_energy(m, F)) + (1.0 - a) * jnp.sum(geo.node_volume * isochoric_energy(m, Fn)))
+        e = e + jnp.sum(geo.node_volume * volumetric_energy(m, _nodal_average(geo, det3(F))))
     else:
         J = det3(F)
         J_node = _gather_sum(arr.incidence, jnp.tile(geo.volume * J / 4.0, 4)) / geo.node_volume
         e = jnp.sum(geo.volume * ginf * isochoric_energy(m, F)) + jnp.sum(geo.node_volume * volumetric_energy(m, J_node))
     if cfg.n_prony and not elastic:
-        H = visco[0]
-        e = e + jnp.sum(geo.volume * jnp.sum((m.g / (4.0 * shear_modulus(m)))[:, None, None, None] * H * H, axis=(0, 1, 2)))
+        c = (m.g / (4.0 * shear_modulus(m)))[:, None, None, None]
+        held = lambda vol, H: jnp.sum(vol * jnp.sum(c * H * H, axis=(0, 1, 2)))
+        if _nodal_tet(cfg):   # element branches weighted α, nodal branches 1 − α
+            e = e + cfg.tet_blend * held(geo.volume, visco[0]) + (1.0 - cfg.tet_blend) * held(geo.node_volume, visco[2])
+        else:
+            e = e + held(geo.volume, visco[0])
         if cfg.cell_type == "hexahedron":
             w = m.g / jnp.sum(m.g)
             HQ = visco[2]
