@@ -343,7 +343,10 @@ def _features(norm, z, f, node_type, topo, edge_velocity=False, edge_strain=Fals
     parts = [dq / norm["dq_std"], (length - norm["dqn_mean"]) / norm["dqn_std"]]
     if edge_velocity:
         dv = (gather_neighbors(v, topo) - expand_rows(v, topo)[:, None, :]) / norm["dv_std"]
-        parts += [dv, (dv[..., :, None] * (dq / norm["dqn_mean"])[..., None, :]).reshape(dv.shape[:2] + (9,))]
+        dq_unit = dq / norm["dqn_mean"]
+        # the 9 products dv_a dq_b, written as slices (not a broadcast outer product): their transpose is then
+        # elementwise, where the broadcast form's is a small-axis reduction that is slow on CPU
+        parts += [dv] + [dv[..., a:a + 1] * dq_unit[..., b:b + 1] for a in range(3) for b in range(3)]
     if edge_strain:
         if topo.dx0 is None:
             raise ValueError("this model needs the rest edge vectors: build its Topology with q0")
