@@ -5,7 +5,9 @@ Scenes:
   (shown 0.2 m long), the lower one A clamped at x = 0, the upper one B turned 90° about the vertical and lying
   across A's free half with a gap of 10 (5 cm). The fingertip presses B's free end down onto A; both step in one
   batched graph, each in its own model frame, and interact through ``ar.contact_forces``.
-- ``bunny``: the Stanford bunny (10 cm tall) standing on the table, base clamped, pushed on its back.
+- ``beam``: beam A alone, pressed down at its free end.
+- ``bunny``: the Stanford bunny (10 cm tall) standing on the table, base clamped, pushed on its back with about
+  the unit point load of the training cases.
 
 Dynamics: the shipped learned model (``--model``, default per scene). If no shipped model is found, a clearly
 labelled STAND-IN (damped springs between all nodes of each element, not the learned model and not physically
@@ -18,7 +20,8 @@ import json
 import time
 from pathlib import Path
 
-DEFAULT_MODELS = {"two-beams": "beam-abaqus", "bunny": "bunny"}
+DEFAULT_MODELS = {"beam": "beam-abaqus", "two-beams": "beam-abaqus", "bunny": "bunny"}
+SCENES = ("two-beams", "beam", "bunny")
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -26,8 +29,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                        description="Mixed reality: a fingertip in a (synthetic) camera image pushes virtual solids "
                                    "simulated by the shipped model; writes a GIF, the fingertip track (JSON lines) "
                                    "and per-stage timings (p50/p99).")
-    p.add_argument("--scene", choices=("two-beams", "bunny"), default="two-beams",
-                   help="two cantilevers pushed into each other, or the bunny on a table (default: %(default)s)")
+    p.add_argument("--scene", choices=SCENES, default="two-beams",
+                   help="two cantilevers pushed into each other, one beam, or the bunny on a table "
+                        "(default: %(default)s)")
     p.add_argument("--out", default="out/demo", help="output folder (default: %(default)s)")
     p.add_argument("--frames", type=int, default=120, help="frames to play (default: %(default)s)")
     p.add_argument("--model", default=None, help="shipped model name or path (default: per scene)")
@@ -72,7 +76,7 @@ def run(args) -> int:
 
 
 def build_scene(name: str, frames: int, model: str | None = None, stand_in: bool = False):
-    """(Scene, dynamics description) for ``name`` in {"two-beams", "bunny"}."""
+    """(Scene, dynamics description) for ``name`` in ``SCENES``."""
     import jax.numpy as jnp
     import numpy as np
 
@@ -82,7 +86,7 @@ def build_scene(name: str, frames: int, model: str | None = None, stand_in: bool
     from tignn_jax.render import surface_triangles
 
     width, height = 640, 480
-    if name == "two-beams":
+    if name in ("two-beams", "beam"):
         q0, cells, edges = beam_mesh()
         clamped = np.zeros(len(q0), bool)
         clamped[clamped_nodes(q0)] = True
@@ -94,6 +98,9 @@ def build_scene(name: str, frames: int, model: str | None = None, stand_in: bool
         poses = [ar.model_matrix(base, up, scale), ar.model_matrix(base + offset_b, np.asarray(up) @ turn, scale)]
         eye, target = [0.33, 0.27, 0.28], [0.13, 0.06, -0.03]
         press_body, press_at, normal = 1, [38.0, 5.0, 10.0], [0.0, 0.0, 1.0]  # B's free end, top face
+        if name == "beam":
+            poses = poses[:1]
+            press_body = 0
         tip_radius, tip_force, vmax = 3.0, 2.0e4, 6.0e4
     elif name == "bunny":
         q0, cells, edges = bunny_mesh()
@@ -104,12 +111,15 @@ def build_scene(name: str, frames: int, model: str | None = None, stand_in: bool
         eye, target = [0.17, 0.16, 0.22], [0.1, 0.05, 0.0]
         top = np.argmax(q0[:, 2] - 0.3 * np.abs(q0[:, 0]))
         press_body, press_at, normal = 0, q0[top], [0.0, 0.0, 1.0]
-        tip_radius, tip_force, vmax = 1.5, 2.0e3, 2.0e4
+        tip_radius, tip_force, vmax = 0.35, 1.0, 0.5   # about one node at the training loads' unit force
     else:
         raise ValueError(f"scene must be 'two-beams' or 'bunny', got {name!r}")
     q0 = np.asarray(q0, np.float32)
-    step_fn, dynamics, q0 = _dynamics(model or DEFAULT_MODELS[name], stand_in, q0, cells, edges, clamped,
-                                      copies=len(poses))
+    step_fn, dynamics, q0, units = _dynamics(model or DEFAULT_MODELS[name], stand_in, q0, cells, edges, clamped,
+                                             copies=len(poses))
+    if units != 1.0:   # the model's mesh is this mesh scaled (the bunny data use the scan's scale)
+        poses = [np.asarray(m) @ np.diag([1 / units] * 3 + [1.0]) for m in poses]
+        press_at, tip_radius = np.asarray(press_at) * units, tip_radius * units
     triangles = surface_triangles(cells, q0)
     view = np.asarray(ar.look_at(eye, target, [0.0, 1.0, 0.0]))
     cam = sc.Camera(fx=540.0, fy=540.0, cx=width / 2, cy=height / 2, width=width, height=height, near=0.05,
@@ -127,7 +137,7 @@ def build_scene(name: str, frames: int, model: str | None = None, stand_in: bool
 
 
 def _dynamics(model_name, stand_in, q0, cells, edges, clamped, copies):
-    """(step over all bodies, description, q0 in the model's node order)."""
+    """(step over all bodies, description, q0 in the model's units, model units per mesh unit)."""
     import jax.numpy as jnp
     import numpy as np
 
@@ -138,18 +148,19 @@ def _dynamics(model_name, stand_in, q0, cells, edges, clamped, copies):
         except (ValueError, FileNotFoundError, ImportError, AttributeError) as err:
             print(f"no shipped model {model_name!r} ({err}); using the STAND-IN dynamics")
         else:
-            mesh_q0 = np.asarray(params["mesh"]["q0"], np.float32)
-            if mesh_q0.shape == q0.shape and np.allclose(mesh_q0, q0, atol=1e-4):
+            mesh_q0 = np.asarray(params["mesh"]["q0"], np.float64)
+            units = float(np.sum(mesh_q0 * q0) / np.sum(q0 * q0)) if mesh_q0.shape == q0.shape else 0.0
+            if units > 0 and np.allclose(mesh_q0, units * q0, atol=1e-4 * max(units, 1.0) * np.abs(q0).max()):
                 fn = api.stepper(params, copies)
 
                 def step(zs, forces):
                     return tuple(jnp.split(fn(jnp.concatenate(zs), jnp.concatenate(forces)), copies))
 
-                return step, f"model {model_name}", q0
+                return step, f"model {model_name}", mesh_q0.astype(np.float32), units
             print(f"model {model_name!r} was trained on another mesh; using the STAND-IN dynamics")
     single = stand_in_step(q0, cells, clamped)
     return (lambda zs, forces: tuple(single(z, f) for z, f in zip(zs, forces))), \
-        "STAND-IN spring dynamics (not the learned model)", q0
+        "STAND-IN spring dynamics (not the learned model)", q0, 1.0
 
 
 def stand_in_step(q0, cells, clamped, stiffness=5.0e4, damping=0.03, dt=0.05, substeps=8, modulus=9.3e5):

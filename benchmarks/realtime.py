@@ -1,0 +1,175 @@
+"""The real-time budget: the mixed-reality loop of `tignn demo` over many frames, per stage, on this CPU.
+
+For each scene (one beam, the paper's two beams, the bunny) the loop of ``tignn_jax.scene.run`` plays a
+fingertip press track for ``--frames`` frames after ``--warmup`` frames of compilation, with the shipped model
+of the scene, rendering at 640x480. Per frame it times: forces (fingertip unprojection + object contact), step
+(the learned simulator for all bodies), render (rasterise + shade + occlude) and the whole frame. The
+simulation time per frame is forces + step. Budgets (issue 5): simulation p50 ≤ 9 ms (one beam), ≤ 11 ms
+(bunny), ≤ 18 ms (two beams), p99 ≤ 1.5 × p50; whole frame p50 ≤ 33 ms (≥ 30 frames per second).
+
+Speed-ups are measured in the same run, as ratios of the step time of each scene's model on its mesh:
+  * straightforward: edge list (one row per edge), edge MLP on the concatenated [x_ij, h_j, h_i], scatter-add
+    aggregation, two reverse passes for ∇E and ∇S, L and M assembled with 0/1 matmuls;
+  * max-degree slots: the shipped gather-only layout but with one row of K = max degree slots per node;
+  * shipped: rows of K slots near the mean degree (`model.topology`), fused first edge layer, one reverse pass.
+A scene whose model is not shipped runs with the labelled stand-in dynamics and is reported as not valid.
+Writes benchmarks/results/realtime.{json,md}.
+
+    python benchmarks/realtime.py [--frames 500] [--warmup 20] [--scenes beam,two-beams,bunny]
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from _machine import describe  # noqa: E402
+
+RESULTS = Path(__file__).resolve().parent / "results"
+BUDGET_MS = {"beam": 9.0, "bunny": 11.0, "two-beams": 18.0}
+FRAME_BUDGET_MS = 1e3 / 30
+
+
+def percentiles(ms) -> dict:
+    ms = np.asarray(ms, float)
+    return {"p50_ms": float(np.median(ms)), "p99_ms": float(np.percentile(ms, 99)), "mean_ms": float(ms.mean())}
+
+
+def run_scene(name: str, frames: int, warmup: int) -> dict:
+    from tignn_jax import scene as sc
+    from tignn_jax.commands_demo import build_scene
+
+    scene, dynamics = build_scene(name, frames + warmup)
+    _, t = sc.run(scene, frames=frames + warmup, warmup=warmup)
+    sim = t.forces + t.step
+    out = {"dynamics": dynamics, "valid": dynamics.startswith("model"), "frames": int(len(t.frame)),
+           "nodes": int(sum(len(b.q0) for b in scene.bodies)),
+           "image": [scene.camera.width, scene.camera.height], "reallocations": t.reallocations,
+           **{k: percentiles(v) for k, v in (("forces", t.forces), ("step", t.step), ("simulation", sim),
+                                              ("render", t.render), ("frame", t.frame))}}
+    p50, p99 = out["simulation"]["p50_ms"], out["simulation"]["p99_ms"]
+    out["budget"] = {"simulation_p50_ms": BUDGET_MS[name], "simulation_p50_ok": p50 <= BUDGET_MS[name],
+                     "p99_over_p50": p99 / p50, "p99_ok": p99 <= 1.5 * p50,
+                     "frame_p50_ok": out["frame"]["p50_ms"] <= FRAME_BUDGET_MS,
+                     "fps_at_p50": 1e3 / out["frame"]["p50_ms"]}
+    return out
+
+
+def step_variants(name: str, repeats: int) -> dict:
+    """Median step time of the scene's model written three ways (see the module docstring)."""
+    from model_step import EdgeListNetwork, edge_list_features, edge_list_rates
+
+    from tignn_jax import api
+    from tignn_jax import model as M
+    from tignn_jax.commands_demo import DEFAULT_MODELS
+
+    params, graph = api.load_pretrained(DEFAULT_MODELS[name])
+    copies = 2 if name == "two-beams" else 1
+    cfg, norm, w = api._config(params), params["norm"], params["weights"]
+    mesh = params["mesh"]
+    n = len(mesh["node_type"])
+    s = np.concatenate([mesh["senders"] + i * n for i in range(copies)])
+    r = np.concatenate([mesh["receivers"] + i * n for i in range(copies)])
+    q0 = np.tile(mesh["q0"], (copies, 1))
+    nt = jnp.tile(jnp.asarray(mesh["node_type"], jnp.int32), copies)
+    rng = np.random.default_rng(0)
+    z = jnp.asarray(np.concatenate([q0 + 0.01 * rng.normal(size=q0.shape), 0.01 * rng.normal(size=(len(q0), 9))],
+                                   axis=1), jnp.float32)
+    f = jnp.asarray(0.01 * rng.normal(size=(len(q0), 3)), jnp.float32)
+    rows = M.topology(s, r, len(q0), q0)
+    slots = M.topology(s, r, len(q0), q0, slots=int(np.bincount(r).max()))
+    x_node, x_edge = edge_list_features(norm, z, f, nt, jnp.asarray(s), jnp.asarray(r))
+    plain_cfg = cfg._replace(edge_strain=False)
+    w_edge = EdgeListNetwork(plain_cfg).init(jax.random.PRNGKey(0), x_node, x_edge, s, r)["params"]
+    fns = {
+        "straightforward (edge list)": jax.jit(lambda z, f: z + edge_list_rates(
+            w_edge, plain_cfg, norm, z, f, nt, jnp.asarray(s), jnp.asarray(r))[0] * M.state_scale(norm)),
+        "max-degree slots": jax.jit(lambda z, f: M.step_state(w, cfg, norm, z, f, nt, slots)),
+        "shipped (rows)": jax.jit(lambda z, f: M.step_state(w, cfg, norm, z, f, nt, rows)),
+    }
+    for fn in fns.values():
+        jax.block_until_ready(fn(z, f))
+    times = {k: [] for k in fns}
+    for _ in range(repeats):
+        for k, fn in fns.items():   # interleaved, so load changes hit all variants alike
+            t0 = time.perf_counter()
+            jax.block_until_ready(fn(z, f))
+            times[k].append(1e3 * (time.perf_counter() - t0))
+    out = {k: float(np.median(v)) for k, v in times.items()}
+    base = out["straightforward (edge list)"]
+    return {"step_p50_ms": out, "speedup_vs_straightforward": {k: base / v for k, v in out.items()},
+            "slots": {"max-degree": list(slots.nbr.shape), "rows": list(rows.nbr.shape), "edges": int(len(s))},
+            "model": DEFAULT_MODELS[name], "hidden": cfg.hidden, "passes": cfg.passes}
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--frames", type=int, default=500, help="timed frames per scene (default: %(default)s)")
+    parser.add_argument("--warmup", type=int, default=20, help="untimed first frames (default: %(default)s)")
+    parser.add_argument("--scenes", default="beam,two-beams,bunny")
+    parser.add_argument("--variant-repeats", type=int, default=60, help="calls per step variant")
+    args = parser.parse_args(argv)
+    if args.frames < 10 or args.warmup < 1:
+        raise SystemExit(f"--frames must be ≥ 10 and --warmup ≥ 1, got {args.frames} and {args.warmup}")
+    machine = describe()
+    scenes, variants = {}, {}
+    for name in [s for s in args.scenes.split(",") if s]:
+        if name not in BUDGET_MS:
+            raise SystemExit(f"unknown scene {name!r}; choose from {sorted(BUDGET_MS)}")
+        print(f"scene {name}: {args.frames} frames after {args.warmup} warm-up frames ...", flush=True)
+        scenes[name] = run_scene(name, args.frames, args.warmup)
+        if scenes[name]["valid"]:
+            variants[name] = step_variants(name, args.variant_repeats)
+    machine["load_average_1m_at_end"] = describe()["load_average_1m"]
+    result = {"machine": machine, "frames": args.frames, "warmup": args.warmup, "scenes": scenes,
+              "step_variants": variants, "budgets_ms": {"simulation_p50": BUDGET_MS, "frame_p50": FRAME_BUDGET_MS}}
+    RESULTS.mkdir(parents=True, exist_ok=True)
+    (RESULTS / "realtime.json").write_text(json.dumps(result, indent=1))
+    md = format_md(result)
+    (RESULTS / "realtime.md").write_text(md)
+    print(md)
+    return 0
+
+
+def format_md(result: dict) -> str:
+    m = result["machine"]
+    lines = ["# Real-time budget: the mixed-reality loop per frame", "",
+             f"Machine: {m['cpu']}, {m['cores']} cores, jax {m['jax']} ({m['backend']}); load average "
+             f"{m['load_average_1m']} at start, {m['load_average_1m_at_end']} at end ({m['note']}). "
+             f"{result['frames']} timed frames per scene after {result['warmup']} warm-up frames; 640×480.", "",
+             "| scene | dynamics | nodes | forces p50 | step p50 | simulation p50 / p99 (budget) | render p50 | "
+             "frame p50 / p99 | fps | verdict |", "|---|---|---|---|---|---|---|---|---|---|"]
+    for name, s in result["scenes"].items():
+        b = s["budget"]
+        ok = s["valid"] and b["simulation_p50_ok"] and b["p99_ok"] and b["frame_p50_ok"]
+        why = [w for w, c in (("sim p50", b["simulation_p50_ok"]), ("p99 > 1.5·p50", b["p99_ok"]),
+                              ("frame", b["frame_p50_ok"])) if not c]
+        verdict = "meets" if ok else ("STAND-IN, not valid" if not s["valid"] else "misses: " + ", ".join(why))
+        lines.append(
+            f"| {name} | {s['dynamics']} | {s['nodes']} | {s['forces']['p50_ms']:.2f} | {s['step']['p50_ms']:.2f} | "
+            f"{s['simulation']['p50_ms']:.2f} / {s['simulation']['p99_ms']:.2f} ({b['simulation_p50_ms']:.0f}) | "
+            f"{s['render']['p50_ms']:.2f} | {s['frame']['p50_ms']:.2f} / {s['frame']['p99_ms']:.2f} | "
+            f"{b['fps_at_p50']:.1f} | {verdict} |")
+    if result["step_variants"]:
+        lines += ["", "Step time of each scene's model written three ways (median of interleaved calls, same run):",
+                  "", "| scene | model | slots (max-degree → rows) | straightforward | max-degree slots | shipped | "
+                  "speed-up |", "|---|---|---|---|---|---|---|"]
+        for name, v in result["step_variants"].items():
+            t = v["step_p50_ms"]
+            lines.append(
+                f"| {name} | {v['model']} {v['hidden']}×{v['passes']} | {v['slots']['max-degree']} → "
+                f"{v['slots']['rows']} ({v['slots']['edges']} edges) | {t['straightforward (edge list)']:.2f} ms | "
+                f"{t['max-degree slots']:.2f} ms | {t['shipped (rows)']:.2f} ms | "
+                f"{v['speedup_vs_straightforward']['shipped (rows)']:.2f}× |")
+    return "\n".join(lines) + "\n"
+
+
+if __name__ == "__main__":
+    sys.exit(main())
