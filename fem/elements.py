@@ -35,7 +35,7 @@ per element, which removes volumetric locking. They differ in the isochoric (dev
     the tip (first frequency +14.7 %); at ν = 0.36 it is still −34 % on the 40 × 2 × 2 grid, so this is not
     volumetric locking.
 
-"nodal": stabilised averaged-nodal deformation gradient, the finite-strain form of the αFEM of Liu,
+"nodal" (default): stabilised averaged-nodal deformation gradient, the finite-strain form of the αFEM of Liu,
     Nguyen-Thoi & Lam (CMAME 197, 2008, 3883) with a selective (nodal) volumetric part::
 
         Π = Σ_a V_a U(J_a) + α Σ_e V_e Ψ_iso(F_e) + (1 − α) Σ_a V_a Ψ_iso(F_a),
@@ -57,12 +57,12 @@ per element, which removes volumetric locking. They differ in the isochoric (dev
     * α = 0.3, measured on the cantilever (tip deflection vs Timoshenko; stiffness is linear in α):
 
           grid (six tets per hex)   α = 0 (NS)   α = 0.3    α = 0.35   α = 1 (ANP)   α for exact tip
-          40 × 2 × 2  (cubes)         +32.8 %     ≈ −5 %     −9.4 %     −40.6 %       0.25
+          40 × 2 × 2  (cubes)         +32.8 %     −5.4 %     −9.4 %     −40.6 %       0.25
           80 × 2 × 2  (the test)      +35.4 %     +2.3 %     −1.4 %     −31.8 %       0.33
-          80 × 4 × 4                  +9.7 %      ≈ +0.3 %   −1.1 %     TODO          0.31
+          80 × 4 × 4                  +9.7 %      TODO       −1.1 %     −15.3 %       0.31
 
-      (≈: from the linear dependence of the stiffness on α.) α = 0.3 minimises the largest of the three
-      errors; the literature's general-purpose choice for αFEM tetrahedra (about 0.6–0.7 in their convention)
+      (first bending frequency at α = 0.3: +3.0 %, −1.1 %, TODO). α = 0.3 keeps the largest of the three
+      tip errors smallest; the literature's general-purpose choice for αFEM tetrahedra (about 0.6–0.7 in their convention)
       is tuned for elasticity on finer meshes and is too stiff for a beam two elements thick.
     * Viscoelasticity: each term keeps its own Prony history (elements: [n_prony, 3, 3, K], nodes:
       [n_prony, 3, 3, N]), weighted α and 1 − α in the stress, the stored energy and the dissipation.
@@ -87,7 +87,7 @@ TET_FACES = np.array([[0, 2, 1], [0, 1, 3], [1, 2, 3], [0, 3, 2]])
 HOURGLASS = np.stack([HEX_XI[:, 0] * HEX_XI[:, 1], HEX_XI[:, 1] * HEX_XI[:, 2],
                       HEX_XI[:, 2] * HEX_XI[:, 0], HEX_XI[:, 0] * HEX_XI[:, 1] * HEX_XI[:, 2]])  # [4, 8]
 _GAUSS = np.array([-1.0, 1.0]) / np.sqrt(3.0)
-TET_DEFAULT = "anp"     # tet4 formulation of fem.setup
+TET_DEFAULT = "nodal"   # tet4 formulation of fem.setup
 TET_BLEND = 0.3         # α of the "nodal" tet4 (module docstring)
 
 
