@@ -313,3 +313,27 @@ def test_virtual_body_behind_a_real_wall_is_not_drawn():
     shown = ar.occlude(raster.rgb, raster.depth, real_rgb, jnp.full((H, W), 1.5))     # wall at 1.5 m
     assert float(jnp.abs(hidden).max()) == 0.0
     np.testing.assert_array_equal(np.asarray(shown)[drawn], np.asarray(raster.rgb)[drawn])
+
+
+def test_untouched_bodies_at_rest_are_not_stepped():
+    # Skip what the scene does not need: until the fingertip first reaches the body nothing moves, so the
+    # step is skipped and the state stays exactly the rest state; stepping resumes at the first touch.
+    scene, _ = _demo_scene(frames=4)
+    away = np.full_like(scene.track, np.nan)               # no fingertip at all
+    body = scene.bodies[0]
+    drifting = body._replace(step_fn=lambda z, f: body.step_fn(z, f) + 1e-3)   # a step that never rests
+    zs, _ = sc.run(scene._replace(track=away, bodies=(drifting,)))
+    np.testing.assert_array_equal(np.asarray(zs[0]), body.z)
+    zs_all, _ = sc.run(scene._replace(track=away, bodies=(drifting,), skip_rest=False))
+    assert np.abs(np.asarray(zs_all[0]) - body.z).max() > 1e-3   # without the skip it would have stepped
+    zs_press, _ = sc.run(scene)                             # the press touches it: it moves
+    assert np.abs(np.asarray(zs_press[0])[:, :3] - body.q0).max() > 1e-3
+
+
+def test_colour_by_displacement_draws_without_stress():
+    scene, _ = _demo_scene(frames=3)
+    frames = []
+    sc.run(scene._replace(colour_by="displacement"), write=lambda i, rgb: frames.append(rgb))
+    assert len(frames) == 3 and frames[-1].shape == (120, 160, 3)
+    with pytest.raises(ValueError, match="colour_by"):
+        sc.run(scene._replace(colour_by="temperature"))

@@ -68,7 +68,7 @@ class Body(NamedTuple):
     the body's simulator (the learned model, or anything with that signature), traceable by ``jax.jit`` (no
     Python-side checks on values: ``run`` jits all bodies' steps together); tip_radius (model units) and
     tip_force (model force units per node): the fingertip rule of ``ar.fingertip_forces``; colour by the von
-    Mises stress of sigma over [0, vmax].
+    Mises stress of sigma (or the displacement magnitude, see ``Scene.colour_by``) over [0, vmax].
     """
     q0: np.ndarray
     triangles: np.ndarray
@@ -93,7 +93,9 @@ class Scene(NamedTuple):
     every pair of bodies (``ar.contact_forces`` on their surface nodes, in world space); hand_radius (m): the
     radius of the spheres of the hand proxy drawn into the real depth at each fingertip (0 for none);
     step: optional ``(zs, forces) -> zs`` over the tuples of all bodies' states and forces, used instead of
-    each body's ``step_fn`` (e.g. one batched graph for two copies of a mesh).
+    each body's ``step_fn`` (e.g. one batched graph for two copies of a mesh); colour_by: "stress" (von Mises
+    of sigma) or "displacement" (|q − q0|; the stress is then not evaluated); skip_rest: while no body has
+    been touched (all forces zero since the start, bodies in their initial state) the step is skipped.
     """
     bodies: tuple
     camera: Camera
@@ -103,6 +105,8 @@ class Scene(NamedTuple):
     contact_stiffness: float = 1e6
     hand_radius: float = 0.008
     step: Callable | None = None
+    colour_by: str = "stress"
+    skip_rest: bool = True
 
 
 class Timings(NamedTuple):
@@ -143,12 +147,19 @@ def run(scene: Scene, frames: int | None = None, write: Callable[[int, np.ndarra
     track = _pad_frames(scene.track, frames)  # host array: a device index per frame would compile per index
     times = {k: [] for k in ("forces", "step", "render", "write", "frame")}
     reallocations = 0
+    at_rest = all(np.allclose(np.asarray(b.z)[:, :3], b.q0) and not np.any(np.asarray(b.z)[:, 3:])
+                  for b in scene.bodies)
+    touched = not (scene.skip_rest and at_rest)
+    if not touched:   # compile the step now, so the first touch does not stall a frame
+        jax.block_until_ready(step_fn(zs, forces_fn(zs, track[0])))
     for i in range(frames):
         tips = track[i]
         t0 = time.perf_counter()
         forces = jax.block_until_ready(forces_fn(zs, tips))
         t1 = time.perf_counter()
-        zs = jax.block_until_ready(step_fn(zs, forces))
+        touched = touched or any(bool(jnp.any(f != 0)) for f in forces)
+        if touched:   # bodies at rest and untouched stay as they are: no step
+            zs = jax.block_until_ready(step_fn(zs, forces))
         t2 = time.perf_counter()
         image, overflow = jax.block_until_ready(render_fn(zs, tips))
         if bool(overflow) and capacity < max_capacity:  # rare: a body came much nearer the camera
@@ -348,6 +359,8 @@ def von_mises(sigma) -> jax.Array:
 def validate(scene: Scene) -> None:
     """Raise ValueError naming the first array of ``scene`` with a wrong shape or value."""
     cam = scene.camera
+    if scene.colour_by not in ("stress", "displacement"):
+        raise ValueError(f"colour_by must be 'stress' or 'displacement', got {scene.colour_by!r}")
     if np.asarray(cam.view).shape != (4, 4):
         raise ValueError(f"camera.view must be [4,4], got {np.asarray(cam.view).shape}")
     if not 0 < cam.near < cam.far:
@@ -383,7 +396,9 @@ def _world_mesh(scene: Scene, zs):
     positions, colours = [], []
     for b, z in zip(scene.bodies, zs):
         positions.append(ar.transform_points(jnp.asarray(b.model, jnp.float32), z[:, :3]))
-        colours.append(ar.colour_map(von_mises(z[:, 6:12]), 0.0, b.vmax))
+        value = (von_mises(z[:, 6:12]) if scene.colour_by == "stress"
+                 else jnp.linalg.norm(z[:, :3] - jnp.asarray(b.q0, z.dtype), axis=1))
+        colours.append(ar.colour_map(value, 0.0, b.vmax))
     return jnp.concatenate(positions), jnp.concatenate(colours)
 
 
