@@ -278,3 +278,19 @@ def test_stepper_matches_validated_step(toy):
                                api.step(params, graph, forces).nodes["z"], rtol=1e-6, atol=1e-6)
     with pytest.raises(ValueError, match="copies"):
         api.stepper(params, copies=0)
+
+
+def test_force_check_flags_loads_beyond_the_training_range(toy):
+    params = toy["params"]
+    bound = float(params["norm"]["f_max"][0])
+    assert bound == pytest.approx(float(np.linalg.norm(toy["data"].f[D.split_rows(toy["data"], "train")],
+                                                       axis=-1).max()), rel=1e-6)
+    n = len(toy["data"].q0)
+    inside = np.zeros((n, 3))
+    inside[0, 1] = 0.5 * bound
+    beyond = inside * 6.0
+    assert not api.force_check(params, inside)["out_of_distribution"]
+    flagged = api.force_check(params, beyond)
+    assert flagged["out_of_distribution"] and flagged["max_force_ratio"] == pytest.approx(3.0)
+    with pytest.raises(ValueError, match="shape"):
+        api.force_check(params, np.zeros(3))

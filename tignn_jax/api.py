@@ -69,6 +69,23 @@ def stepper(params: dict, copies: int = 1):
     return fn
 
 
+def force_check(params: dict, forces, tolerance: float = 1.0) -> dict:
+    """Flag forces outside the training range: the largest nodal force magnitude of ``forces`` [..., N, 3]
+    against the training split's (``norm["f_max"]``). Returns {"out_of_distribution": bool, "max_force_ratio":
+    float, "bound": float}; out of distribution when the ratio exceeds ``tolerance``. The learned simulator
+    has not seen such loads: its response is an extrapolation (see benchmarks/results/stability.md)."""
+    if "f_max" not in params["norm"]:
+        raise ValueError("this model file has no training force bound (norm['f_max']); re-save it with "
+                         "data.normalization of its training split")
+    bound = float(np.asarray(params["norm"]["f_max"]).reshape(-1)[0])
+    forces = np.asarray(forces, np.float64)
+    if forces.ndim < 2 or forces.shape[-1] != 3:
+        raise ValueError(f"forces has shape {forces.shape}, expected [..., nodes, 3]")
+    peak = float(np.linalg.norm(forces, axis=-1).max()) if forces.size else 0.0
+    ratio = peak / bound if bound > 0 else float("inf") if peak > 0 else 0.0
+    return {"out_of_distribution": bool(ratio > tolerance), "max_force_ratio": ratio, "bound": bound}
+
+
 def load_pretrained(name: str = "beam-abaqus"):
     """A shipped model by name (a folder of ``tignn_jax/models``) or a path to a model folder/file.
 

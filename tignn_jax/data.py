@@ -111,7 +111,8 @@ def normalization(data: Dataset, rows: np.ndarray) -> dict:
     """Per-feature statistics of the rows' cases (the training split), float32 numpy arrays.
 
     z_mean, z_std [12]: node state; dz_std [12]: per-frame increment z[k+1]-z[k] of free nodes' q, v and all
-    nodes' stress (the output scale); f_std [3]: force; dq_std [3] and dqn_mean, dqn_std [1]: edge vector
+    nodes' stress (the output scale); f_std [3]: force; f_max [1]: the largest nodal force magnitude (the
+    out-of-distribution bound of ``api.force_check``); dq_std [3] and dqn_mean, dqn_std [1]: edge vector
     q_j - q_i and its length over all frames; dv_std [3]: edge velocity difference v_j - v_i; du_std [3]: edge displacement
     difference (q_j - q_i) - (X_j - X_i). Vectors (q, v, their increments, f, dq) get one isotropic scale
     (RMS over components), so a direction unseen in training is not blown up; stress components get their own
@@ -135,6 +136,7 @@ def normalization(data: Dataset, rows: np.ndarray) -> dict:
         z_std=z_std,
         dz_std=dz_std,
         f_std=_iso(f.reshape(-1, 3)),
+        f_max=np.array([np.linalg.norm(f, axis=-1).max() if f.size else 0.0]),
         dq_std=_iso(dq.reshape(-1, 3)),
         dv_std=_iso((z[..., s, 3:6] - z[..., r, 3:6]).reshape(-1, 3)),
         du_std=_iso((dq - (data.q0[s] - data.q0[r])).reshape(-1, 3)),

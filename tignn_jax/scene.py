@@ -89,8 +89,8 @@ class Background(NamedTuple):
 class Scene(NamedTuple):
     """Bodies, camera, background and fingertip ``track`` [F,K,3] (u, v, depth_m; NaN rows = no fingertip).
 
-    contact_radius (m) and contact_stiffness (model force units per metre of overlap): penalty contact between
-    every pair of bodies (``ar.contact_forces`` on their surface nodes, in world space); hand_radius (m): the
+    contact_radius (m; 0 = no object–object contact, nothing computed) and contact_stiffness (model force units
+    per metre of overlap): penalty contact between every pair of bodies (``ar.contact_forces`` on their surface nodes, in world space); hand_radius (m): the
     radius of the spheres of the hand proxy drawn into the real depth at each fingertip (0 for none);
     step: optional ``(zs, forces) -> zs`` over the tuples of all bodies' states and forces, used instead of
     each body's ``step_fn`` (e.g. one batched graph for two copies of a mesh); colour_by: "stress" (von Mises
@@ -203,7 +203,7 @@ def build(scene: Scene):
             out.append(ar.fingertip_forces(ar.transform_points(inv, world_tips), q, normals,
                                            b.tip_radius, b.tip_force))
         world = [ar.transform_points(m, z[:, :3])[s] for m, z, s in zip(models, zs, surfaces)]
-        for i in range(n):
+        for i in range(n if scene.contact_radius > 0 else 0):   # no contact: no neighbour search at all
             for j in range(i + 1, n):
                 fi, fj = ar.contact_forces(world[i], world[j], scene.contact_radius, scene.contact_stiffness,
                                            capacity=max(capacities[i], capacities[j]))
