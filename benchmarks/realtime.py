@@ -47,6 +47,7 @@ def run_scene(name: str, frames: int, warmup: int) -> dict:
     from tignn_jax.commands_demo import build_scene
 
     scene, dynamics = build_scene(name, frames + warmup)
+    scene = scene._replace(skip_rest=False)   # every frame steps: the budget is for a body in motion
     _, t = sc.run(scene, frames=frames + warmup, warmup=warmup)
     sim = t.forces + t.step
     out = {"dynamics": dynamics, "valid": dynamics.startswith("model"), "frames": int(len(t.frame)),
