@@ -79,14 +79,34 @@ def assemble(scene, problem, forces, parts: Path, out: Path, *, metadata: dict, 
         "damping": scene.damping, "load_interp": scene.load_interp, "code_version": _version(),
         "velocity": "z[..., 3:6] = numpy.gradient(q, dt, axis=time, edge_order=2); v_solver = solver velocity",
     }
+    if scene.cell_type == "tetra":
+        meta["tet_formulation"] = problem.config.tet_formulation
     meta.update(metadata)
     np.savez_compressed(
         out, q0=scene.points.astype(np.float32), edges=scene.edges.astype(np.int32),
         node_type=scene.node_type.astype(np.int8), z=np.stack([c["z"] for c in cases]),
         f=np.asarray(forces, np.float32), dt=np.float64(scene.frame_dt), cells=scene.cells.astype(np.int32),
         cell_type=np.array(scene.cell_type), metadata=np.array(json.dumps(meta)),
-        v_solver=np.stack([c["v_solver"] for c in cases]), sim_id=np.asarray(sim_ids, np.int32))
+        v_solver=np.stack([c["v_solver"] for c in cases]), sim_id=np.asarray(sim_ids, np.int32),
+        **{f"split_{k}": v for k, v in default_splits(sim_ids).items()})
     return out
+
+
+PUBLISHED_VAL = (1, 2, 6, 16, 17)           # the reference data's published split (sim ids)
+PUBLISHED_TEST = (9, 10, 12, 13, 38, 44)
+
+
+def default_splits(sim_ids) -> dict:
+    """Train/val/test sim ids: the published split when the cases are the 52 reference cases (ids 1..52),
+    otherwise the last 10 % of the cases for test, the 10 % before for validation, the rest for training
+    (cases are generated in seeded random order, so this is a random split)."""
+    ids = np.asarray(sim_ids, np.int32)
+    if sorted(ids.tolist()) == list(range(1, 53)):
+        val, test = np.array(PUBLISHED_VAL, np.int32), np.array(PUBLISHED_TEST, np.int32)
+        return {"train": np.setdiff1d(ids, np.concatenate([val, test])), "val": val, "test": test}
+    n = len(ids)
+    k = max(1, n // 10) if n >= 3 else 0
+    return {"train": ids[: n - 2 * k], "val": ids[n - 2 * k: n - k], "test": ids[n - k:]}
 
 
 def _version() -> str:

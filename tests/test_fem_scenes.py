@@ -165,3 +165,15 @@ def test_bunny_fingertip_cases_stay_on_the_free_surface():
     for c, d in enumerate(described):
         assert np.all(sc.node_type[d["nodes"]] == 0)
         assert np.linalg.norm(f[c].sum(axis=1), axis=-1).max() <= 6.0 * (1 + 1e-9)
+
+
+def test_generated_data_carry_train_val_test_splits():
+    # The 52 reference cases get the published split; other data a disjoint 80/10/10 split covering all ids.
+    from fem.generate import PUBLISHED_TEST, PUBLISHED_VAL, default_splits
+
+    ref = default_splits(np.arange(1, 53))
+    assert ref["test"].tolist() == list(PUBLISHED_TEST) and ref["val"].tolist() == list(PUBLISHED_VAL)
+    assert len(ref["train"]) == 41
+    other = default_splits(np.arange(1, 101))
+    assert [len(other[k]) for k in ("train", "val", "test")] == [80, 10, 10]
+    assert sorted(np.concatenate(list(other.values())).tolist()) == list(range(1, 101))
