@@ -451,14 +451,11 @@ def _internal(arr: Arrays, m: Material, hg, x, visco, cfg: Config, h):
     S = (J * p) * Cinv
     new_visco, diss = (), 0.0
     if cfg.n_prony:
+        S_iso, new_visco, d = _prony_step(m, S0, visco[:2], h)
+        S = S + S_iso
+        diss = jnp.sum(geo.volume * d)
         decay = jnp.exp(-h / m.tau)
         coef = m.tau / h * (1.0 - decay)
-        H, S0_prev = visco[0], visco[1]
-        H = decay[:, None, None, None] * H + coef[:, None, None, None] * (S0 - S0_prev)[None]
-        S = S + (1.0 - jnp.sum(m.g)) * S0 + jnp.sum(m.g[:, None, None, None] * H, axis=0)
-        rate = m.g / (2.0 * shear_modulus(m) * m.tau)
-        diss = jnp.sum(geo.volume * jnp.sum(rate[:, None, None, None] * H * H, axis=(0, 1, 2)))
-        new_visco = (H, S0)
     else:
         S = S + S0
     P = matmul3(F, S)
@@ -498,15 +495,21 @@ def _nodal_tet(cfg: Config) -> bool:
 
 
 def _nodal_average(geo, value):
-    """Volume average over the elements around each node: [..., K] → [..., N], Σ_{e∋a} (V_e/4) value_e / V_a."""
-    w = value * (geo.volume / 4.0)
-    w = jnp.concatenate([w, jnp.zeros(w.shape[:-1] + (1,), w.dtype)], axis=-1)
-    return w[..., geo.node_elements].sum(axis=-1) / geo.node_volume
+    """Volume average over the elements around each node: [..., K] → [..., N], Σ_{e∋a} (V_e/4) value_e / V_a.
+
+    Gathers whole rows (elements-major layout), which XLA on CPU does faster than one gather per component."""
+    lead = value.shape[:-1]
+    rows = value.reshape(-1, value.shape[-1]).T * (geo.volume / 4.0)[:, None]          # [K, C]
+    rows = jnp.concatenate([rows, jnp.zeros((1, rows.shape[1]), rows.dtype)])
+    avg = rows[geo.node_elements].sum(axis=1) / geo.node_volume[:, None]              # [N, C]
+    return avg.T.reshape(lead + (-1,))
 
 
 def _element_mean(cells, nodal):
     """Mean over each element's four nodes: [..., N] → [..., K]."""
-    return 0.25 * _sum_over(lambda a: nodal[..., cells[:, a]], 4)
+    lead = nodal.shape[:-1]
+    rows = nodal.reshape(-1, nodal.shape[-1]).T                                         # [N, C]
+    return (0.25 * rows[cells].sum(axis=1)).T.reshape(lead + (-1,))
 
 
 def _prony_step(m: Material, S0, hist, h):
@@ -528,17 +531,26 @@ def _nodal_tet_stress(arr: Arrays, m: Material, F, visco, cfg: Config, h):
     four nodes' stresses. Returns (P, element J [K], new visco, dissipation rate)."""
     geo, a = arr.geo, cfg.tet_blend
     S0, J, Cinv = isochoric_pk2(m, F)
-    Fn = _nodal_average(geo, F)
+    Fn, Jn = _nodal_average_F_J(geo, F, J)
     S0n, _, _ = isochoric_pk2(m, Fn)
-    p = _element_mean(arr.cells, pressure(m, _nodal_average(geo, J)))
     new_visco, diss = (), 0.0
     if cfg.n_prony:
         S0, he, de = _prony_step(m, S0, visco[:2], h)
         S0n, hn, dn = _prony_step(m, S0n, visco[2:], h)
         new_visco = he + hn
         diss = a * jnp.sum(geo.volume * de) + (1.0 - a) * jnp.sum(geo.node_volume * dn)
-    P = matmul3(F, a * S0 + (J * p) * Cinv) + (1.0 - a) * _element_mean(arr.cells, matmul3(Fn, S0n))
+    n = Jn.shape[-1]
+    nodal = jnp.concatenate([((1.0 - a) * matmul3(Fn, S0n)).reshape(9, n), pressure(m, Jn)[None]])
+    Pn_mean, p = jnp.split(_element_mean(arr.cells, nodal), [9])   # one gather for both
+    P = matmul3(F, a * S0 + (J * p[0]) * Cinv) + Pn_mean.reshape(F.shape)
     return P, J, new_visco, diss
+
+
+def _nodal_average_F_J(geo, F, J):
+    """Nodal averages of F [3, 3, K] and J [K] in one gather: ([3, 3, N], [N])."""
+    k = J.shape[-1]
+    avg = _nodal_average(geo, jnp.concatenate([F.reshape(9, k), J[None]]))
+    return avg[:9].reshape(3, 3, -1), avg[9]
 
 
 def _nodal_tet_cauchy(arr: Arrays, m: Material, F, visco, cfg: Config):
@@ -546,14 +558,14 @@ def _nodal_tet_cauchy(arr: Arrays, m: Material, F, visco, cfg: Config):
     element's nodes of σ_iso(F_a) + mean nodal pressure; current viscous variables (no update)."""
     geo, a = arr.geo, cfg.tet_blend
     S0, J, _ = isochoric_pk2(m, F)
-    Fn = _nodal_average(geo, F)
+    Fn, Jn_vol = _nodal_average_F_J(geo, F, J)
     S0n, Jn, _ = isochoric_pk2(m, Fn)
     if cfg.n_prony:
         ginf = 1.0 - jnp.sum(m.g)
         S0 = ginf * S0 + jnp.sum(m.g[:, None, None, None] * visco[0], axis=0)
         S0n = ginf * S0n + jnp.sum(m.g[:, None, None, None] * visco[2], axis=0)
     cauchy = lambda F_, S_, J_: matmul3(matmul3(F_, S_), transpose3(F_)) / J_
-    p = _element_mean(arr.cells, pressure(m, _nodal_average(geo, J)))
+    p = _element_mean(arr.cells, pressure(m, Jn_vol))
     return (a * cauchy(F, S0, J) + (1.0 - a) * _element_mean(arr.cells, cauchy(Fn, S0n, Jn))
             + p * jnp.eye(3, dtype=F.dtype)[:, :, None])
 
@@ -594,9 +606,9 @@ def _stored_energy(arr: Arrays, m: Material, x, visco, hg, cfg: Config, elastic:
         e = e + 0.5 * jnp.sum(g * jnp.sum(k_use * g[None], axis=1))
     elif _nodal_tet(cfg):
         a = cfg.tet_blend
-        Fn = _nodal_average(geo, F)
+        Fn, Jn = _nodal_average_F_J(geo, F, det3(F))
         e = ginf * (a * jnp.sum(geo.volume * isochoric_energy(m, F)) + (1.0 - a) * jnp.sum(geo.node_volume * isochoric_energy(m, Fn)))
-        e = e + jnp.sum(geo.node_volume * volumetric_energy(m, _nodal_average(geo, det3(F))))
+        e = e + jnp.sum(geo.node_volume * volumetric_energy(m, Jn))
     else:
         J = det3(F)
         J_node = _gather_sum(arr.incidence, jnp.tile(geo.volume * J / 4.0, 4)) / geo.node_volume
