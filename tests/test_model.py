@@ -294,3 +294,15 @@ def test_force_check_flags_loads_beyond_the_training_range(toy):
     assert flagged["out_of_distribution"] and flagged["max_force_ratio"] == pytest.approx(3.0)
     with pytest.raises(ValueError, match="shape"):
         api.force_check(params, np.zeros(3))
+
+
+def test_state_check_flags_states_far_outside_training_and_non_finite(toy):
+    params, data = toy["params"], toy["data"]
+    ok = api.state_check(params, data.z[0, 2])
+    assert ok["finite"] and not ok["out_of_distribution"] and ok["max_deviation"] < 8.0
+    wild = np.array(data.z[0, 2])
+    wild[3, 7] = float(params["norm"]["z_mean"][7] + 20 * params["norm"]["z_std"][7])
+    assert api.state_check(params, wild)["out_of_distribution"]
+    wild[0, 0] = np.nan
+    flagged = api.state_check(params, wild)
+    assert not flagged["finite"] and flagged["out_of_distribution"]

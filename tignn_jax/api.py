@@ -86,6 +86,23 @@ def force_check(params: dict, forces, tolerance: float = 1.0) -> dict:
     return {"out_of_distribution": bool(ratio > tolerance), "max_force_ratio": ratio, "bound": bound}
 
 
+def state_check(params: dict, z, bound: float = 8.0) -> dict:
+    """Flag a state the model has left its training envelope with: the largest deviation of the free nodes'
+    velocity and stress from the training mean, in training standard deviations (``norm``: z_mean, z_std),
+    and non-finite values. Returns {"finite": bool, "max_deviation": float, "out_of_distribution": bool}
+    (out of distribution when not finite or the deviation exceeds ``bound``). Cheap enough to call every
+    frame; a rollout drifting towards divergence crosses the bound before it produces NaN (measured in
+    benchmarks/results/stability.md)."""
+    z = np.asarray(z, np.float64)
+    if z.ndim < 2 or z.shape[-1] != M.STATE_DIM:
+        raise ValueError(f"z has shape {z.shape}, expected [..., nodes, {M.STATE_DIM}]")
+    mean, std = (np.asarray(params["norm"][k], np.float64) for k in ("z_mean", "z_std"))
+    finite = bool(np.all(np.isfinite(z)))
+    dev = np.abs((z[..., 3:] - mean[3:]) / std[3:])
+    max_dev = float(np.nanmax(dev)) if finite else float("inf")
+    return {"finite": finite, "max_deviation": max_dev, "out_of_distribution": (not finite) or max_dev > bound}
+
+
 def load_pretrained(name: str = "beam-abaqus"):
     """A shipped model by name (a folder of ``tignn_jax/models``) or a path to a model folder/file.
 

@@ -1,0 +1,235 @@
+"""Numerical stress tests: long rollouts of the shipped models far beyond their 20-step training horizon, and
+the FEM near its stability limit.
+
+Learned simulator (beam: ``beam-abaqus``; bunny: ``bunny`` when shipped), ``--steps`` (default 1000 = 50× the
+training horizon) steps of Δt = 0.05 under five loadings:
+  * release: a reference load case ramped for 20 steps, then zero (free vibration and decay);
+  * constant: that case's final load held;
+  * fingertip: a random sequence of fingertip patches (``fem.cases.fingertip_forces``, 20 steps each);
+  * 3x load: the constant load times 3 (out of the training range);
+  * noise: the constant load with Gaussian noise of 1 % of the state's std added to the input every step.
+Reported per run: NaN/Inf count, max |u| and |v| against the FEM on the same loads (the FEM for the first
+``--fem-steps`` frames, batched), the first step at which the relative u error against the FEM exceeds 10 %,
+the learned energy and entropy along the rollout and the fraction of steps with S_{k+1} ≥ S_k, and the two
+guards: ``api.force_check`` (loads beyond the training range) and ``api.state_check`` (the first step at
+which the state leaves the training envelope, against the first non-finite step).
+FEM: the beam at 0.9 (default), 1.0 and 1.5 × its stable sub-step (fewer sub-steps than stable): the run
+must either stay bounded or report the inversion (element and time), never return silent NaN.
+Writes benchmarks/results/stability.{json,md} and stability.png.
+
+    python benchmarks/stability.py [--steps 1000] [--fem-steps 100] [--scenes beam,bunny]
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+import warnings
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from _machine import describe  # noqa: E402
+
+RESULTS = Path(__file__).resolve().parent / "results"
+SCENARIOS = ("release", "constant", "fingertip", "3x load", "noise")
+
+
+def loadings(name: str, steps: int, seed: int = 0):
+    """(scene, {scenario: forces [steps, N, 3]}) on the FEM scene whose mesh is the model's mesh."""
+    from fem import cases, scenes
+
+    if name == "beam":
+        scene = scenes.beam_scene()
+        base = scenes.beam_reference_forces(scene, [9])[0]      # test case 9 of the published split
+    else:
+        scene = scenes.bunny_scene()
+        base, _ = cases.point_load_forces(scene, n_cases=1, seed=seed + 7)
+        base = base[0]
+    n = len(scene.points)
+    t0 = base.shape[0]
+    hold = np.repeat(base[-1:], steps, axis=0)
+    release = np.zeros((steps, n, 3))
+    release[:t0] = base
+    constant = hold.copy()
+    constant[:t0] = base
+    if name == "beam":
+        tips, _ = cases.fingertip_forces(scene, -(-steps // scene.n_frames), seed)
+    else:
+        tips, _ = cases.point_load_forces(scene, n_cases=-(-steps // scene.n_frames), seed=seed + 1)
+    fingertip = tips.reshape(-1, n, 3)[:steps]
+    return scene, {"release": release, "constant": constant, "fingertip": fingertip, "3x load": 3 * constant,
+                   "noise": constant}
+
+
+def model_runs(name: str, model: str, steps: int, fem_steps: int) -> dict:
+    import fem
+    from fem import scenes
+    from tignn_jax import api
+    from tignn_jax import model as M
+
+    params, graph = api.load_pretrained(model)
+    scene, loads = loadings(name, steps)
+    q0 = np.asarray(params["mesh"]["q0"], np.float64)
+    units = float(np.sum(q0 * scene.points) / np.sum(scene.points ** 2))
+    if not np.allclose(q0, scene.points * units, atol=1e-3 * np.abs(q0).max()):
+        raise ValueError(f"model {model!r} is not on the {name} scene's mesh")
+    # FEM reference, batched over the scenarios (noise uses the constant load's reference)
+    fem_names = [s for s in SCENARIOS if s != "noise"]
+    problem = scenes.setup_scene(scene._replace(n_frames=fem_steps))
+    batch = fem.Loads(nodal=jnp.asarray(np.stack([loads[s][:fem_steps] for s in fem_names])))
+    t0 = time.perf_counter()
+    res = fem.simulate_batch(problem, scene.material, batch)
+    fem_q = np.asarray(res.q)                      # [S, fem_steps+1, N, 3]
+    fem_s = time.perf_counter() - t0
+    fem_v = np.asarray(res.v)
+    cfg, norm, w = api._config(params), params["norm"], params["weights"]
+    nt, topo = graph.nodes["node_type"], params["topo"]
+    z_std = np.asarray(norm["z_std"])
+    step = api.stepper(params)
+    energy = jax.jit(jax.vmap(lambda z, f: M.energy_entropy(w, cfg, norm, z, f, nt, topo)))
+    out = {"model": model, "fem_wall_s": fem_s, "fem_steps": fem_steps, "runs": {}}
+    key = jax.random.PRNGKey(0)
+    for s in SCENARIOS:
+        f_seq = jnp.asarray(loads[s], jnp.float32)
+        guard = api.force_check(params, np.asarray(loads[s]))
+        z = graph.nodes["z"]
+        states = [np.asarray(z)]
+        t0 = time.perf_counter()
+        for k in range(steps):
+            if s == "noise":
+                key, sub = jax.random.split(key)
+                z = z + 0.01 * jnp.asarray(z_std) * jax.random.normal(sub, z.shape) * (nt[:, None] == 0)
+            z = step(z, f_seq[k])
+            states.append(np.asarray(z))
+        wall = time.perf_counter() - t0
+        zs = np.stack(states)                                  # [steps+1, N, 12]
+        finite = np.isfinite(zs)
+        u = np.linalg.norm(zs[..., :3] - q0, axis=-1).max(-1)
+        v = np.linalg.norm(zs[..., 3:6], axis=-1).max(-1)
+        e_s = np.asarray(energy(jnp.asarray(np.nan_to_num(zs[:-1])), f_seq))
+        ref = fem_names.index("constant" if s == "noise" else s)
+        uf = (fem_q[ref] * units - q0)
+        err = np.linalg.norm((zs[:fem_steps + 1, :, :3] - q0) - uf, axis=(1, 2)) / np.maximum(
+            np.linalg.norm(uf, axis=(1, 2)), 1e-12)
+        over = np.where(err[1:] > 0.10)[0]
+        ds = np.diff(e_s[:, 1])
+        checks = [api.state_check(params, zk) for zk in zs]
+        flagged = [k for k, c in enumerate(checks) if c["out_of_distribution"]]
+        nonfinite = [k for k, c in enumerate(checks) if not c["finite"]]
+        out["runs"][s] = {
+            "nan_or_inf": int(np.size(finite) - np.count_nonzero(finite)),
+            "max_u_model": float(np.nanmax(u)), "max_u_fem": float(np.abs(np.linalg.norm(uf, axis=-1)).max()),
+            "max_v_model": float(np.nanmax(v)),
+            "max_v_fem": float(np.linalg.norm(fem_v[ref] * units, axis=-1).max()),
+            "u_error_at_fem_horizon": float(err[-1]),
+            "first_step_u_error_over_10pct": int(over[0] + 1) if len(over) else None,
+            "entropy_non_decreasing_fraction": float(np.mean(ds >= 0)),
+            "energy_first_last": [float(e_s[0, 0]), float(e_s[-1, 0])],
+            "guard": guard, "ms_per_step": 1e3 * wall / steps,
+            "first_step_state_flagged": flagged[0] if flagged else None,
+            "first_step_non_finite": nonfinite[0] if nonfinite else None,
+            "series": {"u_max": u.tolist(), "v_max": v.tolist(), "u_error": err.tolist(),
+                       "E": e_s[:, 0].tolist(), "S": e_s[:, 1].tolist()}}
+    return out
+
+
+def fem_limit(factors=(0.9, 1.0, 1.5), frames: int = 20) -> list:
+    import fem
+    from fem import scenes
+
+    scene = scenes.beam_scene()
+    forces = scenes.beam_reference_forces(scene, [9])[0][:frames]
+    stable = scenes.setup_scene(scene._replace(n_frames=frames)).config.n_sub   # at the default safety 0.9
+    rows = []
+    for factor in factors:
+        n_sub = max(1, int(round(stable * 0.9 / factor)))
+        prob = scenes.setup_scene(scene._replace(n_frames=frames), n_sub=n_sub)
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            res = fem.simulate(prob, scene.material, fem.Loads(nodal=jnp.asarray(forces)), on_inversion="warn")
+        q = np.asarray(res.q)
+        rows.append({"step_over_stable": factor, "n_sub": n_sub, "nan_or_inf": int(np.sum(~np.isfinite(q))),
+                     "inverted_element": int(res.inverted), "inversion_time": float(res.inversion_time),
+                     "reported": [str(w.message) for w in caught],
+                     "max_u": float(np.nanmax(np.abs(q - scene.points)))})
+    return rows
+
+
+def plot(result: dict, path: Path) -> None:
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    scenes_ = result["models"]
+    fig, axes = plt.subplots(len(scenes_), 3, figsize=(14, 3.6 * len(scenes_)), squeeze=False)
+    for row, (name, r) in zip(axes, scenes_.items()):
+        for s, run in r["runs"].items():
+            row[0].semilogy(run["series"]["u_max"], label=s)
+            row[1].semilogy(np.maximum(run["series"]["u_error"], 1e-6), label=s)
+            row[2].plot(np.asarray(run["series"]["S"]) - run["series"]["S"][0], label=s)
+        row[0].set(title=f"{name} ({r['model']}): max |u| per step", xlabel="step")
+        row[1].axhline(0.1, color="k", lw=0.8, ls="--")
+        row[1].set(title="relative u error vs FEM", xlabel="step")
+        row[2].set(title="learned entropy S − S₀", xlabel="step")
+        row[0].legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def main(argv=None) -> int:
+    from tignn_jax.commands_demo import DEFAULT_MODELS
+
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--steps", type=int, default=1000)
+    ap.add_argument("--fem-steps", type=int, default=100)
+    ap.add_argument("--scenes", default="beam,bunny")
+    args = ap.parse_args(argv)
+    if args.steps < args.fem_steps or args.fem_steps < 20:
+        raise SystemExit(f"need --steps ≥ --fem-steps ≥ 20, got {args.steps} and {args.fem_steps}")
+    machine = describe()
+    models = {}
+    for name in [s for s in args.scenes.split(",") if s]:
+        try:
+            models[name] = model_runs(name, DEFAULT_MODELS[name], args.steps, args.fem_steps)
+        except ValueError as err:
+            print(f"{name}: skipped ({err})")
+    result = {"machine": machine, "steps": args.steps, "models": models, "fem_limit": fem_limit()}
+    RESULTS.mkdir(parents=True, exist_ok=True)
+    (RESULTS / "stability.json").write_text(json.dumps(result))
+    plot(result, RESULTS / "stability.png")
+    lines = ["# Numerical stress tests", "",
+             f"Machine: {machine['cpu']}, {machine['cores']} cores, jax {machine['jax']}; load average "
+             f"{machine['load_average_1m']} at start. {args.steps}-step rollouts (Δt = 0.05; the training horizon "
+             f"is 20); FEM reference over the first {args.fem_steps} steps.", "",
+             "| scene | loading | NaN/Inf | max u model / FEM | max v model / FEM | u error at FEM horizon | "
+             "first step u error > 10 % | S non-decreasing | force guard | first step state flagged / non-finite |",
+             "|---|---|---|---|---|---|---|---|---|---|"]
+    for name, r in models.items():
+        for s, run in r["runs"].items():
+            g = run["guard"]
+            lines.append(
+                f"| {name} | {s} | {run['nan_or_inf']} | {run['max_u_model']:.3g} / {run['max_u_fem']:.3g} | "
+                f"{run['max_v_model']:.3g} / {run['max_v_fem']:.3g} | {run['u_error_at_fem_horizon']:.3f} | "
+                f"{run['first_step_u_error_over_10pct']} | {100 * run['entropy_non_decreasing_fraction']:.0f} % | "
+                f"{'FLAGGED' if g['out_of_distribution'] else 'ok'} ({g['max_force_ratio']:.2f}× train max) | "
+                f"{run['first_step_state_flagged']} / {run['first_step_non_finite']} |")
+    lines += ["", "FEM near its stability limit (beam, 20 frames; sub-step relative to the stable one):", "",
+              "| h / h_stable | sub-steps per frame | NaN/Inf in output | inverted element | time | reported |",
+              "|---|---|---|---|---|---|"]
+    for row in result["fem_limit"]:
+        lines.append(f"| {row['step_over_stable']:.2f} | {row['n_sub']} | {row['nan_or_inf']} | "
+                     f"{row['inverted_element']} | {row['inversion_time']:.3g} | "
+                     f"{'; '.join(row['reported'])[:160] or 'nothing to report'} |")
+    (RESULTS / "stability.md").write_text("\n".join(lines) + "\n")
+    print("\n".join(lines))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
