@@ -128,6 +128,16 @@ def test_hex8_internal_force_is_gradient_of_energy_at_small_strain():
     assert _force_vs_energy_gradient("hexahedron", m, 0.1) < 1e-2
 
 
+@pytest.mark.parametrize("kwargs, match", [(dict(tet_formulation="nsfem"), r"tet_formulation.*'nsfem'"),
+                                           (dict(tet_blend=1.5), r"tet_blend=1\.5")])
+def test_unknown_tet_formulation_or_blend_outside_unit_interval_raises(kwargs, match):
+    """The tet4 switch is validated at set-up: a formulation that does not exist, or a blend weight outside
+    [0, 1] (no longer a weighted mean of the element and nodal energies), is rejected naming the value."""
+    pts, cells = distorted_mesh("tetra")
+    with pytest.raises(ValueError, match=match):
+        fem.setup(pts, cells, material=fem.mooney_rivlin(1.0), frame_dt=1.0, n_frames=1, **kwargs)
+
+
 @pytest.mark.parametrize("cell_type, formulation", ELEMENTS, ids=ELEMENT_IDS)
 def test_internal_force_of_prony_material_is_instantaneous_elastic_force(cell_type, formulation):
     """internal_force has no viscous history, so with Prony terms it must be the instantaneous (glassy) force,
