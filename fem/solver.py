@@ -108,7 +108,8 @@ class Energies(NamedTuple):
 
 class Result(NamedTuple):
     """Frame outputs of a run. t [T+1]; q, v [T+1, N, 3]; sigma [T+1, N, 6] nodal Cauchy stress (S11, S22,
-    S33, S12, S13, S23, tension positive; volume average of the adjacent elements' integration points);
+    S33, S12, S13, S23, tension positive; volume average of the adjacent elements' stresses, for tet4 'nodal' the
+    blended element stress defined in `fem.elements`);
     inverted: first element with J ≤ 0 (−1 if none) and its time inversion_time (nan if none)."""
 
     t: jnp.ndarray
