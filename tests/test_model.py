@@ -306,3 +306,14 @@ def test_state_check_flags_states_far_outside_training_and_non_finite(toy):
     wild[0, 0] = np.nan
     flagged = api.state_check(params, wild)
     assert not flagged["finite"] and flagged["out_of_distribution"]
+
+
+def test_state_guard_agrees_with_state_check(toy):
+    params, data = toy["params"], toy["data"]
+    guard = jax.jit(api.state_guard(params))
+    wild = np.array(data.z[0, 2])
+    wild[3, 7] = float(params["norm"]["z_mean"][7] + 20 * params["norm"]["z_std"][7])
+    nan = np.array(data.z[0, 2])
+    nan[1, 4] = np.nan
+    for z in (data.z[0, 2], wild, nan):
+        assert bool(guard(jnp.asarray(z))) == api.state_check(params, z)["out_of_distribution"]

@@ -337,3 +337,13 @@ def test_colour_by_displacement_draws_without_stress():
     assert len(frames) == 3 and frames[-1].shape == (120, 160, 3)
     with pytest.raises(ValueError, match="colour_by"):
         sc.run(scene._replace(colour_by="temperature"))
+
+
+def test_guard_resets_bodies_whose_state_goes_bad():
+    # A step that produces NaN once touched: the guard rejects the state and the body shows its rest state.
+    scene, _ = _demo_scene(frames=6)
+    body = scene.bodies[0]
+    bad = body._replace(step_fn=lambda z, f: z * jnp.nan)
+    zs, t = sc.run(scene._replace(bodies=(bad,), guard=lambda zs: ~jnp.all(jnp.isfinite(zs[0]))))
+    np.testing.assert_array_equal(np.asarray(zs[0]), body.z)
+    assert t.guard_trips > 0 and t.summary()["guard_trips"] == t.guard_trips

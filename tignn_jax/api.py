@@ -103,6 +103,19 @@ def state_check(params: dict, z, bound: float = 8.0) -> dict:
     return {"finite": finite, "max_deviation": max_dev, "out_of_distribution": (not finite) or max_dev > bound}
 
 
+def state_guard(params: dict, bound: float = 8.0):
+    """The jit-able form of ``state_check`` for loops: ``fn(z) -> bool`` (True = out of distribution), z
+    [..., nodes, 12] of any number of stacked copies of the model's mesh."""
+    mean = jnp.asarray(params["norm"]["z_mean"], jnp.float32)[3:]
+    std = jnp.asarray(params["norm"]["z_std"], jnp.float32)[3:]
+
+    def fn(z):
+        dev = jnp.abs((z[..., 3:] - mean) / std)
+        return ~jnp.all(jnp.isfinite(z)) | (jnp.max(jnp.where(jnp.isfinite(dev), dev, jnp.inf)) > bound)
+
+    return fn
+
+
 def load_pretrained(name: str = "beam-abaqus"):
     """A shipped model by name (a folder of ``tignn_jax/models``) or a path to a model folder/file.
 

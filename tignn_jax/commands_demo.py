@@ -69,6 +69,9 @@ def run(args) -> int:
     for k in ("forces", "step", "render", "write", "frame"):
         print(f"{k:8s} {summary[k]['p50_ms']:8.2f} {summary[k]['p99_ms']:8.2f}")
     print(f"{summary['fps_at_p50']:.1f} frames per second at the median frame time")
+    if summary.get("guard_trips"):
+        print(f"WARNING: the state left the model's training envelope {summary['guard_trips']} times "
+              "(api.state_check); the bodies were reset to rest each time")
     print(f"wrote {gif}, {out / f'{args.scene}{suffix}_timings.json'} and the fingertip track {track_path}")
     if suffix:
         print("NOTE: no shipped model was used: the motion comes from the STAND-IN spring dynamics.")
@@ -132,7 +135,8 @@ def build_scene(name: str, frames: int, model: str | None = None, stand_in: bool
     world_normal /= np.linalg.norm(world_normal)
     track = sc.press_track(cam, world_point, world_normal, frames, approach=0.03, press=0.012)
     scene = sc.Scene(bodies=bodies, camera=cam, background=sc.table_background(cam), track=track,
-                     contact_radius=0.006, contact_stiffness=5e7, step=step_fn)
+                     contact_radius=0.006, contact_stiffness=5e7, step=step_fn,
+                     guard=getattr(step_fn, "guard", None))
     return scene, dynamics
 
 
@@ -152,10 +156,12 @@ def _dynamics(model_name, stand_in, q0, cells, edges, clamped, copies):
             units = float(np.sum(mesh_q0 * q0) / np.sum(q0 * q0)) if mesh_q0.shape == q0.shape else 0.0
             if units > 0 and np.allclose(mesh_q0, units * q0, atol=1e-4 * max(units, 1.0) * np.abs(q0).max()):
                 fn = api.stepper(params, copies)
+                guard = api.state_guard(params)
 
                 def step(zs, forces):
                     return tuple(jnp.split(fn(jnp.concatenate(zs), jnp.concatenate(forces)), copies))
 
+                step.guard = lambda zs: guard(jnp.concatenate(zs))
                 return step, f"model {model_name}", mesh_q0.astype(np.float32), units
             print(f"model {model_name!r} was trained on another mesh; using the STAND-IN dynamics")
     single = stand_in_step(q0, cells, clamped)

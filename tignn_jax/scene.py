@@ -95,7 +95,10 @@ class Scene(NamedTuple):
     step: optional ``(zs, forces) -> zs`` over the tuples of all bodies' states and forces, used instead of
     each body's ``step_fn`` (e.g. one batched graph for two copies of a mesh); colour_by: "stress" (von Mises
     of sigma) or "displacement" (|q − q0|; the stress is then not evaluated); skip_rest: while no body has
-    been touched (all forces zero since the start, bodies in their initial state) the step is skipped.
+    been touched (all forces zero since the start, bodies in their initial state) the step is skipped;
+    guard: optional ``zs -> bool`` (jit-able) that is True when a new state must not be shown (e.g. non-finite
+    or outside the model's training envelope, see ``api.state_check``): the bodies then return to their
+    initial state and the frame counts as a guard trip.
     """
     bodies: tuple
     camera: Camera
@@ -107,6 +110,7 @@ class Scene(NamedTuple):
     step: Callable | None = None
     colour_by: str = "stress"
     skip_rest: bool = True
+    guard: Callable | None = None
 
 
 class Timings(NamedTuple):
@@ -117,14 +121,16 @@ class Timings(NamedTuple):
     write: np.ndarray
     frame: np.ndarray
     reallocations: int
+    guard_trips: int = 0
 
     def summary(self) -> dict:
         """{stage: {"p50_ms", "p99_ms"}} plus frames and frames per second at the median frame time."""
         out = {k: {"p50_ms": float(np.median(v)), "p99_ms": float(np.percentile(v, 99))}
-               for k, v in self._asdict().items() if k != "reallocations" and len(v)}
+               for k, v in self._asdict().items() if k not in ("reallocations", "guard_trips") and len(v)}
         out["frames"] = int(len(self.frame))
         out["fps_at_p50"] = 1e3 / out["frame"]["p50_ms"] if len(self.frame) else 0.0
         out["reallocations"] = self.reallocations
+        out["guard_trips"] = self.guard_trips
         return out
 
 
@@ -147,6 +153,8 @@ def run(scene: Scene, frames: int | None = None, write: Callable[[int, np.ndarra
     track = _pad_frames(scene.track, frames)  # host array: a device index per frame would compile per index
     times = {k: [] for k in ("forces", "step", "render", "write", "frame")}
     reallocations = 0
+    guard_trips = 0
+    guard_fn = jax.jit(scene.guard) if scene.guard is not None else None
     at_rest = all(np.allclose(np.asarray(b.z)[:, :3], b.q0) and not np.any(np.asarray(b.z)[:, 3:])
                   for b in scene.bodies)
     touched = not (scene.skip_rest and at_rest)
@@ -160,6 +168,9 @@ def run(scene: Scene, frames: int | None = None, write: Callable[[int, np.ndarra
         touched = touched or any(bool(jnp.any(f != 0)) for f in forces)
         if touched:   # bodies at rest and untouched stay as they are: no step
             zs = jax.block_until_ready(step_fn(zs, forces))
+            if guard_fn is not None and bool(guard_fn(zs)):
+                zs = tuple(jnp.asarray(b.z, jnp.float32) for b in scene.bodies)
+                guard_trips += 1
         t2 = time.perf_counter()
         image, overflow = jax.block_until_ready(render_fn(zs, tips))
         if bool(overflow) and capacity < max_capacity:  # rare: a body came much nearer the camera
@@ -175,7 +186,8 @@ def run(scene: Scene, frames: int | None = None, write: Callable[[int, np.ndarra
         if i >= warmup:
             for key, dt in zip(times, (t1 - t0, t2 - t1, t3 - t2, t4 - t3, t4 - t0)):
                 times[key].append(1e3 * dt)
-    return zs, Timings(**{k: np.asarray(v) for k, v in times.items()}, reallocations=reallocations)
+    return zs, Timings(**{k: np.asarray(v) for k, v in times.items()}, reallocations=reallocations,
+                       guard_trips=guard_trips)
 
 
 def build(scene: Scene):
