@@ -1,11 +1,13 @@
 """tignn-jax: thermodynamics-informed graph neural networks (GENERIC) in JAX."""
 __version__ = "0.1.0"
 
-_LAZY = {"step": "tignn_jax.api", "rollout": "tignn_jax.api", "load_pretrained": "tignn_jax.api"}
+_LAZY = {name: "tignn_jax.api" for name in
+         ("step", "rollout", "load_pretrained", "stepper", "force_check", "state_check", "state_guard")}
 
 
 def __getattr__(name):
-    """``tignn_jax.step``, ``rollout`` and ``load_pretrained`` import the model stack only when first used."""
+    """``tignn_jax.step``, ``rollout``, ``load_pretrained`` and the other api functions import the model stack
+    only when first used."""
     if name in _LAZY:
         import importlib
         return getattr(importlib.import_module(_LAZY[name]), name)
