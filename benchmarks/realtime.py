@@ -110,6 +110,40 @@ def step_variants(name: str, repeats: int) -> dict:
             "model": DEFAULT_MODELS[name], "hidden": cfg.hidden, "passes": cfg.passes}
 
 
+def untrained_step(name: str, repeats: int, sizes=((16, 3), (24, 3))) -> dict:
+    """Step time of untrained models of the shipped sizes on a scene's mesh, for scenes without a shipped
+    model (the cost a trained model of that size would have; its weights do not change the time)."""
+    from fem import scenes as fs
+
+    from tignn_jax import model as M
+
+    scene = fs.bunny_scene() if name == "bunny" else fs.beam_scene()
+    q0 = np.asarray(scene.points, np.float32)
+    n = len(q0)
+    s, r = scene.edges
+    rng = np.random.default_rng(0)
+    z = jnp.asarray(np.concatenate([q0, 0.01 * rng.normal(size=(n, 9))], 1), jnp.float32)
+    f = jnp.zeros((n, 3), jnp.float32)
+    norm = {k: jnp.ones(d, jnp.float32) for k, d in (("z_mean", 12), ("z_std", 12), ("dz_std", 12), ("f_std", 3),
+                                                        ("dq_std", 3), ("dv_std", 3), ("du_std", 3),
+                                                        ("dqn_mean", 1), ("dqn_std", 1))}
+    nt = jnp.asarray(scene.node_type, jnp.int32)
+    topo = M.topology(s, r, n, q0)
+    out = {}
+    for hid, passes in sizes:
+        cfg = M.ModelConfig(hidden=hid, passes=passes)
+        w = M.init_weights(jax.random.PRNGKey(0), cfg, norm, z, f, nt, topo)
+        fn = jax.jit(lambda z, f, w=w, cfg=cfg: M.step_state(w, cfg, norm, z, f, nt, topo))
+        jax.block_until_ready(fn(z, f))
+        t = []
+        for _ in range(repeats):
+            t0 = time.perf_counter()
+            jax.block_until_ready(fn(z, f))
+            t.append(1e3 * (time.perf_counter() - t0))
+        out[f"{hid}x{passes}"] = float(np.median(t))
+    return {"nodes": n, "slots": list(topo.nbr.shape), "step_p50_ms": out}
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--frames", type=int, default=500, help="timed frames per scene (default: %(default)s)")
@@ -128,6 +162,8 @@ def main(argv=None) -> int:
         scenes[name] = run_scene(name, args.frames, args.warmup)
         if scenes[name]["valid"]:
             variants[name] = step_variants(name, args.variant_repeats)
+        else:
+            scenes[name]["untrained_model_step"] = untrained_step(name, args.variant_repeats)
     machine["load_average_1m_at_end"] = describe()["load_average_1m"]
     result = {"machine": machine, "frames": args.frames, "warmup": args.warmup, "scenes": scenes,
               "step_variants": variants, "budgets_ms": {"simulation_p50": BUDGET_MS, "frame_p50": FRAME_BUDGET_MS}}
@@ -158,6 +194,13 @@ def format_md(result: dict) -> str:
             f"{s['simulation']['p50_ms']:.2f} / {s['simulation']['p99_ms']:.2f} ({b['simulation_p50_ms']:.0f}) | "
             f"{s['render']['p50_ms']:.2f} | {s['frame']['p50_ms']:.2f} / {s['frame']['p99_ms']:.2f} | "
             f"{b['fps_at_p50']:.1f} | {verdict} |")
+    for name, sc_ in result["scenes"].items():
+        if "untrained_model_step" in sc_:
+            u = sc_["untrained_model_step"]
+            lines += ["", f"{name}: no shipped model; step time of untrained models of the shipped sizes on its mesh "
+                      f"({u['nodes']} nodes, rows × slots {u['slots']}): " +
+                      ", ".join(f"{k} {v:.2f} ms" for k, v in u["step_p50_ms"].items()) +
+                      f" (budget {result['budgets_ms']['simulation_p50'][name]:.0f} ms)."]
     if result["step_variants"]:
         lines += ["", "Step time of each scene's model written three ways (median of interleaved calls, same run):",
                   "", "| scene | model | slots (max-degree → rows) | straightforward | max-degree slots | shipped | "
