@@ -3,7 +3,7 @@
 Every pair (with the work / without it) is timed in the same run, interleaved, median over repeats after
 compilation, on this CPU:
   FEM (fem/)
-    * no Prony terms → no internal variables: the beam, 20 frames, Prony (ḡ = 0.3, 0.49) on vs off;
+    * no Prony terms → no internal variables: structural (not timed: see fem_skips);
     * no object–object contact → no candidate search or penalty forces: the two beams, 20 frames;
   learned simulator (tignn_jax/)
     * inference computes ∇E and ∇S only: not the E, S values, degeneracy residuals L∇S, M∇E or the entropy
@@ -55,19 +55,10 @@ def fem_skips(repeats: int, frames: int) -> list:
     from fem import scenes
 
     out = []
-    with_p, without_p = (scenes.beam_scene(prony=p)._replace(n_frames=frames) for p in (True, False))
-    forces = scenes.beam_reference_forces(with_p, [1])[0]
-    runs = {}
-    for name, sc in (("with", with_p), ("without", without_p)):
-        prob = scenes.setup_scene(sc)
-        loads = fem.Loads(nodal=jnp.asarray(forces))
-        runs[name] = (lambda p=prob, m=sc.material, ld=loads: fem.simulate(p, m, ld).q)
-        runs[name + "_nsub"] = prob.config.n_sub
-    t = interleaved({k: v for k, v in runs.items() if not k.endswith("nsub")}, repeats)
-    out.append({"skip": f"no Prony terms → no internal variables (FEM, beam, {frames} frames)",
-                "with_ms": 1e3 * t["with"], "without_ms": 1e3 * t["without"],
-                "detail": f"{runs['with_nsub']} sub-steps per frame in both"})
-
+    # The Prony pair is not timed: on this jax/XLA (0.10.2, CPU) repeated runs of the beam with Prony terms
+    # stop in a runtime deadlock (all threads waiting, no CPU; reproduced on the code of the previous
+    # session, see notes). The skip itself is structural: without Prony terms the solver's state has no
+    # internal-variable arrays (Config.n_prony = 0) and the viscous update is not traced.
     two = scenes.two_beams_scene()
     f2 = scenes.two_beams_forces(two)[0][:frames]
     two = two._replace(n_frames=frames)
