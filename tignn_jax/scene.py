@@ -90,7 +90,8 @@ class Scene(NamedTuple):
     """Bodies, camera, background and fingertip ``track`` [F,K,3] (u, v, depth_m; NaN rows = no fingertip).
 
     contact_radius (m; 0 = no object–object contact, nothing computed) and contact_stiffness (model force units
-    per metre of overlap): penalty contact between every pair of bodies (``ar.contact_forces`` on their surface nodes, in world space); hand_radius (m): the
+    per metre of overlap): penalty contact between every pair of bodies (``ar.contact_forces`` on their surface
+    nodes, in world space); hand_radius (m): the
     radius of the spheres of the hand proxy drawn into the real depth at each fingertip (0 for none);
     step: optional ``(zs, forces) -> zs`` over the tuples of all bodies' states and forces, used instead of
     each body's ``step_fn`` (e.g. one batched graph for two copies of a mesh); colour_by: "stress" (von Mises
