@@ -78,7 +78,6 @@ def fem_skips(repeats: int, frames: int) -> list:
 
 def model_skips(repeats: int) -> list:
     from tignn_jax import api
-    from tignn_jax import graph as G
     from tignn_jax import model as M
 
     params, graph = api.load_pretrained("beam-abaqus")
@@ -115,7 +114,6 @@ def model_skips(repeats: int) -> list:
     out.append({"skip": "static graph data (topology, node types, normalisation) built once, kept on device",
                 "with_ms": 1e3 * t["with"], "without_ms": 1e3 * t["without"],
                 "detail": "per frame: rebuild + step vs step"})
-    del G
     return out
 
 

@@ -55,7 +55,7 @@ def stepper(params: dict, copies: int = 1):
     if not isinstance(copies, (int, np.integer)) or copies < 1:
         raise ValueError(f"copies must be a positive integer, got {copies!r}")
     config, weights, norm = _config(params), params["weights"], params["norm"]
-    topo = _tile_topology(params["topo"], int(copies))
+    topo = M.tile_topology(params["topo"], int(copies))
     node_type = jnp.tile(jnp.asarray(params["mesh"]["node_type"], jnp.int32), int(copies))
     n = int(node_type.shape[0])
 
@@ -87,7 +87,7 @@ def force_check(params: dict, forces, tolerance: float = 1.0) -> dict:
 
 
 def state_check(params: dict, z, bound: float = 8.0) -> dict:
-    """Flag a state the model has left its training envelope with: the largest deviation of the free nodes'
+    """Flag a state the model has left its training envelope with: the largest deviation of the nodes'
     velocity and stress from the training mean, in training standard deviations (``norm``: z_mean, z_std),
     and non-finite values. Returns {"finite": bool, "max_deviation": float, "out_of_distribution": bool}
     (out of distribution when not finite or the deviation exceeds ``bound``). Cheap enough to call every
@@ -230,8 +230,5 @@ def _check(params, graph, forces, seq: bool):
         raise ValueError(f"{name} contains NaN or infinite values")
     if not np.all(np.isfinite(np.asarray(z))):
         raise ValueError("graph.nodes['z'] contains NaN or infinite values")
-    return forces, _tile_topology(params["topo"], k)
+    return forces, M.tile_topology(params["topo"], k)
 
-
-def _tile_topology(topo: M.Topology, k: int) -> M.Topology:
-    return M.tile_topology(topo, k)
