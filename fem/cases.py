@@ -50,11 +50,17 @@ def fingertip_forces(scene, n_cases: int, seed: int, *, peak_total: float = 600_
     return out, described
 
 
-def point_load_forces(scene, n_cases: int = 100, seed: int = 0, load_nodes=None, magnitude: float = 1.0):
-    """Unit point loads normal to the surface (pushing inwards), held for the whole run: [C, T, N, 3].
+def point_load_forces(scene, n_cases: int = 100, seed: int = 0, load_nodes=None, magnitude: float = 1.0,
+                      rise_frames: int = 0):
+    """Unit point loads normal to the surface (pushing inwards): [C, T, N, 3], and the loaded node ids [C].
 
     Load nodes are spread over the free surface by farthest-point sampling from a seeded start, or given.
+    ``rise_frames = 0`` applies the full load from the first frame (a step, which rings the loaded node's local
+    modes far above the frame rate); ``rise_frames = R > 0`` raises it by the C¹ smooth step
+    a = 3s² − 2s³, s = min(k/R, 1) in frame k = 1..T, then holds it (a press that settles).
     """
+    if not 0 <= rise_frames <= scene.n_frames:
+        raise ValueError(f"rise_frames must be in 0..{scene.n_frames}, got {rise_frames}")
     nodes, normals = _free_surface(scene)
     if load_nodes is None:
         if not 1 <= n_cases <= len(nodes):
@@ -68,9 +74,18 @@ def point_load_forces(scene, n_cases: int = 100, seed: int = 0, load_nodes=None,
             raise ValueError(f"load nodes are not free surface nodes: {missing[:10]}")
         picked = np.array([where[int(n)] for n in load_nodes])
     out = np.zeros((len(picked), scene.n_frames, len(scene.points), 3))
+    amp = smooth_rise(scene.n_frames, rise_frames)
     for c, i in enumerate(picked):
-        out[c, :, nodes[i]] = -magnitude * normals[i]
+        out[c, :, nodes[i]] = amp[:, None] * (-magnitude * normals[i])
     return out, nodes[picked]
+
+
+def smooth_rise(n_frames: int, rise_frames: int) -> np.ndarray:
+    """Load amplitude per frame k = 1..n_frames: 3s² − 2s³ with s = min(k / rise_frames, 1) (all ones if 0)."""
+    if rise_frames == 0:
+        return np.ones(n_frames)
+    s = np.minimum(np.arange(1, n_frames + 1) / rise_frames, 1.0)
+    return s * s * (3.0 - 2.0 * s)
 
 
 def _free_surface(scene):

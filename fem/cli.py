@@ -23,6 +23,11 @@ def register(sub: argparse._SubParsersAction) -> None:
     g.add_argument("--cases", type=int, default=None, help="number of cases (interactions: 64, bunny: 100, two-beams: 6)")
     g.add_argument("--seed", type=int, default=0, help="random seed for load cases (default: %(default)s)")
     g.add_argument("--load-nodes", default=None, help="bunny: comma-separated node ids to load instead of --cases")
+    g.add_argument("--velocity", choices=("gradient", "solver"), default=None,
+                   help="z's velocity: solver (default; zero at the rest start) or gradient of q over the frames "
+                        "(the reference data's convention; default for beam-reference)")
+    g.add_argument("--rise-frames", type=int, default=10,
+                   help="bunny: frames over which the point load rises smoothly, 0 = a step (default: %(default)s)")
     g.add_argument("--batch", type=int, default=8, help="cases per vmapped batch (default: %(default)s)")
     g.add_argument("--xdmf", "--paraview", dest="xdmf", action="store_true", help="also write ParaView files per case (.pvd + VTU frames)")
     g.add_argument("--no-progress", action="store_true", help="no progress bar")
@@ -71,15 +76,18 @@ def run_generate(args) -> int:
             except ValueError:
                 raise SystemExit(f"--load-nodes must be comma-separated integers, got {args.load_nodes!r}")
         try:
-            forces, picked = cs.point_load_forces(scene, args.cases or 100, args.seed, load_nodes=nodes)
+            forces, picked = cs.point_load_forces(scene, args.cases or 100, args.seed, load_nodes=nodes,
+                                                  rise_frames=args.rise_frames)
         except ValueError as e:
             raise SystemExit(str(e))
         meta["load_nodes"] = np.asarray(picked).tolist()
+        meta["rise_frames"] = args.rise_frames
     problem = setup_scene(scene, **setup_kwargs)
     print(f"{scene.name}: {len(forces)} cases, {len(scene.points)} nodes, {problem.config.n_frames} frames x "
           f"{problem.config.n_sub} sub-steps")
     out = run_cases(scene, problem, forces, args.out, batch_size=args.batch, progress=not args.no_progress,
-                    xdmf=args.xdmf, metadata=meta, sim_ids=sim_ids)
+                    xdmf=args.xdmf, metadata=meta, sim_ids=sim_ids,
+                    velocity=args.velocity or ("gradient" if args.scene == "beam-reference" else "solver"))
     print(f"wrote {out}")
     return 0
 

@@ -5,8 +5,11 @@ The data-set file is the one contract between `fem` and `tignn_jax` (keys of the
 
     q0 [N,3] f32, edges [2,E] i32, node_type [N] i8, z [C,T+1,N,12] f32 (q, v, σ: S11 S22 S33 S12 S13 S23),
     f [C,T,N,3] f32 (force acting during frame k), dt (), cells [K,n] i32, cell_type str, metadata JSON str,
-    v_solver [C,T+1,N,3] f32 (the solver's own velocity; z's v is numpy.gradient of q, second order, as in the
-    reference data), sim_id [C] i32 (1-based).
+    v_solver [C,T+1,N,3] f32 (the solver's own velocity), sim_id [C] i32 (1-based).
+
+z's v is either ``velocity="gradient"``: numpy.gradient of q over the frames, second order, as in the reference
+data (so frame 0 of a run from rest has a one-sided, non-zero velocity), or ``velocity="solver"``: the solver's
+own velocity (zero at a rest start; what a simulator stepping from rest sees).
 
 Long runs are resumable: each finished case is written to ``<out>.parts/case_XXXXX.npz`` as soon as its batch
 is done, and a rerun skips the cases already there before assembling the final file.
@@ -26,7 +29,7 @@ from .solver import Loads, check, simulate_batch
 
 
 def run_cases(scene, problem, forces, out, *, batch_size: int = 8, progress: bool = True, xdmf: bool = False,
-              metadata: dict | None = None, sim_ids=None) -> Path:
+              metadata: dict | None = None, sim_ids=None, velocity: str = "gradient") -> Path:
     """Simulate every case of ``forces`` [C, T, N, 3] and write the data set to ``out`` (.npz).
 
     Cases are run in batches of ``batch_size`` (vmapped; the last batch is padded, so one compilation serves
@@ -37,6 +40,8 @@ def run_cases(scene, problem, forces, out, *, batch_size: int = 8, progress: boo
         raise ValueError(f"forces must be [cases, {problem.config.n_frames}, {len(scene.points)}, 3], got {forces.shape}")
     if batch_size < 1:
         raise ValueError(f"batch_size must be positive, got {batch_size}")
+    if velocity not in ("gradient", "solver"):
+        raise ValueError(f"velocity must be 'gradient' or 'solver', got {velocity!r}")
     out = Path(out)
     parts = out.with_name(out.name + ".parts")
     parts.mkdir(parents=True, exist_ok=True)
@@ -67,27 +72,35 @@ def run_cases(scene, problem, forces, out, *, batch_size: int = 8, progress: boo
     wall = time.perf_counter() - t_start
     meta = dict(metadata or {}, wall_time_s=wall, cases_run=len(todo),
                 load_average_1m_at_end=round(os.getloadavg()[0], 2), cpu_count=os.cpu_count())
-    return assemble(scene, problem, forces, parts, out, metadata=meta, sim_ids=sim_ids)
+    return assemble(scene, problem, forces, parts, out, metadata=meta, sim_ids=sim_ids, velocity=velocity)
 
 
-def assemble(scene, problem, forces, parts: Path, out: Path, *, metadata: dict, sim_ids) -> Path:
+def assemble(scene, problem, forces, parts: Path, out: Path, *, metadata: dict, sim_ids,
+             velocity: str = "gradient") -> Path:
     cases = [np.load(parts / f"case_{c:05d}.npz") for c in range(len(forces))]
+    z = np.stack([c["z"] for c in cases])
+    v_solver = np.stack([c["v_solver"] for c in cases])
+    if velocity == "solver":
+        z[..., 3:6] = v_solver
+        v_note = "z[..., 3:6] = v_solver (the solver's velocity; zero at the rest start)"
+    else:
+        v_note = "z[..., 3:6] = numpy.gradient(q, dt, axis=time, edge_order=2); v_solver = solver velocity"
     meta = {
         "scene": scene.name, "cell_type": scene.cell_type,
         "material": {k: np.asarray(v).tolist() for k, v in scene.material._asdict().items()},
         "frame_dt": scene.frame_dt, "n_frames": scene.n_frames, "n_sub": problem.config.n_sub,
         "damping": scene.damping, "load_interp": scene.load_interp, "code_version": _version(),
-        "velocity": "z[..., 3:6] = numpy.gradient(q, dt, axis=time, edge_order=2); v_solver = solver velocity",
+        "velocity": v_note,
     }
     if scene.cell_type == "tetra":
         meta["tet_formulation"] = problem.config.tet_formulation
     meta.update(metadata)
     np.savez_compressed(
         out, q0=scene.points.astype(np.float32), edges=scene.edges.astype(np.int32),
-        node_type=scene.node_type.astype(np.int8), z=np.stack([c["z"] for c in cases]),
+        node_type=scene.node_type.astype(np.int8), z=z,
         f=np.asarray(forces, np.float32), dt=np.float64(scene.frame_dt), cells=scene.cells.astype(np.int32),
         cell_type=np.array(scene.cell_type), metadata=np.array(json.dumps(meta)),
-        v_solver=np.stack([c["v_solver"] for c in cases]), sim_id=np.asarray(sim_ids, np.int32),
+        v_solver=v_solver, sim_id=np.asarray(sim_ids, np.int32),
         **{f"split_{k}": v for k, v in default_splits(sim_ids).items()})
     return out
 

@@ -63,6 +63,18 @@ def test_bunny_point_loads_are_unit_and_normal():
         cases.point_load_forces(sc, load_nodes=[int(np.where(sc.node_type == 1)[0][0])])
 
 
+def test_bunny_point_load_rises_smoothly_then_holds():
+    """A press that rises by the C¹ smooth step over R frames and then holds the unit load."""
+    sc = scenes.bunny_scene()
+    f, picked = cases.point_load_forces(sc, 3, seed=1, rise_frames=8)
+    amp = np.linalg.norm(f[:, :, picked[0]], axis=-1)[0]
+    s = np.minimum(np.arange(1, sc.n_frames + 1) / 8, 1.0)
+    np.testing.assert_allclose(amp, s * s * (3 - 2 * s), atol=1e-12)
+    assert np.all(np.diff(amp) >= 0) and amp[7] == 1.0 and amp[-1] == 1.0
+    with pytest.raises(ValueError, match="rise_frames"):
+        cases.point_load_forces(sc, 3, rise_frames=sc.n_frames + 1)
+
+
 def _two_cubes(gap=0.5, contact=True):
     pts, cells = fem.box_hex_mesh((1.0, 1.0, 1.0), (2, 2, 2))
     pts_b = pts + np.array([0.0, 0.0, 1.0 + gap])
@@ -138,6 +150,13 @@ def test_generation_writes_the_data_format_and_resumes(tmp_path, monkeypatch):
     monkeypatch.setattr("fem.generate.simulate_batch", lambda *a, **k: calls.append(1))
     run_cases(sc, pb, forces, tmp_path / "d.npz", batch_size=2, progress=False)
     assert calls == []
+    # The same parts assembled with the solver's velocity: z's v is v_solver, zero at the rest start.
+    out = run_cases(sc, pb, forces, tmp_path / "d.npz", batch_size=2, progress=False, velocity="solver")
+    d = np.load(out)
+    np.testing.assert_array_equal(d["z"][..., 3:6], d["v_solver"])
+    assert np.all(d["z"][:, 0, :, 3:6] == 0) and "v_solver" in str(d["metadata"])
+    with pytest.raises(ValueError, match="velocity"):
+        run_cases(sc, pb, forces, tmp_path / "d.npz", velocity="central")
 
 
 def test_paraview_series_reads_back(tmp_path):
