@@ -32,6 +32,7 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import os
 import sys
 import time
 import warnings
@@ -74,6 +75,10 @@ def main(argv=None) -> int:
 
     machine = describe()
     machine["load_average_1m_at_start"] = machine.pop("load_average_1m")
+    flags = os.environ.get("XLA_FLAGS", "")
+    machine["xla_flags"] = flags
+    machine["threads"] = "single-threaded XLA: batching can only amortise per-call costs" \
+        if "multi_thread_eigen=false" in flags else "XLA's default threading"
     machine["accelerator"] = "none: CPU only (no GPU was available in this session)" \
         if jax.default_backend() == "cpu" else jax.devices()[0].device_kind
     t_start = time.perf_counter()
@@ -230,13 +235,18 @@ def fem_problem(points, cells, node_type, n_sub: int, batch: int | None = None):
     problem = fem.setup(points, cells, material=scene.material, frame_dt=n_sub * h * (1 - 1e-6), n_frames=1,
                         clamped=np.flatnonzero(node_type == 1), cell_type="hexahedron", damping=scene.damping,
                         load_interp=scene.load_interp)
+    nodal = tip_loads(points, batch or 1)
+    return problem, scene.material, fem.Loads(nodal=jnp.asarray(nodal if batch else nodal[0])), h
+
+
+def tip_loads(points, cases: int) -> np.ndarray:
+    """[cases, 1, N, 3]: TIP_FORCE spread over the free end's nodes, case c pointing at angle 2πc/cases in
+    the y–z plane (case 0 along −y)."""
     tip = np.flatnonzero(np.abs(points[:, 0] - points[:, 0].max()) < 1e-9)
-    angles = np.linspace(0.0, 2 * np.pi, batch or 1, endpoint=False)
-    nodal = np.zeros((len(angles), 1, len(points), 3))
-    for c, a in enumerate(angles):
+    nodal = np.zeros((cases, 1, len(points), 3))
+    for c, a in enumerate(np.linspace(0.0, 2 * np.pi, cases, endpoint=False)):
         nodal[c, 0, tip] = TIP_FORCE / len(tip) * np.array([0.0, -np.cos(a), -np.sin(a)])
-    loads = fem.Loads(nodal=jnp.asarray(nodal if batch else nodal[0]))
-    return problem, scene.material, loads, h
+    return nodal
 
 
 def fem_runner(problem, material, loads, batched: bool):
@@ -289,7 +299,7 @@ def fem_mesh_scaling(refinements, quick: bool, seconds: float) -> list:
             problem = fem.setup(points, cells, material=scene.material, frame_dt=0.05, n_frames=1,
                                 clamped=np.flatnonzero(node_type == 1), cell_type="hexahedron",
                                 damping=scene.damping, load_interp=scene.load_interp)
-            loads = fem_problem(points, cells, node_type, 1)[2]
+            loads = fem.Loads(nodal=jnp.asarray(tip_loads(points, 1)[0]))
             frame = time_interleaved({"frame": fem_runner(problem, scene.material, loads, False)}, 0.0,
                                      min_repeats=3)["frame"]
             row["ms_per_frame_measured"] = frame["p50_ms"]
@@ -357,7 +367,9 @@ def format_md(result: dict) -> str:
         f"Machine: {m['cpu']}, {m['cores']} cores, jax {m['jax']} ({m['backend']}); accelerator: "
         f"{m['accelerator']}. Shared machine: load average {m['load_average_1m_at_start']} at start, "
         f"{m['load_average_1m_at_end']} at end (other jobs ran alongside; absolute times are inflated and noisy, "
-        f"ratios within a table less so). Whole run {result['wall_seconds'] / 60:.1f} min.",
+        f"ratios within a table less so). {m['threads'].split(':')[0]} (XLA_FLAGS=\"{m['xla_flags']}\"). "
+        f"Whole run {result['wall_seconds'] / 60:.1f} min. Medians of interleaved calls after compilation, the "
+        f"minimum (least disturbed call) in brackets.",
         "",
         f"## Mesh size (the 40×10×10 beam refined; learned step: `{result['model']}`, hidden {cfg['hidden']}, "
         f"{cfg['passes']} passes; one step = one 0.05 s frame)",
@@ -388,7 +400,7 @@ def format_md(result: dict) -> str:
               "sub-step + the per-run overhead (initial force, frame outputs); where a whole 0.05 s frame was cheap "
               "enough it was also timed directly (measured)."]
     lines += ["", "## Batch size (the paper's beam, 756 nodes / 500 hex8)", "",
-              "| bodies | learned step p50 (min) ms | ms / body-step | per-body speed-up vs 1 | FEM sub-step (ms) | "
+              "| bodies | learned step p50 (min) ms | ms / body-step | per-body speed-up vs 1 | FEM sub-step p50 ms | "
               "ms / body-sub-step | FEM element-sub-steps / s | per-body speed-up vs 1 |",
               "|---|---|---|---|---|---|---|---|"]
     fb = {r["batch"]: r for r in result["fem_vs_batch"]}
@@ -403,33 +415,41 @@ def format_md(result: dict) -> str:
     return "\n".join(lines)
 
 
+def growth(a: float) -> str:
+    return "about linearly" if 0.9 <= a <= 1.1 else "faster than linearly" if a > 1.1 else "slower than linearly"
+
+
 def summary(result: dict) -> str:
+    """The measured growth in plain sentences (every qualitative word follows from the numbers)."""
     f = result["fits"]
     ln, fn = result["learned_vs_nodes"], result["fem_vs_nodes"]
     lb, fb = result["learned_vs_batch"], result["fem_vs_batch"]
     parts = []
     if f["learned_step"]:
-        parts.append(f"The learned step grows as nodes^{f['learned_step']['exponent']:.2f} "
-                     f"(≈ linear: fixed work per node and per edge, {ln[-1]['us_per_node']:.1f} µs per node at "
-                     f"{ln[-1]['nodes']} nodes against {ln[0]['us_per_node']:.1f} µs on the 756-node beam, where "
-                     f"fixed per-call costs weigh more).")
+        a = f["learned_step"]["exponent"]
+        parts.append(f"The learned step's time grows {growth(a)} with the number of nodes (nodes^{a:.2f}; from "
+                     f"the least disturbed calls nodes^{f['learned_step_min']['exponent']:.2f}): "
+                     f"{ln[0]['us_per_node']:.1f} µs per node on the paper's 756-node beam, "
+                     f"{ln[-1]['us_per_node']:.1f} µs per node at {ln[-1]['nodes']} nodes.")
     if f["fem_substep"] and f["fem_frame"]:
-        parts.append(f"An FEM sub-step also grows about linearly (nodes^{f['fem_substep']['exponent']:.2f}), but "
-                     f"the stable sub-step shrinks with the element size, so the sub-steps per 0.05 s frame grow "
-                     f"from {fn[0]['substeps_per_frame']} to {fn[-1]['substeps_per_frame']} and the FEM frame grows "
-                     f"as nodes^{f['fem_frame']['exponent']:.2f} (≈ nodes^(4/3) for a uniform refinement).")
-    if ln and fn and ln[-1]["nodes"] == fn[-1]["nodes"]:
-        parts.append(f"The learned step's advantage per frame therefore widens with refinement: "
-                     f"{fn[0]['ms_per_frame'] / ln[0]['p50_ms']:.0f}× on the paper's mesh, "
-                     f"{fn[-1]['ms_per_frame'] / ln[-1]['p50_ms']:.0f}× at {ln[-1]['nodes']} nodes.")
+        a = f["fem_substep"]["exponent"]
+        parts.append(f"An FEM sub-step grows {growth(a)} (nodes^{a:.2f}), but the stable sub-step shrinks with "
+                     f"the element size (∝ nodes^(-1/3) under uniform refinement), so the sub-steps per 0.05 s "
+                     f"frame grow from {fn[0]['substeps_per_frame']} to {fn[-1]['substeps_per_frame']} and the FEM "
+                     f"frame grows as nodes^{f['fem_frame']['exponent']:.2f}.")
+    if ln and fn and ln[-1]["nodes"] == fn[-1]["nodes"] and len(ln) > 1:
+        first, last = fn[0]["ms_per_frame"] / ln[0]["p50_ms"], fn[-1]["ms_per_frame"] / ln[-1]["p50_ms"]
+        trend = "widens" if last > 1.2 * first else "narrows" if last < first / 1.2 else "stays about the same"
+        parts.append(f"Per 0.05 s frame the learned step's advantage over the FEM {trend} with refinement: "
+                     f"{first:.0f}× on the paper's mesh, {last:.0f}× at {ln[-1]['nodes']} nodes.")
     if lb:
-        parts.append(f"Batching beams in one graph costs {lb[-1]['ms_per_body_step']:.2f} ms per body-step at "
-                     f"{lb[-1]['copies']} bodies against {lb[0]['ms_per_body_step']:.2f} ms for one "
+        parts.append(f"Stepping beams together in one graph costs {lb[-1]['ms_per_body_step']:.2f} ms per "
+                     f"body-step at {lb[-1]['copies']} bodies against {lb[0]['ms_per_body_step']:.2f} ms for one "
                      f"({lb[-1]['speedup_per_body_vs_1']:.2f}× per body)")
         if fb:
-            parts[-1] += (f"; the FEM batch of {fb[-1]['batch']} cases gives {fb[-1]['speedup_per_body_vs_1']:.2f}× "
-                          f"per body-sub-step")
-        parts[-1] += " on this CPU (single thread: batching only amortises per-call overhead)."
+            parts[-1] += (f"; the FEM batch of {fb[-1]['batch']} load cases gives "
+                          f"{fb[-1]['speedup_per_body_vs_1']:.2f}× per body-sub-step")
+        parts[-1] += f" on this CPU ({result['machine']['threads']})."
     return " ".join(parts)
 
 
@@ -437,6 +457,7 @@ def plot(result: dict, path: Path) -> None:
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+    import matplotlib.ticker
 
     fig, (ax1, ax2) = plt.subplots(1, 2, figsize=(11, 4.2))
     ln, fn = result["learned_vs_nodes"], result["fem_vs_nodes"]
@@ -455,17 +476,20 @@ def plot(result: dict, path: Path) -> None:
     ax1.set_ylabel("time (ms)")
     ax1.set_title("time ∝ nodes^a (fit dotted)")
     ax1.grid(True, which="both", alpha=0.3)
-    ax1.legend(fontsize=8)
+    ax1.legend(fontsize=8, loc="upper left")
     lb, fb = result["learned_vs_batch"], result["fem_vs_batch"]
     ax2.loglog([r["copies"] for r in lb], [r["ms_per_body_step"] for r in lb], "o-", color="C0",
                label="learned: ms per body-step")
     ax2.loglog([r["batch"] for r in fb], [r["ms_per_body_substep"] for r in fb], "s-", color="C1",
                label="FEM: ms per body-sub-step")
+    ax2.set_xticks([r["copies"] for r in lb])
+    ax2.xaxis.set_major_formatter(matplotlib.ticker.ScalarFormatter())
+    ax2.xaxis.set_minor_formatter(matplotlib.ticker.NullFormatter())
     ax2.set_xlabel("bodies in one call (756-node beam)")
     ax2.set_ylabel("time per body (ms)")
     ax2.set_title("per-body cost against batch size")
     ax2.grid(True, which="both", alpha=0.3)
-    ax2.legend(fontsize=8)
+    ax2.legend(fontsize=8, loc="upper left")
     m = result["machine"]
     fig.suptitle(f"{m['cpu']}, {m['cores']} cores, {m['backend']} (shared: load {m['load_average_1m_at_start']}"
                  f"→{m['load_average_1m_at_end']})" + (" — QUICK" if result["quick"] else ""), fontsize=9)
