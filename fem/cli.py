@@ -28,6 +28,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                         "(the reference data's convention; default for beam-reference)")
     g.add_argument("--rise-frames", type=int, default=10,
                    help="bunny: frames over which the point load rises smoothly, 0 = a step (default: %(default)s)")
+    g.add_argument("--worker", default="0/1", metavar="K/N",
+                   help="run only cases c with c mod N = K, to share the work among N processes; the last to "
+                        "finish writes --out (default: %(default)s)")
     g.add_argument("--batch", type=int, default=8, help="cases per vmapped batch (default: %(default)s)")
     g.add_argument("--xdmf", "--paraview", dest="xdmf", action="store_true", help="also write ParaView files per case (.pvd + VTU frames)")
     g.add_argument("--no-progress", action="store_true", help="no progress bar")
@@ -46,6 +49,12 @@ def run_generate(args) -> int:
         raise SystemExit(f"--cases must be positive, got {args.cases}")
     if args.batch < 1:
         raise SystemExit(f"--batch must be positive, got {args.batch}")
+    try:
+        worker = tuple(int(t) for t in args.worker.split("/"))
+        if len(worker) != 2 or not 0 <= worker[0] < worker[1]:
+            raise ValueError
+    except ValueError:
+        raise SystemExit(f"--worker must be K/N with 0 <= K < N, got {args.worker!r}")
     meta = {"seed": args.seed, "command": f"tignn generate {args.scene}"}
     sim_ids = None
     setup_kwargs = {}
@@ -87,8 +96,9 @@ def run_generate(args) -> int:
           f"{problem.config.n_sub} sub-steps")
     out = run_cases(scene, problem, forces, args.out, batch_size=args.batch, progress=not args.no_progress,
                     xdmf=args.xdmf, metadata=meta, sim_ids=sim_ids,
-                    velocity=args.velocity or ("gradient" if args.scene == "beam-reference" else "solver"))
-    print(f"wrote {out}")
+                    velocity=args.velocity or ("gradient" if args.scene == "beam-reference" else "solver"),
+                    worker=worker)
+    print(f"wrote {out}" if out is not None else f"worker {args.worker} done; the last worker writes {args.out}")
     return 0
 
 

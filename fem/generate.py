@@ -29,11 +29,14 @@ from .solver import Loads, check, simulate_batch
 
 
 def run_cases(scene, problem, forces, out, *, batch_size: int = 8, progress: bool = True, xdmf: bool = False,
-              metadata: dict | None = None, sim_ids=None, velocity: str = "gradient") -> Path:
+              metadata: dict | None = None, sim_ids=None, velocity: str = "gradient",
+              worker: tuple[int, int] = (0, 1)) -> Path | None:
     """Simulate every case of ``forces`` [C, T, N, 3] and write the data set to ``out`` (.npz).
 
     Cases are run in batches of ``batch_size`` (vmapped; the last batch is padded, so one compilation serves
-    all); finished cases are kept in ``<out>.parts/`` and skipped on a rerun.
+    all); finished cases are kept in ``<out>.parts/`` and skipped on a rerun. ``worker = (k, n)`` runs only
+    the cases c with c mod n = k, so n processes can share the work (one core each); the worker that finds
+    every part present at its end writes ``out`` and returns its path, the others return None.
     """
     forces = np.asarray(forces, np.float32)
     if forces.ndim != 4 or forces.shape[1:] != (problem.config.n_frames, len(scene.points), 3):
@@ -42,12 +45,15 @@ def run_cases(scene, problem, forces, out, *, batch_size: int = 8, progress: boo
         raise ValueError(f"batch_size must be positive, got {batch_size}")
     if velocity not in ("gradient", "solver"):
         raise ValueError(f"velocity must be 'gradient' or 'solver', got {velocity!r}")
+    k, n_workers = worker
+    if not (n_workers >= 1 and 0 <= k < n_workers):
+        raise ValueError(f"worker must be (k, n) with 0 <= k < n, got {worker}")
     out = Path(out)
     parts = out.with_name(out.name + ".parts")
     parts.mkdir(parents=True, exist_ok=True)
     n_cases = len(forces)
     sim_ids = np.arange(1, n_cases + 1) if sim_ids is None else np.asarray(sim_ids)
-    todo = [c for c in range(n_cases) if not (parts / f"case_{c:05d}.npz").exists()]
+    todo = [c for c in range(k, n_cases, n_workers) if not (parts / f"case_{c:05d}.npz").exists()]
     bar = _progress(total=n_cases, initial=n_cases - len(todo), enabled=progress, desc=f"{scene.name} cases")
     t_start = time.perf_counter()
     for start in range(0, len(todo), batch_size):
@@ -70,6 +76,8 @@ def run_cases(scene, problem, forces, out, *, batch_size: int = 8, progress: boo
         bar.update(len(idx))
     bar.close()
     wall = time.perf_counter() - t_start
+    if not all((parts / f"case_{c:05d}.npz").exists() for c in range(n_cases)):
+        return None      # other workers are still running; the last one assembles
     meta = dict(metadata or {}, wall_time_s=wall, cases_run=len(todo),
                 load_average_1m_at_end=round(os.getloadavg()[0], 2), cpu_count=os.cpu_count())
     return assemble(scene, problem, forces, parts, out, metadata=meta, sim_ids=sim_ids, velocity=velocity)
@@ -95,13 +103,15 @@ def assemble(scene, problem, forces, parts: Path, out: Path, *, metadata: dict, 
     if scene.cell_type == "tetra":
         meta["tet_formulation"] = problem.config.tet_formulation
     meta.update(metadata)
+    tmp = out.with_name(out.name + ".tmp.npz")
     np.savez_compressed(
-        out, q0=scene.points.astype(np.float32), edges=scene.edges.astype(np.int32),
+        tmp, q0=scene.points.astype(np.float32), edges=scene.edges.astype(np.int32),
         node_type=scene.node_type.astype(np.int8), z=z,
         f=np.asarray(forces, np.float32), dt=np.float64(scene.frame_dt), cells=scene.cells.astype(np.int32),
         cell_type=np.array(scene.cell_type), metadata=np.array(json.dumps(meta)),
         v_solver=v_solver, sim_id=np.asarray(sim_ids, np.int32),
         **{f"split_{k}": v for k, v in default_splits(sim_ids).items()})
+    os.replace(tmp, out)   # atomic: a reader never sees a half-written file
     return out
 
 

@@ -10,7 +10,7 @@ def register(subparsers) -> None:
     p.add_argument("--data", required=True, help="data set .npz file or folder")
     p.add_argument("--split", default="train", help="training split name or sim ids (e.g. 3,4,5)")
     p.add_argument("--val", default="val", help="validation split name or sim ids ('' for none)")
-    p.add_argument("--config", default="beam", help="named TrainConfig (tiny, beam)")
+    p.add_argument("--config", default="beam", help="named TrainConfig (tiny, beam, bunny)")
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                    help="override a TrainConfig field, e.g. --set epochs=50 (repeatable)")
     p.add_argument("--run-dir", required=True, help="folder for checkpoints, metrics.jsonl and best/model.npz")
