@@ -150,6 +150,7 @@ def test_generation_writes_the_data_format_and_resumes(tmp_path, monkeypatch):
     monkeypatch.setattr("fem.generate.simulate_batch", lambda *a, **k: calls.append(1))
     run_cases(sc, pb, forces, tmp_path / "d.npz", batch_size=2, progress=False)
     assert calls == []
+    monkeypatch.undo()
     # The same parts assembled with the solver's velocity: z's v is v_solver, zero at the rest start.
     out = run_cases(sc, pb, forces, tmp_path / "d.npz", batch_size=2, progress=False, velocity="solver")
     d = np.load(out)
