@@ -1,0 +1,101 @@
+"""The pieces of benchmarks/pareto.py that decide its results: the Pareto front, the coarse-mesh transfer and
+the mixed-precision step."""
+import sys
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+import pareto  # noqa: E402
+
+from fem import box_hex_mesh, beam_mesh  # noqa: E402
+from tignn_jax import data as D  # noqa: E402
+from tignn_jax import model as M  # noqa: E402
+
+
+def test_pareto_front_keeps_exactly_the_non_dominated_points():
+    # (time, error): b is dominated by a (slower and worse); d ties a in time but is worse; e diverged (NaN)
+    cost = [1.0, 2.0, 3.0, 1.0, 0.5, 10.0]
+    error = [0.5, 0.6, 0.1, 0.7, np.nan, 0.05]
+    assert pareto.pareto_front(cost, error).tolist() == [0, 2, 5]
+
+
+def test_pareto_front_keeps_duplicates_of_a_front_point():
+    # two identical points dominate nothing of each other: both stay
+    assert pareto.pareto_front([1.0, 1.0, 2.0], [0.3, 0.3, 0.4]).tolist() == [0, 1]
+
+
+def test_pareto_front_rejects_mismatched_inputs():
+    with pytest.raises(ValueError, match="one length"):
+        pareto.pareto_front([1.0, 2.0], [0.1])
+
+
+@pytest.mark.parametrize("divisions", [(10, 3, 3), (14, 4, 4)])
+def test_trilinear_interpolation_reproduces_a_linear_field_exactly(divisions):
+    # trilinear shape functions contain the linear polynomials: a homogeneous deformation is transferred exactly
+    fine, _, _ = beam_mesh()
+    coarse, _ = box_hex_mesh(pareto.BEAM_SIZE, divisions)
+    w = pareto.trilinear_weights(fine, divisions)
+    a = np.array([[1.1, 0.2, -0.3], [0.05, 0.9, 0.1], [-0.2, 0.3, 1.2]])
+    b = np.array([0.5, -1.0, 2.0])
+    np.testing.assert_allclose(w @ (coarse @ a.T + b), fine @ a.T + b, atol=1e-10)
+    np.testing.assert_allclose(w.sum(axis=1), 1.0, atol=1e-12)
+
+
+def test_interpolation_at_coarse_nodes_is_the_identity():
+    # a reference node that is also a coarse node takes that node's value alone
+    divisions = (10, 5, 5)
+    coarse, _ = box_hex_mesh(pareto.BEAM_SIZE, divisions)
+    w = pareto.trilinear_weights(coarse, divisions)
+    np.testing.assert_allclose(w, np.eye(len(coarse)), atol=1e-12)
+
+
+def test_load_transfer_conserves_total_force_and_moment():
+    # W.T f is the consistent nodal load of point forces: same resultant and same moment about the origin
+    fine, _, _ = beam_mesh()
+    divisions = (10, 3, 3)
+    coarse, _ = box_hex_mesh(pareto.BEAM_SIZE, divisions)
+    w = pareto.trilinear_weights(fine, divisions)
+    f = np.random.default_rng(0).normal(size=fine.shape)
+    fc = w.T @ f
+    np.testing.assert_allclose(fc.sum(0), f.sum(0), atol=1e-10)
+    np.testing.assert_allclose(np.cross(coarse, fc).sum(0), np.cross(fine, f).sum(0), atol=1e-8)
+
+
+def test_trilinear_weights_reject_points_outside_the_box():
+    with pytest.raises(ValueError, match="inside the box"):
+        pareto.trilinear_weights(np.array([[41.0, 1.0, 1.0]]), (10, 3, 3))
+
+
+def _tiny_model():
+    data = D.synthetic_beam(cases=2, frames=3)
+    rows = D.split_rows(data, "train")
+    norm = {k: jnp.asarray(v) for k, v in D.normalization(data, rows).items()}
+    nt = jnp.asarray(data.node_type, jnp.int32)
+    topo = M.topology(data.edges[0], data.edges[1], len(data.node_type), data.q0)
+    cfg = M.ModelConfig(hidden=8, passes=2)
+    z, f = jnp.asarray(data.z[0, 2]), jnp.asarray(data.f[0, 2])
+    w = M.init_weights(jax.random.PRNGKey(1), cfg, norm, z, f, nt, topo)
+    return w, cfg, norm, z, f, nt, topo
+
+
+def test_mixed_step_in_float32_is_the_model_step():
+    # the mixed-precision step only changes the network's dtype; in float32 it must be model.step_state
+    w, cfg, norm, z, f, nt, topo = _tiny_model()
+    ref = jax.jit(lambda z: M.step_state(w, cfg, norm, z, f, nt, topo))(z)
+    out = jax.jit(lambda z: pareto.step_mixed(w, cfg, norm, z, f, nt, topo, jnp.float32))(z)
+    np.testing.assert_allclose(np.asarray(out), np.asarray(ref), rtol=1e-5, atol=1e-6)
+
+
+def test_mixed_step_in_bfloat16_keeps_a_float32_state_near_the_float32_step():
+    # bfloat16 network, float32 state: the increment is perturbed at the ~1 % level, the state stays float32
+    w, cfg, norm, z, f, nt, topo = _tiny_model()
+    ref = np.asarray(jax.jit(lambda z: M.step_state(w, cfg, norm, z, f, nt, topo))(z))
+    w16 = pareto.cast_weights(w, jnp.bfloat16)
+    out = jax.jit(lambda z: pareto.step_mixed(w16, cfg, norm, z, f, nt, topo, jnp.bfloat16))(z)
+    assert out.dtype == jnp.float32
+    dz_ref, dz = ref - np.asarray(z), np.asarray(out) - np.asarray(z)
+    assert np.linalg.norm(dz - dz_ref) <= 0.1 * np.linalg.norm(dz_ref)
