@@ -159,9 +159,10 @@ def test_generation_writes_the_data_format_and_resumes(tmp_path, monkeypatch):
     with pytest.raises(ValueError, match="velocity"):
         run_cases(sc, pb, forces, tmp_path / "d.npz", velocity="central")
     # Two workers share the cases (c mod 2); only the one that finds every part present writes the file.
-    assert run_cases(sc, pb, forces, tmp_path / "w.npz", batch_size=1, progress=False, worker=(0, 2)) is None
+    assert run_cases(sc, pb, forces, tmp_path / "w.npz", batch_size=1, progress=False, worker=(0, 2),
+                     velocity="solver") is None
     assert sorted(p.name for p in (tmp_path / "w.npz.parts").iterdir()) == ["case_00000.npz", "case_00002.npz"]
-    out = run_cases(sc, pb, forces, tmp_path / "w.npz", batch_size=1, progress=False, worker=(1, 2))
+    out = run_cases(sc, pb, forces, tmp_path / "w.npz", batch_size=1, progress=False, worker=(1, 2), velocity="solver")
     np.testing.assert_allclose(np.load(out)["z"], d["z"], atol=1e-6)
     with pytest.raises(ValueError, match="worker"):
         run_cases(sc, pb, forces, tmp_path / "w.npz", worker=(2, 2))
