@@ -41,6 +41,7 @@ from _machine import describe  # noqa: E402
 
 RESULTS = Path(__file__).resolve().parent / "results"
 SCENARIOS = ("release", "constant", "fingertip", "3x load", "noise")
+BUNNY_RISE = 10   # the bunny data's loads rise over 10 frames (tignn generate bunny --rise-frames 10)
 
 
 def loadings(name: str, steps: int, seed: int = 0):
@@ -52,7 +53,7 @@ def loadings(name: str, steps: int, seed: int = 0):
         base = scenes.beam_reference_forces(scene, [9])[0]      # test case 9 of the published split
     else:
         scene = scenes.bunny_scene()
-        base, _ = cases.point_load_forces(scene, n_cases=1, seed=seed + 7)
+        base, _ = cases.point_load_forces(scene, n_cases=1, seed=seed + 7, rise_frames=BUNNY_RISE)
         base = base[0]
     n = len(scene.points)
     t0 = base.shape[0]
@@ -64,7 +65,8 @@ def loadings(name: str, steps: int, seed: int = 0):
     if name == "beam":
         tips, _ = cases.fingertip_forces(scene, -(-steps // scene.n_frames), seed)
     else:
-        tips, _ = cases.point_load_forces(scene, n_cases=-(-steps // scene.n_frames), seed=seed + 1)
+        tips, _ = cases.point_load_forces(scene, n_cases=-(-steps // scene.n_frames), seed=seed + 1,
+                                          rise_frames=BUNNY_RISE)
     fingertip = tips.reshape(-1, n, 3)[:steps]
     return scene, {"release": release, "constant": constant, "fingertip": fingertip, "3x load": 3 * constant,
                    "noise": constant}
