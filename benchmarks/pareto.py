@@ -18,16 +18,16 @@ v and σ (``tignn_jax.evaluate.relative_errors``); the FEM's v is numpy.gradient
 convention of the reference data. The Pareto front is the set of points not dominated in (step time, u error).
 Writes benchmarks/results/pareto.{json,md,png}; trained models and cached errors go to runs/pareto/.
 
-    python benchmarks/pareto.py [--quick] [--times-only] [--train-only] [--train-minutes 65]
+    XLA_FLAGS="--xla_cpu_multi_thread_eigen=false intra_op_parallelism_threads=1" \
+        python benchmarks/pareto.py [--quick] [--times-only] [--train-only] [--train-minutes 65]
 
---times-only re-measures every time and reuses the cached errors; --quick is a small smoke setting (writes
-pareto_quick.*); --train-only trains the subset (resumable: finished configurations are skipped) and stops.
+--times-only re-measures every time and reuses the cached errors (runs/pareto/, else those in the committed
+pareto.json); --quick is a small smoke setting (one case, writes runs/pareto/quick/); --train-only trains the subset (resumable: finished configurations are skipped) and stops.
 """
 from __future__ import annotations
 
 import argparse
 import json
-import math
 import os
 import sys
 import time
@@ -212,9 +212,10 @@ def step_mixed(weights, config, norm, z, f, node_type, topo, dtype=jnp.bfloat16)
     from tignn_jax import model as M
 
     topo_d = topo._replace(mask=topo.mask.astype(dtype))
+    flags = [getattr(config, k) for k in ("edge_velocity", "edge_strain", "node_position") if k in config._fields]
 
     def potentials(z_):
-        x_node, x_edge = M._features(norm, z_, f, node_type, topo, config.edge_velocity, config.edge_strain)
+        x_node, x_edge = M._features(norm, z_, f, node_type, topo, *flags)
         es, heads = M.Network(config).apply({"params": weights}, x_node.astype(dtype), x_edge.astype(dtype),
                                             topo_d)
         es = es.astype(z_.dtype)
@@ -254,13 +255,18 @@ def learned_errors(params, data, rows, dtype=None) -> dict:
             return jnp.concatenate([z0[None], jax.lax.scan(body, z0, forces)[1]])
 
         pred = np.stack([np.asarray(roll(jnp.asarray(data.z[r, 0]), jnp.asarray(data.f[r]))) for r in rows])
+    return summary(pred, data, rows)
+
+
+def summary(pred, data, rows) -> dict:
+    """Mean errors of predicted states [cases, T+1, N, 12] against the data's cases ``rows`` over snapshots
+    1..T and cases, all nodes (NaN when a rollout diverged); σ also over the free nodes; the worst case's u."""
+    from tignn_jax import evaluate as EV
+
     e = EV.relative_errors(pred, data.z[rows], data.q0)[:, 1:]
-    return summary(e)
-
-
-def summary(e) -> dict:
-    """e [cases, T, 4] (q, v, sigma, u) → means (NaN when a rollout diverged) and the worst case's u."""
+    e_free = EV.relative_errors(pred, data.z[rows], data.q0, data.node_type == 0)[:, 1:]
     out = {k: float(np.mean(e[..., i])) for i, k in enumerate(("q", "v", "sigma", "u"))}
+    out["sigma_free"] = float(np.mean(e_free[..., 2]))
     out["u_worst_case"] = float(np.max(np.mean(e[..., 3], axis=1)))
     return out
 
@@ -334,8 +340,6 @@ def fem_errors(divisions, density_factor, data, rows) -> dict:
     from fem import Loads, check, simulate_batch
     from fem import scenes as fs
 
-    from tignn_jax import evaluate as EV
-
     scene, problem, w = fem_problem(divisions, density_factor)
     forces = fs.beam_reference_forces(fs.beam_scene(), data.sim_id[rows])          # [C, T, 756, 3]
     if not np.allclose(fs.beam_scene().points, data.q0, atol=1e-5):
@@ -352,9 +356,8 @@ def fem_errors(divisions, density_factor, data, rows) -> dict:
         q, sig = np.einsum("pn,ctnd->ctpd", w, q), np.einsum("pn,ctnd->ctpd", w, sig)
     v = np.gradient(q, float(data.dt), axis=1, edge_order=2)   # the reference data's velocity convention
     pred = np.concatenate([q, v, sig], -1)
-    e = EV.relative_errors(pred, data.z[rows], data.q0)[:, 1:]
-    return dict(summary(e), n_sub=problem.config.n_sub, nodes=len(scene.points), elements=len(scene.cells),
-                inverted=np.asarray(res.inverted).tolist(), batch_wall_s=wall)
+    return dict(summary(pred, data, rows), n_sub=problem.config.n_sub, nodes=len(scene.points),
+                elements=len(scene.cells), inverted=np.asarray(res.inverted).tolist(), batch_wall_s=wall)
 
 
 def fem_frame_time(divisions, density_factor, sim_id: int, min_repeats: int = 5, min_seconds: float = 3.0,
@@ -385,7 +388,7 @@ def fem_frame_time(divisions, density_factor, sim_id: int, min_repeats: int = 5,
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--quick", action="store_true", help="small smoke setting (writes pareto_quick.*)")
+    ap.add_argument("--quick", action="store_true", help="small smoke setting (writes runs/pareto/quick/)")
     ap.add_argument("--times-only", action="store_true", help="re-measure times, reuse cached errors")
     ap.add_argument("--train-only", action="store_true", help="train the equal-budget subset and stop")
     ap.add_argument("--train-minutes", type=float, default=65.0, help="budget of the subset (default %(default)s)")
@@ -408,6 +411,10 @@ def main(argv=None) -> int:
     cache_path = RUNS / f"{stem}_errors.json"
     cache = json.loads(cache_path.read_text()) if cache_path.exists() else {}
     plan = json.loads((RUNS / "plan.json").read_text()) if (RUNS / "plan.json").exists() else None
+    previous = (RUNS / "quick" if args.quick else RESULTS) / f"{stem}.json"
+    if args.times_only and not cache and previous.exists():   # a checkout without runs/: the committed errors
+        old = json.loads(previous.read_text())
+        cache, plan = old["errors"], old.get("train_plan")
     if not args.quick and not args.times_only:
         plan = train_subset(data, TRAINED, args.train_minutes)
 
@@ -416,7 +423,7 @@ def main(argv=None) -> int:
     learned = {SHIPPED: (shipped, None), SHIPPED + " bf16": (shipped, jnp.bfloat16)}
     for h, p in TRAINED:
         path = run_dir(h, p) / "best" / "model.npz"
-        if (run_dir(h, p) / "done.json").exists() and path.exists():
+        if f"{h}x{p}" not in cache and (run_dir(h, p) / "done.json").exists() and path.exists():
             learned[f"{h}x{p}"] = (api.load_model(path), None)
     for name, (params, dtype) in learned.items():
         if name not in cache:
@@ -457,12 +464,13 @@ def main(argv=None) -> int:
               "budget_ms": BUDGET_MS, "points": points, "front": [points[i]["name"] for i in front],
               "grid_step_ms": {k: v for k, v in step_times.items() if "x" in k and not k.startswith(SHIPPED)},
               "step_times": step_times, "fem_times": fem_times, "errors": cache, "train_plan": plan,
-              "repeats": repeats, "quick": args.quick}
-    RESULTS.mkdir(parents=True, exist_ok=True)
-    (RESULTS / f"{stem}.json").write_text(json.dumps(result, indent=1))
-    plot(RESULTS / f"{stem}.png", points, front, result)
+              "repeats": repeats, "quick": args.quick, "xla_flags": os.environ.get("XLA_FLAGS", "")}
+    out = RUNS / "quick" if args.quick else RESULTS
+    out.mkdir(parents=True, exist_ok=True)
+    (out / f"{stem}.json").write_text(json.dumps(result, indent=1))
+    plot(out / f"{stem}.png", points, front, result)
     md = report(result, widths, passes)
-    (RESULTS / f"{stem}.md").write_text(md)
+    (out / f"{stem}.md").write_text(md)
     print(md)
     return 0
 
@@ -501,7 +509,7 @@ def plot(path, points, front, result) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, ax = plt.subplots(figsize=(9, 6))
+    fig, ax = plt.subplots(figsize=(11.5, 6))
     ax.axvspan(*BUDGET_MS, color="C2", alpha=0.15, label=f"real-time budget {BUDGET_MS[0]:g}–{BUDGET_MS[1]:g} ms")
     style = {"learned": ("o", "C0", "learned, equal budget"), "shipped": ("*", "C3", "shipped default (float32)"),
              "shipped-bf16": ("D", "C1", "shipped, bfloat16"), "fem": ("s", "C7", "FEM (per 0.05 s frame)")}
@@ -526,8 +534,8 @@ def plot(path, points, front, result) -> None:
         ax.scatter(gx, [ymin * 0.6] * len(gx), marker="|", color="C0", s=80, label="size grid, time only")
     ax.set(xscale="log", yscale="log", xlabel="wall time per step / per 0.05 s frame (ms, median, this CPU)",
            ylabel="u = q − q0 relative L2 error (test, mean over 20 snapshots)",
-           title="Beam, 6 test cases: run time against error")
-    ax.legend(fontsize=8, loc="upper right")
+           title=f"Beam, {len(result['test_sims'])} test cases: run time against error")
+    ax.legend(fontsize=8, loc="upper left", bbox_to_anchor=(1.01, 1.0))
     ax.grid(True, which="both", alpha=0.3)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
@@ -540,15 +548,18 @@ def report(result, widths, passes) -> str:
     lines = [
         "# Run time against error: the learned simulator and the FEM (beam, test sims "
         f"{', '.join(map(str, result['test_sims']))})", "",
-        f"Machine: {m['cpu']}, {m['cores']} cores, jax {m['jax']} ({m['backend']}), single-threaded XLA where "
-        f"run as documented; load average 1/5/15 min at the start of the timings {result['load_average_start']}, "
+        f"Machine: {m['cpu']}, {m['cores']} cores, jax {m['jax']} ({m['backend']}), "
+        f"XLA_FLAGS=`{result['xla_flags'] or '(unset: multi-threaded)'}`; load average 1/5/15 min at the start of the timings {result['load_average_start']}, "
         f"at the end {result['load_average_end']} (shared machine: times are upper bounds for an idle one). "
         f"Learned steps: median of {result['repeats']} calls after compilation, all variants interleaved. "
         "FEM: median wall time of one 0.05 s frame (all sub-steps and the stress recovery) for one case.", "",
         "Errors: relative L2 over all 756 nodes per snapshot, mean over snapshots 1..20 and the test cases; "
         "u = q − q0, σ all nodes (clamped face included), the FEM's v = numpy.gradient of its q (the data's "
         "convention).", "",
-        "| point | ms / step | u | v | σ | worst-case u | on front | notes |", "|---|---|---|---|---|---|---|---|"]
+        "| point | ms / step | × faster than FEM reference | u | v | σ | σ (free nodes) | worst-case u | on front "
+        "| notes |", "|---|---|---|---|---|---|---|---|---|---|"]
+    ref = next((p["ms"] for p in pts if p["kind"] == "fem" and p.get("density_factor") == 1.0
+                and p["elements"] == 500), float("nan"))
     for p in sorted(pts, key=lambda p: p["ms"]):
         note = ""
         if p["kind"] == "shipped":
@@ -561,8 +572,11 @@ def report(result, widths, passes) -> str:
             note = f"{p['elements']} hex8, {p['n_sub']} sub-steps/frame"
             if any(i >= 0 for i in p["inverted"]):
                 note += ", element inversion"
-        lines.append(f"| {p['name']} | {p['ms']:.2f} | {p['u']:.4f} | {p['v']:.4f} | {p['sigma']:.4f} | "
-                     f"{p['u_worst_case']:.4f} | {'**yes**' if p['on_front'] else 'no'} | {note} |")
+        if not np.isfinite(p["u"]):
+            note += "; rollout diverged (NaN) on a test case"
+        lines.append(f"| {p['name']} | {p['ms']:.2f} | {ref / p['ms']:.0f} | {p['u']:.4f} | {p['v']:.4f} | "
+                     f"{p['sigma']:.4f} | {p['sigma_free']:.4f} | {p['u_worst_case']:.4f} | "
+                     f"{'**yes**' if p['on_front'] else 'no'} | {note} |")
     lines += ["", "Pareto front in (time, u error): " + " → ".join(result["front"]) + ".", ""]
     if shipped is not None:
         verdict = "lies on the front" if shipped["on_front"] else "does NOT lie on the front"
