@@ -114,7 +114,8 @@ def normalization(data: Dataset, rows: np.ndarray) -> dict:
     nodes' stress (the output scale); f_std [3]: force; f_max [1]: the largest nodal force magnitude (the
     out-of-distribution bound of ``api.force_check``); dq_std [3] and dqn_mean, dqn_std [1]: edge vector
     q_j - q_i and its length over all frames; dv_std [3]: edge velocity difference v_j - v_i; du_std [3]: edge displacement
-    difference (q_j - q_i) - (X_j - X_i). Vectors (q, v, their increments, f, dq) get one isotropic scale
+    difference (q_j - q_i) - (X_j - X_i); u_std [3]: node displacement q - X; x0_mean [3], x0_std [3]: rest
+    positions (mean and isotropic scale). Vectors (q, v, their increments, f, dq) get one isotropic scale
     (RMS over components), so a direction unseen in training is not blown up; stress components get their own
     std, floored at 1e-2 of the largest; every scale is positive.
     """
@@ -140,6 +141,9 @@ def normalization(data: Dataset, rows: np.ndarray) -> dict:
         dq_std=_iso(dq.reshape(-1, 3)),
         dv_std=_iso((z[..., s, 3:6] - z[..., r, 3:6]).reshape(-1, 3)),
         du_std=_iso((dq - (data.q0[s] - data.q0[r])).reshape(-1, 3)),
+        u_std=_iso((z[..., :3] - data.q0).reshape(-1, 3)),
+        x0_mean=data.q0.mean(0),
+        x0_std=_iso(data.q0 - data.q0.mean(0)),
         dqn_mean=np.array([dqn_mean]),
         dqn_std=np.array([max(dqn.std(), 1e-3 * dqn_mean, 1e-12)]),
     )

@@ -37,13 +37,17 @@ class ModelConfig(NamedTuple):
     """Static architecture. hidden: width of every MLP layer and latent; mlp_layers: Dense layers per MLP
     (the last is linear); passes: message-passing steps; activation: a smooth one (∇E is trained);
     edge_velocity: add the edge features v_j − v_i and (v_j − v_i) ⊗ (q_j − q_i) (a node's sum of the latter
-    is a velocity-gradient estimate, what stress rates depend on)."""
+    is a velocity-gradient estimate, what stress rates depend on); edge_strain: add (q_j − q_i) − (X_j − X_i)
+    and the change of length; node_position: add the node's displacement q − X and rest position X (the
+    model is bound to one mesh anyway; message passing alone only sees differences over a few hops, while the
+    inertia of a body's global modes depends on its displacement field, which is not local)."""
     hidden: int = 32
     mlp_layers: int = 2
     passes: int = 4
     activation: str = "silu"
     edge_velocity: bool = True
     edge_strain: bool = False
+    node_position: bool = False
 
 
 class Rates(NamedTuple):
@@ -90,7 +94,7 @@ def energy_entropy(weights, config: ModelConfig, norm: dict, z, f, node_type, to
 def init_weights(key, config: ModelConfig, norm: dict, z, f, node_type, topo):
     """Flax parameters of the network for graphs like the example (z [N,12], f [N,3])."""
     x_node, x_edge = _features(norm, z, f, node_type, topo, config.edge_velocity,
-                                config.edge_strain)
+                                config.edge_strain, config.node_position)
     return Network(config).init(key, x_node, x_edge, topo)["params"]
 
 
@@ -113,13 +117,15 @@ class Topology(NamedTuple):
     mask [R,K] float32: 1 for real edges; rev [R,K] int32: flat slot index (r'*K + k') of the reverse edge of
     slot (r,k); dx0 [R,K,3] float32: rest edge vector X_j − X_i (zero in padding; None without a rest mesh);
     row_node [R] int32: the node that owns each row; node_rows [N,X] int32: each node's extra rows (R = a
-    zero row in padding; X = 0 when every node has one row, R = N)."""
+    zero row in padding; X = 0 when every node has one row, R = N); x0 [N,3] float32: rest positions (None
+    without a rest mesh)."""
     nbr: jax.Array
     mask: jax.Array
     rev: jax.Array
     dx0: jax.Array | None = None
     row_node: jax.Array | None = None
     node_rows: jax.Array | None = None
+    x0: jax.Array | None = None
 
 
 def topology(senders, receivers, n_nodes: int, q0=None, slots: int | None = None) -> Topology:
@@ -167,14 +173,15 @@ def topology(senders, receivers, n_nodes: int, q0=None, slots: int | None = None
     for x in range(x_max):
         has = extra > x
         node_rows[has, x] = extra_start[has] + x
-    dx0 = None
+    dx0 = x0 = None
     if q0 is not None:
         q0 = np.asarray(q0, np.float64)
         if q0.shape != (n_nodes, 3):
             raise ValueError(f"q0 has shape {q0.shape}, expected ({n_nodes}, 3)")
         dx0 = jnp.asarray((q0[nbr] - q0[row_node][:, None, :]) * mask[..., None], jnp.float32)
+        x0 = jnp.asarray(q0, jnp.float32)
     return Topology(jnp.asarray(nbr, jnp.int32), jnp.asarray(mask), jnp.asarray(rev, jnp.int32), dx0,
-                    jnp.asarray(row_node, jnp.int32), jnp.asarray(node_rows, jnp.int32))
+                    jnp.asarray(row_node, jnp.int32), jnp.asarray(node_rows, jnp.int32), x0)
 
 
 def tile_topology(topo: Topology, copies: int) -> Topology:
@@ -208,8 +215,9 @@ def tile_topology(topo: Topology, copies: int) -> Topology:
     padded = np.where(node_rows >= rows, copies * rows, new_row(np.minimum(node_rows, rows - 1)))
     node_rows_t = padded.reshape(copies * n, -1)
     dx0 = None if topo.dx0 is None else jnp.asarray(stack(np.asarray(topo.dx0)))
+    x0 = None if topo.x0 is None else jnp.asarray(np.tile(np.asarray(topo.x0), (copies, 1)))
     return Topology(jnp.asarray(nbr_t, jnp.int32), jnp.asarray(stack(mask)), jnp.asarray(rev_t, jnp.int32), dx0,
-                    jnp.asarray(row_node_t, jnp.int32), jnp.asarray(node_rows_t, jnp.int32))
+                    jnp.asarray(row_node_t, jnp.int32), jnp.asarray(node_rows_t, jnp.int32), x0)
 
 
 def _one_row_per_node(topo: Topology, n: int) -> bool:
@@ -331,12 +339,17 @@ _L_INDEX = _embedding(strict=True, offset=0)
 _M_INDEX = _embedding(strict=False, offset=N_L)
 
 
-def _features(norm, z, f, node_type, topo, edge_velocity=False, edge_strain=False):
+def _features(norm, z, f, node_type, topo, edge_velocity=False, edge_strain=False, node_position=False):
     q, v, sigma = z[:, :3], z[:, 3:6], z[:, 6:]
     mean, std = norm["z_mean"], norm["z_std"]
     one_hot = jax.nn.one_hot(node_type, 2, dtype=z.dtype)
-    x_node = jnp.concatenate(
-        [(v - mean[3:6]) / std[3:6], (sigma - mean[6:]) / std[6:], one_hot, f / norm["f_std"]], axis=1)
+    position = []
+    if node_position:
+        if topo.x0 is None:
+            raise ValueError("this model needs the rest positions: build its Topology with q0")
+        position = [(q - topo.x0) / norm["u_std"], (topo.x0 - norm["x0_mean"]) / norm["x0_std"]]
+    x_node = jnp.concatenate(   # the force stays last: the processor reads it as x_node[:, -3:]
+        [(v - mean[3:6]) / std[3:6], (sigma - mean[6:]) / std[6:], one_hot, *position, f / norm["f_std"]], axis=1)
     dq = gather_neighbors(q, topo) - expand_rows(q, topo)[:, None, :]
     pad = (1.0 - topo.mask)[..., None]
     length = jnp.sqrt(jnp.sum(dq * dq, axis=-1, keepdims=True) + pad)
@@ -359,7 +372,7 @@ def _features(norm, z, f, node_type, topo, edge_velocity=False, edge_strain=Fals
 def _network_out(weights, config, norm, z, f, node_type, topo, split=False):
     """[N, 2 + 66 + 78] decoder outputs, or with ``split`` the pair ([N,2] E_i, S_i; [N,144] l, m entries)."""
     x_node, x_edge = _features(norm, z, f, node_type, topo, config.edge_velocity,
-                                config.edge_strain)
+                                config.edge_strain, config.node_position)
     es, heads = Network(config).apply({"params": weights}, x_node, x_edge, topo)
     return (es, heads) if split else jnp.concatenate([es, heads], axis=1)
 

@@ -40,6 +40,7 @@ class TrainConfig(NamedTuple):
     activation: str = "silu"
     edge_velocity: bool = True
     edge_strain: bool = False
+    node_position: bool = False
     lr: float = 3e-3
     lr_end: float = 2e-5
     weight_decay: float = 1e-6
@@ -55,14 +56,15 @@ class TrainConfig(NamedTuple):
     @property
     def model(self) -> M.ModelConfig:
         return M.ModelConfig(self.hidden, self.mlp_layers, self.passes, self.activation, self.edge_velocity,
-                             self.edge_strain)
+                             self.edge_strain, self.node_position)
 
 
 CONFIGS = {
     "tiny": TrainConfig(hidden=8, passes=1, batch_size=4, epochs=2, warmup_steps=2, eval_every=1, ckpt_every=1),
     "beam": TrainConfig(),
     # 1330 nodes / 14 054 edges: 3.5x the beam's edges, so a narrower network to fit the 11 ms step budget
-    "bunny": TrainConfig(hidden=16, batch_size=4, epochs=10, lr=2e-3, warmup_steps=50, ckpt_every=1),
+    "bunny": TrainConfig(hidden=16, batch_size=4, epochs=10, lr=2e-3, warmup_steps=50, ckpt_every=1,
+                         node_position=True),
 }
 
 
