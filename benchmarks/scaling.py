@@ -61,13 +61,13 @@ def main(argv=None) -> int:
     parser.add_argument("--max-nodes", type=int, default=60000, help="skip meshes with more nodes")
     parser.add_argument("--model", default="beam-abaqus", help="shipped model whose config/weights are timed")
     parser.add_argument("--seconds", type=float, default=None,
-                        help="target timed seconds per learned-step variant (default 3, quick 0.5)")
+                        help="CPU seconds of timed calls per variant (default 2, quick 0.5)")
     parser.add_argument("--out", default=None, help="output folder (default benchmarks/results; quick: /tmp)")
     args = parser.parse_args(argv)
     if args.max_nodes < 756:
         raise SystemExit(f"--max-nodes must be at least 756 (the paper's mesh), got {args.max_nodes}")
     quick = args.quick
-    seconds = args.seconds or (0.5 if quick else 3.0)
+    seconds = args.seconds or (0.5 if quick else 2.0)
     refinements = [d for d in (REFINEMENTS[:3] if quick else REFINEMENTS) if nodes_of(d) <= args.max_nodes]
     batches = BATCHES[:3] if quick else BATCHES
     fem_batches = FEM_BATCHES[:2] if quick else FEM_BATCHES
@@ -152,28 +152,33 @@ def sample_state(params: dict, copies: int = 1, seed: int = 0):
     return jnp.asarray(z, jnp.float32), jnp.zeros((len(q0), 3), jnp.float32)
 
 
-def time_interleaved(fns: dict, seconds: float, min_repeats: int = 5, max_repeats: int = 100) -> dict:
-    """Compile each fn(), then time them round-robin until each has its quota (≈ ``seconds`` of calls,
-    between min and max repeats). Returns {name: {"p50_ms", "min_ms", "p90_ms", "repeats", "compile_s"}}.
-    On a shared machine the minimum is the least disturbed call; the median is what a user sees."""
-    compile_s, quota, times = {}, {}, {k: [] for k in fns}
+def time_interleaved(fns: dict, seconds: float, min_repeats: int = 3, max_repeats: int = 50) -> dict:
+    """Compile each fn(), then time the calls round-robin until each has its quota (≈ ``seconds`` of CPU
+    time, between min and max repeats). Returns {name: {"cpu_ms", "wall_ms", "wall_p90_ms", "repeats",
+    "compile_s"}}: medians of the process's CPU time and of the wall-clock time per call. With single-threaded
+    XLA the CPU time is the cost of the work itself, which other jobs on a shared machine inflate only through
+    the caches and memory bandwidth they share; the wall time also counts the time the process waited for
+    a core."""
+    compile_s, quota = {}, {}
+    cpu, wall = ({k: [] for k in fns} for _ in range(2))
     for k, fn in fns.items():
         t0 = time.perf_counter()
         jax.block_until_ready(fn())
         compile_s[k] = time.perf_counter() - t0
-        t0 = time.perf_counter()
+        c0 = time.process_time()
         jax.block_until_ready(fn())
-        first = time.perf_counter() - t0
+        first = time.process_time() - c0
         quota[k] = int(min(max_repeats, max(min_repeats, seconds / max(first, 1e-6))))
-    while any(len(times[k]) < quota[k] for k in fns):
+    while any(len(cpu[k]) < quota[k] for k in fns):
         for k, fn in fns.items():
-            if len(times[k]) < quota[k]:
-                t0 = time.perf_counter()
+            if len(cpu[k]) < quota[k]:
+                t0, c0 = time.perf_counter(), time.process_time()
                 jax.block_until_ready(fn())
-                times[k].append(time.perf_counter() - t0)
-    return {k: {"p50_ms": 1e3 * float(np.median(v)), "min_ms": 1e3 * float(np.min(v)),
-                "p90_ms": 1e3 * float(np.percentile(v, 90)), "repeats": len(v), "compile_s": compile_s[k]}
-            for k, v in times.items()}
+                cpu[k].append(time.process_time() - c0)
+                wall[k].append(time.perf_counter() - t0)
+    return {k: {"cpu_ms": 1e3 * float(np.median(cpu[k])), "wall_ms": 1e3 * float(np.median(wall[k])),
+                "wall_p90_ms": 1e3 * float(np.percentile(wall[k], 90)), "repeats": len(cpu[k]),
+                "compile_s": compile_s[k]} for k in fns}
 
 
 def learned_mesh_scaling(base: dict, refinements, seconds: float) -> list:
@@ -196,8 +201,8 @@ def learned_mesh_scaling(base: dict, refinements, seconds: float) -> list:
     timed = time_interleaved(fns, seconds)
     for row, (name, t) in zip(rows, timed.items()):
         row.update(t)
-        row["us_per_node"] = 1e3 * t["p50_ms"] / row["nodes"]
-        row["ns_per_edge"] = 1e6 * t["p50_ms"] / row["edges"]
+        row["us_per_node"] = 1e3 * t["cpu_ms"] / row["nodes"]
+        row["ns_per_edge"] = 1e6 * t["cpu_ms"] / row["edges"]
     return rows
 
 
@@ -214,7 +219,8 @@ def learned_batch_scaling(base: dict, batches, seconds: float) -> list:
     timed = time_interleaved(fns, seconds)
     rows = []
     for b, t in timed.items():
-        rows.append({"copies": b, "nodes": b * len(points), **t, "ms_per_body_step": t["p50_ms"] / b})
+        rows.append({"copies": b, "nodes": b * len(points), **t, "ms_per_body_step": t["cpu_ms"] / b,
+                     "wall_ms_per_body_step": t["wall_ms"] / b})
     for r in rows:
         r["speedup_per_body_vs_1"] = rows[0]["ms_per_body_step"] / r["ms_per_body_step"]
     return rows
@@ -268,12 +274,12 @@ def fem_substep_fns(points, cells, node_type, k: int, batch: int | None = None) 
 
 
 def substep_slope(timed: dict, k: int) -> dict:
-    """ms per sub-step (slope between k and 2k sub-steps, from the medians and from the minima) and the
-    per-run overhead (intercept, from the medians)."""
-    per = max(timed[2 * k]["p50_ms"] - timed[k]["p50_ms"], 0.0) / k
-    per_min = max(timed[2 * k]["min_ms"] - timed[k]["min_ms"], 0.0) / k
-    return {"ms_per_substep": per, "ms_per_substep_min": per_min,
-            "overhead_ms": max(timed[k]["p50_ms"] - k * per, 0.0), "substeps_timed": [k, 2 * k],
+    """ms per sub-step (slope between k and 2k sub-steps; CPU time, and wall time) and the per-run overhead
+    (intercept: initial force, frame outputs; CPU time)."""
+    per = max(timed[2 * k]["cpu_ms"] - timed[k]["cpu_ms"], 0.0) / k
+    per_wall = max(timed[2 * k]["wall_ms"] - timed[k]["wall_ms"], 0.0) / k
+    return {"ms_per_substep": per, "ms_per_substep_wall": per_wall,
+            "overhead_ms": max(timed[k]["cpu_ms"] - k * per, 0.0), "substeps_timed": [k, 2 * k],
             "repeats": timed[k]["repeats"], "compile_s": timed[k]["compile_s"] + timed[2 * k]["compile_s"]}
 
 
@@ -287,14 +293,14 @@ def fem_mesh_scaling(refinements, quick: bool, seconds: float) -> list:
         points, cells, _, node_type = beam(d)
         h = fem.stable_time_step(points, cells, scene.material, "hexahedron")
         n_sub = int(math.ceil(0.05 / h - 1e-9))
-        k = int(np.clip((5e4 if quick else 4e5) / len(cells), 8, 200))
+        k = int(np.clip((5e4 if quick else 2e5) / len(cells), 8, 200))
         fns, _ = fem_substep_fns(points, cells, node_type, k)
         row = {"elements": list(d), "cells": int(len(cells)), "nodes": int(len(points)), "substep_dt": h,
                "substeps_per_frame": n_sub,
                **substep_slope(time_interleaved(fns, seconds, min_repeats=3, max_repeats=20), k)}
         row["ns_per_element_substep"] = 1e6 * row["ms_per_substep"] / len(cells)
         row["ms_per_frame"] = n_sub * row["ms_per_substep"] + row["overhead_ms"]
-        row["ms_per_frame_min"] = n_sub * row["ms_per_substep_min"] + row["overhead_ms"]
+        row["ms_per_frame_wall"] = n_sub * row["ms_per_substep_wall"] + row["overhead_ms"]
         if row["ms_per_frame"] < (500 if quick else 3000):   # cheap enough to time a whole 0.05 s frame
             problem = fem.setup(points, cells, material=scene.material, frame_dt=0.05, n_frames=1,
                                 clamped=np.flatnonzero(node_type == 1), cell_type="hexahedron",
@@ -302,7 +308,8 @@ def fem_mesh_scaling(refinements, quick: bool, seconds: float) -> list:
             loads = fem.Loads(nodal=jnp.asarray(tip_loads(points, 1)[0]))
             frame = time_interleaved({"frame": fem_runner(problem, scene.material, loads, False)}, 0.0,
                                      min_repeats=3)["frame"]
-            row["ms_per_frame_measured"] = frame["p50_ms"]
+            row["ms_per_frame_measured"] = frame["cpu_ms"]
+            row["ms_per_frame_measured_wall"] = frame["wall_ms"]
         rows.append(row)
         print(f"  FEM {'x'.join(map(str, d))}: {row['ms_per_substep']:.3f} ms/sub-step × {n_sub} = "
               f"{row['ms_per_frame']:.0f} ms/frame", flush=True)
@@ -325,7 +332,8 @@ def fem_batch_scaling(batches, k: int, seconds: float) -> list:
         rows.append(row)
         print(f"  FEM batch {b}: {row['ms_per_substep']:.3f} ms/sub-step", flush=True)
     for r in rows:
-        r["speedup_per_body_vs_1"] = rows[0]["ms_per_body_substep"] / r["ms_per_body_substep"]
+        r["speedup_per_body_vs_1"] = rows[0]["ms_per_body_substep"] / r["ms_per_body_substep"] \
+            if r["ms_per_body_substep"] > 0 else float("nan")   # 0: the k and 2k runs did not separate
     return rows
 
 
@@ -346,12 +354,12 @@ def power_fit(nodes, ms) -> dict | None:
 
 def fits(learned: list, fem_rows: list) -> dict:
     col = lambda rows, k: [r[k] for r in rows]
-    return {"learned_step": power_fit(col(learned, "nodes"), col(learned, "p50_ms")),
+    return {"learned_step": power_fit(col(learned, "nodes"), col(learned, "cpu_ms")),
             "fem_substep": power_fit(col(fem_rows, "nodes"), col(fem_rows, "ms_per_substep")),
             "fem_frame": power_fit(col(fem_rows, "nodes"), col(fem_rows, "ms_per_frame")),
-            "learned_step_min": power_fit(col(learned, "nodes"), col(learned, "min_ms")),
-            "fem_substep_min": power_fit(col(fem_rows, "nodes"), col(fem_rows, "ms_per_substep_min")),
-            "fem_frame_min": power_fit(col(fem_rows, "nodes"), col(fem_rows, "ms_per_frame_min"))}
+            "learned_step_wall": power_fit(col(learned, "nodes"), col(learned, "wall_ms")),
+            "fem_substep_wall": power_fit(col(fem_rows, "nodes"), col(fem_rows, "ms_per_substep_wall")),
+            "fem_frame_wall": power_fit(col(fem_rows, "nodes"), col(fem_rows, "ms_per_frame_wall"))}
 
 
 def _exp(fit) -> str:
@@ -368,39 +376,41 @@ def format_md(result: dict) -> str:
         f"{m['accelerator']}. Shared machine: load average {m['load_average_1m_at_start']} at start, "
         f"{m['load_average_1m_at_end']} at end (other jobs ran alongside; absolute times are inflated and noisy, "
         f"ratios within a table less so). {m['threads'].split(':')[0]} (XLA_FLAGS=\"{m['xla_flags']}\"). "
-        f"Whole run {result['wall_seconds'] / 60:.1f} min. Medians of interleaved calls after compilation, the "
-        f"minimum (least disturbed call) in brackets.",
+        f"Whole run {result['wall_seconds'] / 60:.1f} min. Times are medians of interleaved calls after "
+        f"compilation, of the process's CPU time (the cost of the work; other jobs inflate it only through shared "
+        f"caches and memory bandwidth), with the wall-clock median (which also counts waiting for a core) in "
+        f"brackets; the fits and ratios use the CPU time.",
         "",
         f"## Mesh size (the 40×10×10 beam refined; learned step: `{result['model']}`, hidden {cfg['hidden']}, "
         f"{cfg['passes']} passes; one step = one 0.05 s frame)",
         "",
-        "| elements | nodes | edges | learned step p50 (min) ms | µs / node | ns / edge | FEM sub-step p50 (min) ms | "
+        "| elements | nodes | edges | learned step CPU (wall) ms | µs / node | ns / edge | FEM sub-step CPU (wall) ms | "
         "sub-steps / frame | FEM frame (ms) | FEM frame / learned step |",
         "|---|---|---|---|---|---|---|---|---|---|"]
     fem_by = {r["nodes"]: r for r in result["fem_vs_nodes"]}
     for r in result["learned_vs_nodes"]:
         e = fem_by.get(r["nodes"])
         fem_cells = "| – | – | – | – |" if e is None else (
-            f"| {e['ms_per_substep']:.3f} ({e['ms_per_substep_min']:.3f}) | {e['substeps_per_frame']} | "
+            f"| {e['ms_per_substep']:.3f} ({e['ms_per_substep_wall']:.3f}) | {e['substeps_per_frame']} | "
             f"{e['ms_per_frame']:.0f}"
             + (f" (measured {e['ms_per_frame_measured']:.0f})" if "ms_per_frame_measured" in e else "")
-            + f" | {e['ms_per_frame'] / r['p50_ms']:.0f}× |")
-        lines.append(f"| {'×'.join(map(str, r['elements']))} | {r['nodes']} | {r['edges']} | {r['p50_ms']:.2f} "
-                     f"({r['min_ms']:.2f}), {r['repeats']} calls | {r['us_per_node']:.2f} | {r['ns_per_edge']:.0f} "
+            + f" | {e['ms_per_frame'] / r['cpu_ms']:.0f}× |")
+        lines.append(f"| {'×'.join(map(str, r['elements']))} | {r['nodes']} | {r['edges']} | {r['cpu_ms']:.2f} "
+                     f"({r['wall_ms']:.2f}), {r['repeats']} calls | {r['us_per_node']:.2f} | {r['ns_per_edge']:.0f} "
                      + fem_cells)
     lines += ["",
               f"Fitted exponents a of time ∝ nodes^a (log–log least squares over the meshes with ≥ {FIT_FROM_NODES} "
               f"nodes): learned step a = {_exp(f['learned_step'])}; FEM sub-step a = {_exp(f['fem_substep'])}; "
-              f"FEM frame a = {_exp(f['fem_frame'])}. From the minima (least disturbed calls): learned "
-              f"{_exp(f['learned_step_min'])}, FEM sub-step {_exp(f['fem_substep_min'])}, FEM frame "
-              f"{_exp(f['fem_frame_min'])}.",
+              f"FEM frame a = {_exp(f['fem_frame'])}. From the wall-clock medians: learned "
+              f"{_exp(f['learned_step_wall'])}, FEM sub-step {_exp(f['fem_substep_wall'])}, FEM frame "
+              f"{_exp(f['fem_frame_wall'])}.",
               "",
               "FEM sub-step: slope of the run time between k and 2k sub-steps at the mesh's stable sub-step "
               "(fem.simulate, one frame, beam material and damping, tip load); FEM frame = sub-steps per frame × "
               "sub-step + the per-run overhead (initial force, frame outputs); where a whole 0.05 s frame was cheap "
               "enough it was also timed directly (measured)."]
     lines += ["", "## Batch size (the paper's beam, 756 nodes / 500 hex8)", "",
-              "| bodies | learned step p50 (min) ms | ms / body-step | per-body speed-up vs 1 | FEM sub-step p50 ms | "
+              "| bodies | learned step CPU (wall) ms | ms / body-step | per-body speed-up vs 1 | FEM sub-step CPU ms | "
               "ms / body-sub-step | FEM element-sub-steps / s | per-body speed-up vs 1 |",
               "|---|---|---|---|---|---|---|---|"]
     fb = {r["batch"]: r for r in result["fem_vs_batch"]}
@@ -409,7 +419,7 @@ def format_md(result: dict) -> str:
         fem_cells = "| – | – | – | – |" if e is None else (
             f"| {e['ms_per_substep']:.3f} | {e['ms_per_body_substep']:.4f} | "
             f"{e['element_substeps_per_s'] / 1e6:.2f} M | {e['speedup_per_body_vs_1']:.2f}× |")
-        lines.append(f"| {r['copies']} | {r['p50_ms']:.2f} ({r['min_ms']:.2f}) | {r['ms_per_body_step']:.2f} | "
+        lines.append(f"| {r['copies']} | {r['cpu_ms']:.2f} ({r['wall_ms']:.2f}) | {r['ms_per_body_step']:.2f} | "
                      f"{r['speedup_per_body_vs_1']:.2f}× " + fem_cells)
     lines += ["", "## How the cost grows", "", summary(result), ""]
     return "\n".join(lines)
@@ -428,7 +438,7 @@ def summary(result: dict) -> str:
     if f["learned_step"]:
         a = f["learned_step"]["exponent"]
         parts.append(f"The learned step's time grows {growth(a)} with the number of nodes (nodes^{a:.2f}; from "
-                     f"the least disturbed calls nodes^{f['learned_step_min']['exponent']:.2f}): "
+                     f"the wall-clock medians nodes^{f['learned_step_wall']['exponent']:.2f}): "
                      f"{ln[0]['us_per_node']:.1f} µs per node on the paper's 756-node beam, "
                      f"{ln[-1]['us_per_node']:.1f} µs per node at {ln[-1]['nodes']} nodes.")
     if f["fem_substep"] and f["fem_frame"]:
@@ -438,7 +448,7 @@ def summary(result: dict) -> str:
                      f"frame grow from {fn[0]['substeps_per_frame']} to {fn[-1]['substeps_per_frame']} and the FEM "
                      f"frame grows as nodes^{f['fem_frame']['exponent']:.2f}.")
     if ln and fn and ln[-1]["nodes"] == fn[-1]["nodes"] and len(ln) > 1:
-        first, last = fn[0]["ms_per_frame"] / ln[0]["p50_ms"], fn[-1]["ms_per_frame"] / ln[-1]["p50_ms"]
+        first, last = fn[0]["ms_per_frame"] / ln[0]["cpu_ms"], fn[-1]["ms_per_frame"] / ln[-1]["cpu_ms"]
         trend = "widens" if last > 1.2 * first else "narrows" if last < first / 1.2 else "stays about the same"
         parts.append(f"Per 0.05 s frame the learned step's advantage over the FEM {trend} with refinement: "
                      f"{first:.0f}× on the paper's mesh, {last:.0f}× at {ln[-1]['nodes']} nodes.")
@@ -461,7 +471,7 @@ def plot(result: dict, path: Path) -> None:
 
     fig, (ax1, ax2) = plt.subplots(1, 2, figsize=(11, 4.2))
     ln, fn = result["learned_vs_nodes"], result["fem_vs_nodes"]
-    series = ((ln, "p50_ms", "learned step (= one 0.05 s frame)", "learned_step", "C0"),
+    series = ((ln, "cpu_ms", "learned step (= one 0.05 s frame)", "learned_step", "C0"),
               (fn, "ms_per_frame", "FEM, one 0.05 s frame", "fem_frame", "C3"),
               (fn, "ms_per_substep", "FEM, one sub-step", "fem_substep", "C1"))
     for rows, key, label, fit_key, colour in series:
@@ -473,7 +483,7 @@ def plot(result: dict, path: Path) -> None:
             xs = np.geomspace(fit["from_nodes"], fit["to_nodes"], 20)
             ax1.loglog(xs, fit["coefficient_ms"] * xs ** fit["exponent"], ":", color=colour)
     ax1.set_xlabel("nodes (beam refined from 20×5×5 elements)")
-    ax1.set_ylabel("time (ms)")
+    ax1.set_ylabel("CPU time per call (ms)")
     ax1.set_title("time ∝ nodes^a (fit dotted)")
     ax1.grid(True, which="both", alpha=0.3)
     ax1.legend(fontsize=8, loc="upper left")
@@ -486,7 +496,7 @@ def plot(result: dict, path: Path) -> None:
     ax2.xaxis.set_major_formatter(matplotlib.ticker.ScalarFormatter())
     ax2.xaxis.set_minor_formatter(matplotlib.ticker.NullFormatter())
     ax2.set_xlabel("bodies in one call (756-node beam)")
-    ax2.set_ylabel("time per body (ms)")
+    ax2.set_ylabel("CPU time per body (ms)")
     ax2.set_title("per-body cost against batch size")
     ax2.grid(True, which="both", alpha=0.3)
     ax2.legend(fontsize=8, loc="upper left")
