@@ -20,6 +20,7 @@ import json
 import time
 from pathlib import Path
 
+BUNNY_PRESS_NODE = 917
 DEFAULT_MODELS = {"beam": "beam-abaqus", "two-beams": "beam-abaqus", "bunny": "bunny"}
 SCENES = ("two-beams", "beam", "bunny")
 
@@ -112,8 +113,9 @@ def build_scene(name: str, frames: int, model: str | None = None, stand_in: bool
         scale = 0.01
         poses = [ar.model_matrix([0.1, 0.0, 0.0], ar.rotation_matrix([1.0, 0.0, 0.0], -np.pi / 2), scale)]
         eye, target = [0.17, 0.16, 0.22], [0.1, 0.05, 0.0]
-        top = np.argmax(q0[:, 2] - 0.3 * np.abs(q0[:, 0]))
-        press_body, press_at, normal = 0, q0[top], [0.0, 0.0, 1.0]
+        # the top of the head (node 917), not an ear: a unit load on an ear tip folds it over (|u| up to 37 of
+        # the bunny's 49; such cases are left out of the bunny model's training), the head deflects by about 1
+        press_body, press_at, normal = 0, q0[BUNNY_PRESS_NODE], [0.0, 0.0, 1.0]
         tip_radius, tip_force, vmax = 0.35, 1.0, 0.5   # about one node at the training loads' unit force
     else:
         raise ValueError(f"scene must be 'two-beams' or 'bunny', got {name!r}")
