@@ -618,7 +618,8 @@ def report(result, widths, passes) -> str:
         lines.append(f"| {p['name']} | {p['ms']:.2f} | {ref / p['ms']:.0f} | {p['u']:.4f} | {p['v']:.4f} | "
                      f"{p['sigma']:.4f} | {p['sigma_free']:.4f} | {p['u_worst_case']:.4f} | "
                      f"{'**yes**' if p['on_front'] else 'no'} | {note} |")
-    lines += ["", "Pareto front in (time, u error): " + " → ".join(result["front"]) + ".", ""]
+    lines += ["", "Pareto front in (time, u error; a diverged rollout is never on it): "
+              + " → ".join(result["front"]) + ".", ""]
     lines += findings(pts, shipped)
     if shipped is not None:
         verdict = "lies on the front" if shipped["on_front"] else "does NOT lie on the front"
