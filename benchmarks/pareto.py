@@ -496,6 +496,7 @@ def build_points(cache, step_times, fem_times, variants, shipped) -> list:
         if name in cache and name in step_times:
             points.append({"name": name, "kind": "shipped" if name == SHIPPED else "shipped-bf16",
                            "hidden": cfg["hidden"], "passes": cfg["passes"], "params": n_shipped,
+                           "epochs": shipped.get("info", {}).get("train_config", {}).get("epochs"),
                            "ms": step_times[name]["p50_ms"], **cache[name]})
     for h, p in TRAINED:
         key = f"{h}x{p}"
@@ -604,7 +605,7 @@ def report(result, widths, passes) -> str:
     for p in sorted(pts, key=lambda p: p["ms"]):
         note = ""
         if p["kind"] == "shipped":
-            note = f"{p['hidden']}×{p['passes']}, {p['params']} params, its own 20-epoch budget"
+            note = f"{p['hidden']}×{p['passes']}, {p['params']} params, its own {p.get('epochs') or '?'}-epoch budget"
         elif p["kind"] == "shipped-bf16":
             note = "shipped weights + activations bfloat16, state/integrator float32"
         elif p["kind"] == "learned":
