@@ -53,7 +53,7 @@ def run_cases(scene, problem, forces, out, *, batch_size: int = 8, progress: boo
     parts.mkdir(parents=True, exist_ok=True)
     n_cases = len(forces)
     sim_ids = np.arange(1, n_cases + 1) if sim_ids is None else np.asarray(sim_ids)
-    todo = [c for c in range(k, n_cases, n_workers) if not (parts / f"case_{c:05d}.npz").exists()]
+    todo = [c for c in range(k, n_cases, n_workers) if not _part(parts, c).exists()]
     bar = _progress(total=n_cases, initial=n_cases - len(todo), enabled=progress, desc=f"{scene.name} cases")
     t_start = time.perf_counter()
     for start in range(0, len(todo), batch_size):
@@ -66,7 +66,7 @@ def run_cases(scene, problem, forces, out, *, batch_size: int = 8, progress: boo
             q, v = np.asarray(res.q[j], np.float32), np.asarray(res.v[j], np.float32)
             sig = np.asarray(res.sigma[j], np.float32)
             v_fd = np.gradient(q.astype(np.float64), scene.frame_dt, axis=0, edge_order=2).astype(np.float32)
-            np.savez(parts / f"case_{c:05d}.npz", z=np.concatenate([q, v_fd, sig], -1), v_solver=v,
+            np.savez(_part(parts, c), z=np.concatenate([q, v_fd, sig], -1), v_solver=v,
                      inverted=np.asarray(res.inverted[j]))
             if xdmf:
                 from .mesh import write_series
@@ -76,16 +76,21 @@ def run_cases(scene, problem, forces, out, *, batch_size: int = 8, progress: boo
         bar.update(len(idx))
     bar.close()
     wall = time.perf_counter() - t_start
-    if not all((parts / f"case_{c:05d}.npz").exists() for c in range(n_cases)):
+    if not all(_part(parts, c).exists() for c in range(n_cases)):
         return None      # other workers are still running; the last one assembles
     meta = dict(metadata or {}, wall_time_s=wall, cases_run=len(todo),
                 load_average_1m_at_end=round(os.getloadavg()[0], 2), cpu_count=os.cpu_count())
     return assemble(scene, problem, forces, parts, out, metadata=meta, sim_ids=sim_ids, velocity=velocity)
 
 
+def _part(parts: Path, c: int) -> Path:
+    """The file of finished case ``c`` in the parts folder."""
+    return parts / f"case_{c:05d}.npz"
+
+
 def assemble(scene, problem, forces, parts: Path, out: Path, *, metadata: dict, sim_ids,
              velocity: str = "gradient") -> Path:
-    cases = [np.load(parts / f"case_{c:05d}.npz") for c in range(len(forces))]
+    cases = [np.load(_part(parts, c)) for c in range(len(forces))]
     z = np.stack([c["z"] for c in cases])
     v_solver = np.stack([c["v_solver"] for c in cases])
     if velocity == "solver":

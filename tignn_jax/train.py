@@ -55,8 +55,7 @@ class TrainConfig(NamedTuple):
 
     @property
     def model(self) -> M.ModelConfig:
-        return M.ModelConfig(self.hidden, self.mlp_layers, self.passes, self.activation, self.edge_velocity,
-                             self.edge_strain, self.node_position)
+        return M.ModelConfig(**{k: getattr(self, k) for k in M.ModelConfig._fields})
 
 
 CONFIGS = {
