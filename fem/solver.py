@@ -267,9 +267,18 @@ def simulate(problem: Problem, material: Material, loads: Loads, *, on_inversion
 
 
 def simulate_batch(problem: Problem, material: Material, loads: Loads) -> Result:
-    """`simulate` vmapped over a leading load-case axis of every non-None entry of ``loads``."""
+    """`simulate` over a leading load-case axis of every non-None entry of ``loads``; the same result as
+    ``jax.vmap`` of `simulate` (to float rounding), computed with the cases as the trailing, vectorised axis of
+    the sub-step state (see `_simulate_impl`). Inversions are recorded per case; report them with `check`.
+
+    One call uses one CPU core for the sub-steps; to use several, split the cases over processes (as
+    ``tignn generate --worker K/N`` does). Splitting them over host devices with `jax.shard_map` in one process
+    hung in the XLA CPU runtime here (jax 0.10.2; notes in benchmarks/results/fem_throughput.md).
+    """
     _validate_loads(problem, loads, batched=True)
-    return jax.vmap(lambda ld: _simulate(problem.arrays, material, ld, problem.config))(loads)
+    if all(a is None for a in loads):
+        raise ValueError("simulate_batch needs at least one batched entry in loads (nodal, pressure or v0)")
+    return _simulate(problem.arrays, material, loads, problem.config, batched=True)
 
 
 def check(res: Result, on_inversion: str = "raise") -> None:
@@ -357,13 +366,13 @@ def _gather_sum(incidence, values):
 
 
 def _assemble(incidence, fe):
-    """Nodal forces [N, 3] from element-node forces fe [3, n_per, K]."""
-    return _gather_sum(incidence, fe.reshape(3, -1).T)
+    """Nodal forces [N, 3, *B] from element-node forces fe [3, n_per, K, *B] (B: optional trailing case axes)."""
+    return _gather_sum(incidence, jnp.moveaxis(fe.reshape((3, -1) + fe.shape[3:]), 0, 1))
 
 
 def _gather_elements(x, cells):
-    """Element node coordinates [3, n_per, K] from x [N, 3]."""
-    return jnp.transpose(x[cells.T], (2, 0, 1))
+    """Element node coordinates [3, n_per, K, *B] from x [N, 3, *B]."""
+    return jnp.moveaxis(x[cells.T], 2, 0)
 
 
 def _deformation_gradient(xe, b):
@@ -412,16 +421,17 @@ def _hourglass_stiffness(geo, m: Material):
     return k_eq, dk, dk_inv
 
 
-def _zero_visco(arr: Arrays, cfg: Config):
+def _zero_visco(arr: Arrays, cfg: Config, batch: tuple = ()):
+    """Zero viscous variables; ``batch`` appends trailing case axes."""
     if cfg.n_prony == 0:
         return ()
-    k = arr.cells.shape[0]
-    z = (jnp.zeros((cfg.n_prony, 3, 3, k)), jnp.zeros((3, 3, k)))
+    k, b = arr.cells.shape[0], tuple(batch)
+    z = (jnp.zeros((cfg.n_prony, 3, 3, k) + b), jnp.zeros((3, 3, k) + b))
     if cfg.cell_type == "hexahedron":
-        z = z + (jnp.zeros((cfg.n_prony, 12, k)), jnp.zeros((12, k)))
+        z = z + (jnp.zeros((cfg.n_prony, 12, k) + b), jnp.zeros((12, k) + b))
     elif _nodal_tet(cfg):
         n = arr.points.shape[0]
-        z = z + (jnp.zeros((cfg.n_prony, 3, 3, n)), jnp.zeros((3, 3, n)))
+        z = z + (jnp.zeros((cfg.n_prony, 3, 3, n) + b), jnp.zeros((3, 3, n) + b))
     return z
 
 
@@ -431,7 +441,7 @@ def _hourglass_coordinates(geo, R, xe):
     Computed as Rᵀ (Σ_a γ_a x_a): rotating the four mode vectors is cheaper than rotating the eight nodes.
     """
     gx = _sum_over(lambda a: geo.gamma[:, None, a] * xe[None, :, a], 8)   # [4, 3, K] in the global frame
-    return _sum_over(lambda j: R[j][None] * gx[:, j, None], 3).reshape(12, -1)
+    return _sum_over(lambda j: R[j][None] * gx[:, j, None], 3).reshape((12,) + gx.shape[2:])
 
 
 def _internal(arr: Arrays, m: Material, hg, x, visco, cfg: Config, h):
@@ -445,8 +455,7 @@ def _internal(arr: Arrays, m: Material, hg, x, visco, cfg: Config, h):
     if _nodal_tet(cfg):
         P, J, new_visco, diss = _nodal_tet_stress(arr, m, F, visco, cfg, h)
         fe = geo.volume * _sum_over(lambda j: P[:, j, None] * geo.b[None, j], 3)
-        k_min = jnp.argmin(J)
-        return _assemble(arr.incidence, fe), new_visco, J[k_min], k_min, diss
+        return _assemble(arr.incidence, fe), new_visco, jnp.min(J, axis=0), jnp.argmin(J, axis=0), diss
     S0, J, Cinv = isochoric_pk2(m, F)
     p = pressure(m, J) if cfg.cell_type == "hexahedron" else _anp_pressure(arr, m, J)
     S = (J * p) * Cinv
@@ -454,7 +463,7 @@ def _internal(arr: Arrays, m: Material, hg, x, visco, cfg: Config, h):
     if cfg.n_prony:
         S_iso, new_visco, d = _prony_step(m, S0, visco[:2], h)
         S = S + S_iso
-        diss = jnp.sum(geo.volume * d)
+        diss = jnp.sum(geo.volume * d, axis=0)
         decay = jnp.exp(-h / m.tau)
         coef = m.tau / h * (1.0 - decay)
     else:
@@ -469,18 +478,18 @@ def _internal(arr: Arrays, m: Material, hg, x, visco, cfg: Config, h):
         if cfg.n_prony:
             HQ, Q0_prev = visco[2], visco[3]
             Q0 = _sum_over(lambda j: dk[:, j] * g[None, j], 12)
-            HQ = decay[:, None, None] * HQ + coef[:, None, None] * (Q0 - Q0_prev)[None]
+            per_term = lambda c: c.reshape((-1,) + (1,) * (HQ.ndim - 1))
+            HQ = per_term(decay) * HQ + per_term(coef) * (Q0 - Q0_prev)[None]
             w = m.g / jnp.sum(m.g)
-            Q = Q + jnp.sum(w[:, None, None] * HQ, axis=0)
-            dkinv_hq = jnp.sum(dk_inv[None] * HQ[:, None], axis=2)       # [P, 12, K]
-            diss = diss + jnp.sum((w / m.tau)[:, None, None] * HQ * dkinv_hq)
+            Q = Q + jnp.sum(per_term(w) * HQ, axis=0)
+            dkinv_hq = jnp.sum(dk_inv[None] * HQ[:, None], axis=2)       # [P, 12, K, *B]
+            diss = diss + jnp.sum(per_term(w / m.tau) * HQ * dkinv_hq, axis=(0, 1, 2))
             new_visco = new_visco + (HQ, Q0)
-        Q = Q.reshape(4, 3, -1)
+        Q = Q.reshape((4, 3) + Q.shape[1:])
         RQ = _sum_over(lambda j: R[None, :, j] * Q[:, j, None], 3)           # [4, 3, K] = R Q_m
         fe = fe + _sum_over(lambda mo: geo.gamma[mo, None] * RQ[mo, :, None], 4)
     f = _assemble(arr.incidence, fe)
-    k_min = jnp.argmin(J)
-    return f, new_visco, J[k_min], k_min, diss
+    return f, new_visco, jnp.min(J, axis=0), jnp.argmin(J, axis=0), diss
 
 
 def _anp_pressure(arr: Arrays, m: Material, J):
@@ -519,10 +528,11 @@ def _prony_step(m: Material, S0, hist, h):
     decay = jnp.exp(-h / m.tau)
     coef = m.tau / h * (1.0 - decay)
     H, S0_prev = hist
-    H = decay[:, None, None, None] * H + coef[:, None, None, None] * (S0 - S0_prev)[None]
-    S = (1.0 - jnp.sum(m.g)) * S0 + jnp.sum(m.g[:, None, None, None] * H, axis=0)
+    per_term = lambda c: c.reshape((-1,) + (1,) * S0.ndim)
+    H = per_term(decay) * H + per_term(coef) * (S0 - S0_prev)[None]
+    S = (1.0 - jnp.sum(m.g)) * S0 + jnp.sum(per_term(m.g) * H, axis=0)
     rate = m.g / (2.0 * shear_modulus(m) * m.tau)
-    return S, (H, S0), jnp.sum(rate[:, None, None, None] * H * H, axis=(0, 1, 2))
+    return S, (H, S0), jnp.sum(per_term(rate) * H * H, axis=(0, 1, 2))
 
 
 def _nodal_tet_stress(arr: Arrays, m: Material, F, visco, cfg: Config, h):
@@ -671,8 +681,7 @@ def _contact_energy(arr: Arrays, x):
 
 def _external_force(arr: Arrays, loads: Loads, cfg: Config, frame, frac, x):
     """External nodal force at time t_frame + frac·frame_dt (frac ∈ (0, 1])."""
-    n = arr.points.shape[0]
-    f = jnp.zeros((n, 3), x.dtype)
+    f = jnp.zeros(x.shape, x.dtype)
 
     def value(series):
         cur = series[frame]
@@ -687,31 +696,76 @@ def _external_force(arr: Arrays, loads: Loads, cfg: Config, frame, frac, x):
         pf = arr.pressure_faces
         xf = x[pf]
         if pf.shape[1] == 4:
-            na = 0.5 * jnp.cross(xf[:, 2] - xf[:, 0], xf[:, 3] - xf[:, 1])
+            na = 0.5 * jnp.cross(xf[:, 2] - xf[:, 0], xf[:, 3] - xf[:, 1], axis=1)
         else:
-            na = 0.5 * jnp.cross(xf[:, 1] - xf[:, 0], xf[:, 2] - xf[:, 0])
-        ff = -(value(loads.pressure)[:, None] * na) / pf.shape[1]
+            na = 0.5 * jnp.cross(xf[:, 1] - xf[:, 0], xf[:, 2] - xf[:, 0], axis=1)
+        ff = -(jnp.expand_dims(value(loads.pressure), 1) * na) / pf.shape[1]
         f = f.at[pf.ravel()].add(jnp.repeat(ff, pf.shape[1], axis=0))
     return f
 
 
-def _simulate_impl(arr: Arrays, m: Material, loads: Loads, cfg: Config) -> Result:
+def _trailing(tree):
+    """Append a singleton axis to every array of a pytree (per-element data against [.., K, B] case arrays)."""
+    return jax.tree_util.tree_map(lambda a: a[..., None], tree)
+
+
+def _internal_fn(arr: Arrays, m: Material, hg, cfg: Config, h, batched: bool):
+    """``internal(x, visco) -> _internal(...)`` for one case, or for cases on the trailing axis of x [N, 3, B]
+    and of the viscous variables: hex8 natively (per-element data get a trailing singleton axis), tet4 through
+    `jax.vmap` over that axis."""
+    if batched and cfg.cell_type == "hexahedron":
+        arr_hot, hg_hot = arr._replace(geo=_trailing(arr.geo)), _trailing(hg)
+        return lambda x, visco: _internal(arr_hot, m, hg_hot, x, visco, cfg, h)
+    fn = lambda x, visco: _internal(arr, m, hg, x, visco, cfg, h)
+    return jax.vmap(fn, in_axes=(-1, -1), out_axes=-1) if batched else fn
+
+
+def _simulate_impl(arr: Arrays, m: Material, loads: Loads, cfg: Config, batched: bool = False) -> Result:
+    """One run, or with ``batched`` a batch of load cases (leading axis of every entry of ``loads``).
+
+    Batched layout: the cases are carried as the *last* axis of the sub-step state (x, v, a [N, 3, B], viscous
+    variables [.., K, B]), so the per-element arithmetic of the hex8 hot path runs with the cases as the
+    contiguous, vectorised axis and the element gather copies whole rows of B values (measured in
+    benchmarks/fem_throughput.py against `jax.vmap`, which puts the case axis first). Work done once per frame
+    (stresses, energies), the tet4 element routines, contact search and pressure loads are `jax.vmap`-ed over that
+    trailing axis; the result has the case axis first, like `jax.vmap(simulate)`.
+    """
     h = cfg.frame_dt / cfg.n_sub
     n_per = arr.cells.shape[1]
     mass = m.density * _gather_sum(arr.incidence, jnp.tile(arr.geo.volume / n_per, n_per))
-    inv_mass = (arr.free / mass[:, None])
     hg = _hourglass_stiffness(arr.geo, m) if cfg.cell_type == "hexahedron" else None
     alpha = arr.damping_alpha
     x0 = arr.points.astype(mass.dtype)
-    v0 = jnp.zeros_like(x0) if loads.v0 is None else loads.v0 * arr.free
-    visco0 = _zero_visco(arr, cfg)
+    bshape, bx = (), lambda a: a             # case axes; adds them to per-node data
+    if batched:
+        n_cases = next(a.shape[0] for a in loads if a is not None)
+        bshape = (n_cases,)
+        loads = Loads(*(None if a is None else jnp.moveaxis(a, 0, -1) for a in loads))
+        bx = lambda a: a[..., None]
+        x0 = jnp.broadcast_to(x0[..., None], x0.shape + bshape)
+    free = bx(arr.free)
+    inv_mass = bx(arr.free / mass[:, None])
+    mass_x = bx(mass[:, None])
+    case_sum = lambda a: jnp.sum(a, axis=(0, 1))       # over nodes and components: scalar or [B]
+
+    def over_cases(fn, in_axes, out_axes=-1):
+        """fn itself, or fn vmapped over the trailing case axis of its batched arguments."""
+        return jax.vmap(fn, in_axes=in_axes, out_axes=out_axes) if batched else fn
+
+    internal = _internal_fn(arr, m, hg, cfg, h, batched)
+    contact_pairs = over_cases(lambda x: _contact_pairs(arr, x, cfg.contact_capacity), -1, 0)
+    contact_force = over_cases(lambda pairs, x: _contact_force(arr, pairs, x), (0, -1))
+    pairs_missed = over_cases(lambda pairs, x: _pairs_missed(arr, pairs, x), (0, -1), 0)
+    v0 = jnp.zeros_like(x0) if loads.v0 is None else loads.v0 * free
+    visco0 = _zero_visco(arr, cfg, bshape)
     f_ext0 = _external_force(arr, loads, cfg, 0, 0.0, x0) if cfg.load_interp == "step" else jnp.zeros_like(x0)
-    f_int0, *_ = _internal(arr, m, hg, x0, visco0, cfg, h)
+    f_int0, *_ = internal(x0, visco0)
     if cfg.contact_capacity:
-        f_int0 = f_int0 - _contact_force(arr, _contact_pairs(arr, x0, cfg.contact_capacity)[0], x0)
+        f_int0 = f_int0 - contact_force(contact_pairs(x0)[0], x0)
     a0 = (f_ext0 - f_int0) * inv_mass
-    zero = jnp.zeros((), mass.dtype)
-    state0 = State(x0, v0, a0, f_ext0, visco0, zero, zero, zero, jnp.array(-1, jnp.int32), jnp.array(jnp.nan, mass.dtype))
+    zero = jnp.zeros(bshape, mass.dtype)
+    state0 = State(x0, v0, a0, f_ext0, visco0, zero, zero, zero, jnp.full(bshape, -1, jnp.int32),
+                   jnp.full(bshape, jnp.nan, mass.dtype))
 
     def substep(frame, s: State, j, pairs=None):
         v_half = s.v + 0.5 * h * s.a
@@ -719,17 +773,17 @@ def _simulate_impl(arr: Arrays, m: Material, loads: Loads, cfg: Config) -> Resul
             v_half = v_half - 0.5 * h * alpha * s.v
         x = s.x + h * v_half
         f_ext = _external_force(arr, loads, cfg, frame, (j + 1.0) / cfg.n_sub, x)
-        f_int, visco, j_min, k_min, diss = _internal(arr, m, hg, x, s.visco, cfg, h)
+        f_int, visco, j_min, k_min, diss = internal(x, s.visco)
         if cfg.contact_capacity:   # contact is internal to the system of bodies: not external work
-            f_int = f_int - _contact_force(arr, pairs, x)
+            f_int = f_int - contact_force(pairs, x)
         a = (f_ext - f_int) * inv_mass
         if cfg.damping:
             v = (v_half + 0.5 * h * a) / (1.0 + 0.5 * h * alpha)   # a stays the undamped acceleration
-            w_damp = s.w_damp + 0.5 * h * alpha * (jnp.sum(mass[:, None] * s.v ** 2) + jnp.sum(mass[:, None] * v ** 2))
+            w_damp = s.w_damp + 0.5 * h * alpha * (case_sum(mass_x * s.v ** 2) + case_sum(mass_x * v ** 2))
         else:
             v = v_half + 0.5 * h * a
             w_damp = s.w_damp
-        w_ext = s.w_ext + 0.5 * jnp.sum((s.f_ext + f_ext) * (x - s.x))
+        w_ext = s.w_ext + 0.5 * case_sum((s.f_ext + f_ext) * (x - s.x))
         t = (frame + (j + 1.0) / cfg.n_sub) * cfg.frame_dt
         newly = (j_min <= 0.0) & (s.inverted < 0)
         inverted = jnp.where(newly, k_min.astype(jnp.int32), s.inverted)
@@ -740,32 +794,37 @@ def _simulate_impl(arr: Arrays, m: Material, loads: Loads, cfg: Config) -> Resul
         s, overflow = carry
         pairs = None
         if cfg.contact_capacity:
-            pairs, over = _contact_pairs(arr, s.x, cfg.contact_capacity)
+            pairs, over = contact_pairs(s.x)
             overflow = overflow | over
         s, _ = jax.lax.scan(lambda c, j: (substep(frame, c, j, pairs), None), s,
                             jnp.arange(cfg.n_sub, dtype=mass.dtype))
         if cfg.contact_capacity:
-            overflow = overflow | _pairs_missed(arr, pairs, s.x)
-        return (s, overflow), _outputs(s)
+            overflow = overflow | pairs_missed(pairs, s.x)
+        return (s, overflow), outputs(s.x, s.v, s.visco, s.w_visc, s.w_damp, s.w_ext)
 
-    def _outputs(s: State):
-        sig = _nodal_stress(arr, _element_stress(arr, m, s.x, s.visco, cfg))
-        kin = 0.5 * jnp.sum(mass[:, None] * s.v ** 2)
-        stored = _stored_energy(arr, m, s.x, s.visco, hg, cfg)
+    def _outputs(x, v, visco, w_visc, w_damp, w_ext):
+        sig = _nodal_stress(arr, _element_stress(arr, m, x, visco, cfg))
+        kin = 0.5 * jnp.sum(mass[:, None] * v ** 2)
+        stored = _stored_energy(arr, m, x, visco, hg, cfg)
         if cfg.contact_capacity:
-            stored = stored + _contact_energy(arr, s.x)
-        return s.x, s.v, sig, Energies(kin, stored, s.w_visc, s.w_damp, s.w_ext)
+            stored = stored + _contact_energy(arr, x)
+        return x, v, sig, Energies(kin, stored, w_visc, w_damp, w_ext)
 
+    outputs = over_cases(_outputs, -1, 0)     # per frame, case axis first
     body = jax.checkpoint(frame_fn) if cfg.checkpoint else frame_fn
-    (state, overflow), outs = jax.lax.scan(body, (state0, jnp.array(False)), jnp.arange(cfg.n_frames))
-    first = _outputs(state0)
+    (state, overflow), outs = jax.lax.scan(body, (state0, jnp.zeros(bshape, bool)), jnp.arange(cfg.n_frames))
+    s0 = state0
+    first = outputs(s0.x, s0.v, s0.visco, s0.w_visc, s0.w_damp, s0.w_ext)
     stack = lambda a, b: jnp.concatenate([a[None], b])
     q, v, sig, en = jax.tree_util.tree_map(stack, first, outs)
     t = jnp.arange(cfg.n_frames + 1) * cfg.frame_dt
+    if batched:   # frames first → cases first
+        q, v, sig, en = jax.tree_util.tree_map(lambda a: jnp.swapaxes(a, 0, 1), (q, v, sig, en))
+        t = jnp.broadcast_to(t, bshape + t.shape)
     return Result(t, q, v, sig, en, state.inverted, state.inversion_time, overflow)
 
 
-_simulate = jax.jit(_simulate_impl, static_argnames=("cfg",))
+_simulate = jax.jit(_simulate_impl, static_argnames=("cfg", "batched"))
 
 
 def max_frequency(problem: Problem, material: Material, iterations: int = 200, seed: int = 0) -> float:

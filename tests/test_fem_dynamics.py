@@ -9,6 +9,7 @@ import scipy.sparse.linalg
 
 import fem
 from fem import solver
+from fem.meshes import boundary_faces
 
 CELL_TYPES = ["hexahedron", "tetra"]
 # A small cantilever 6 × 1 × 1 (unit elements), μ0 = 1e4, K0 = 5e4, ρ = 1: first bending period ≈ 1.3,
@@ -161,3 +162,71 @@ def test_power_iteration_max_frequency_agrees_with_lanczos():
     prob = fem.setup(pts, cells, material=m, frame_dt=1e-3, n_frames=1, clamped=clamped)
     w = omega_max(prob, m)
     assert 0.95 * w <= solver.max_frequency(prob, m) <= w * (1 + 1e-6)
+
+
+def _vmapped(prob, material, loads):
+    """The straightforward batch: `jax.vmap` of the single-case run (cases first)."""
+    return jax.vmap(lambda ld: solver._simulate(prob.arrays, material, ld, prob.config))(loads)
+
+
+def _assert_results_equal(a, b, rtol=1e-9):
+    for name, x, y in zip(a._fields, a, b):
+        if name == "energies":
+            for en, xe, ye in zip(x._fields, x, y):
+                np.testing.assert_allclose(np.asarray(xe), np.asarray(ye), rtol=rtol, atol=rtol * (np.abs(ye).max() + 1e-300), err_msg=en)
+        elif y is not None:
+            x, y = np.asarray(x), np.asarray(y)
+            assert x.shape == y.shape, (name, x.shape, y.shape)
+            if x.dtype.kind == "f":
+                scale = np.max(np.abs(y[np.isfinite(y)]), initial=0.0)
+                np.testing.assert_allclose(x, y, rtol=rtol, atol=rtol * scale + 1e-300, err_msg=name)
+            else:
+                np.testing.assert_array_equal(x, y, err_msg=name)
+
+
+@pytest.mark.parametrize("cell_type", CELL_TYPES)
+def test_simulate_batch_equals_vmap_of_simulate_with_prony_damping_and_pressure(cell_type):
+    """The batched run keeps the cases on the trailing axis for speed; it must be the same computation as vmap."""
+    mat = fem.mooney_rivlin(**ELASTIC, **PRONY)
+    pts, cells = fem.box_hex_mesh((6.0, 1.0, 1.0), (6, 1, 1))
+    if cell_type == "tetra":
+        cells = fem.hex_to_tet(cells)
+    tip_faces = boundary_faces(cells)
+    tip_faces = tip_faces[np.all(pts[tip_faces][:, :, 0] > 6.0 - 1e-9, axis=1)]
+    prob = fem.setup(pts, cells, material=mat, frame_dt=0.02, n_frames=3, clamped=np.where(pts[:, 0] < 1e-9)[0],
+                     damping=0.5, pressure_faces=tip_faces, load_interp="linear")
+    rng = np.random.default_rng(0)
+    nodal = rng.normal(size=(3, 3, len(pts), 3)) * 50.0
+    loads = fem.Loads(nodal=jnp.asarray(nodal), pressure=jnp.asarray(rng.normal(size=(3, 3, len(tip_faces))) * 20.0),
+                      v0=jnp.asarray(rng.normal(size=(3, len(pts), 3)) * 0.01))
+    new = fem.simulate_batch(prob, mat, loads)
+    assert np.asarray(new.q).shape == (3, 4, len(pts), 3)
+    assert float(np.abs(np.asarray(new.energies.viscous)).max()) > 0
+    _assert_results_equal(new, _vmapped(prob, mat, loads))
+
+
+def test_simulate_batch_equals_vmap_of_simulate_with_contact():
+    """Contact search and forces are per case in the batched run too (different loads, different pairs)."""
+    pts, cells = fem.box_hex_mesh((1.0, 1.0, 1.0), (2, 2, 2))
+    points = np.concatenate([pts, pts + np.array([0.0, 0.0, 1.4])])   # gap 0.4 > r0
+    allc = np.concatenate([cells, cells + len(pts)])
+    mat = fem.mooney_rivlin(10.0, 0.0, 0.01, density=1.0)
+    ctc = dict(a=np.arange(len(pts)), b=np.arange(len(pts), 2 * len(pts)), r0=0.3, stiffness=500.0, skin=0.3,
+               capacity=512)
+    prob = fem.setup(points, allc, material=mat, frame_dt=0.02, n_frames=3, contact=ctc)
+    v0 = np.zeros((2, len(points), 3))
+    v0[0, :len(pts), 2], v0[0, len(pts):, 2] = 3.0, -3.0      # case 0: the cubes collide
+    v0[1, :len(pts), 0] = 1.0                                    # case 1: sliding apart, no contact
+    loads = fem.Loads(v0=jnp.asarray(v0))
+    new = fem.simulate_batch(prob, mat, loads)
+    strain = np.asarray(new.energies.strain)
+    assert strain[0, -1] > 1e3 * max(strain[1, -1], 1e-12)    # only case 0 is in contact
+    _assert_results_equal(new, _vmapped(prob, mat, loads))
+
+
+def test_simulate_batch_needs_a_batched_load():
+    pts, cells = fem.box_hex_mesh((1.0, 1.0, 1.0), (1, 1, 1))
+    mat = fem.mooney_rivlin(**ELASTIC)
+    prob = fem.setup(pts, cells, material=mat, frame_dt=0.01, n_frames=1)
+    with pytest.raises(ValueError, match="at least one batched entry"):
+        fem.simulate_batch(prob, mat, fem.Loads())
