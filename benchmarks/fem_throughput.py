@@ -52,14 +52,14 @@ VARIANTS = {"trailing": "trailing batch (solver)", "vmap": "vmap (cases first)",
 def substep_runner(problem, material, n_steps, variant="trailing"):
     """A jitted function of initial positions running n_steps explicit sub-steps for a batch of cases.
 
-    Input layout: [N, 3, B] for "trailing", [B, N, 3] otherwise.
+    Input: initial displacements u = x − X, [N, 3, B] for "trailing", [B, N, 3] otherwise.
     """
     arr, cfg = problem.arrays, problem.config
     hg = solver._hourglass_stiffness(arr.geo, material) if cfg.cell_type == "hexahedron" else None
     mass = fem.lumped_mass(problem, material)[:, None]
     inv_m = arr.free / mass
     h = cfg.frame_dt / cfg.n_sub
-    energy = lambda x: fem.internal_energy(problem, material, x)
+    energy = lambda u: fem.internal_energy(problem, material, arr.points + u)   # the state is u = x − X
 
     def scan(x0, force, visco0, inv_m, free):
         def step(c, _):
@@ -69,7 +69,7 @@ def substep_runner(problem, material, n_steps, variant="trailing"):
             f, visco = force(x, visco)
             a = -f * inv_m
             return (x, v + 0.5 * h * a, a, visco), None
-        v0 = jnp.zeros_like(x0).at[:, 1].set(1.0) * free
+        v0 = jnp.zeros_like(x0).at[:, 1].set(1.0) * free   # x0: initial displacements
         c, _ = jax.lax.scan(step, (x0, v0, jnp.zeros_like(x0), visco0), None, length=n_steps)
         return c[0]
 
@@ -91,8 +91,9 @@ def substep_runner(problem, material, n_steps, variant="trailing"):
 
 
 def initial(scene, b, variant):
-    x = jnp.asarray(scene.points, jnp.float32)
-    return jnp.broadcast_to(x[..., None], x.shape + (b,)) if variant == "trailing" else jnp.broadcast_to(x, (b,) + x.shape)
+    """Zero initial displacements for b cases in the variant's layout."""
+    n = len(scene.points)
+    return jnp.zeros((n, 3, b) if variant == "trailing" else (b, n, 3), jnp.float32)
 
 
 def measure(fn, x, repeats):

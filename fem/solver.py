@@ -123,9 +123,9 @@ class Result(NamedTuple):
 
 
 class State(NamedTuple):
-    """Sub-step state carried by the scan."""
+    """Sub-step state carried by the scan (u: displacements x − X, which keeps F − I accurate in float32)."""
 
-    x: jnp.ndarray
+    u: jnp.ndarray
     v: jnp.ndarray
     a: jnp.ndarray
     f_ext: jnp.ndarray
@@ -301,7 +301,7 @@ def internal_energy(problem: Problem, material: Material, x) -> jnp.ndarray:
     """Instantaneous elastic energy Π_int(x) (no viscous history); its gradient is the internal force."""
     arr, cfg = problem.arrays, problem.config
     hg = _hourglass_stiffness(arr.geo, material) if cfg.cell_type == "hexahedron" else None
-    return _stored_energy(arr, material, x, (), hg, cfg, elastic=True)
+    return _stored_energy(arr, material, x - arr.points, (), hg, cfg, elastic=True)
 
 
 def internal_force(problem: Problem, material: Material, x) -> jnp.ndarray:
@@ -310,7 +310,7 @@ def internal_force(problem: Problem, material: Material, x) -> jnp.ndarray:
     arr, cfg = problem.arrays, problem.config._replace(n_prony=0)
     elastic = material._replace(g=jnp.zeros(0), tau=jnp.zeros(0))   # instantaneous response
     hg = _hourglass_stiffness(arr.geo, elastic) if cfg.cell_type == "hexahedron" else None
-    f, *_ = _internal(arr, elastic, hg, x, (), cfg, 1.0)
+    f, *_ = _internal(arr, elastic, hg, x - arr.points, (), cfg, 1.0)
     return f
 
 
@@ -370,14 +370,23 @@ def _assemble(incidence, fe):
     return _gather_sum(incidence, jnp.moveaxis(fe.reshape((3, -1) + fe.shape[3:]), 0, 1))
 
 
-def _gather_elements(x, cells):
-    """Element node coordinates [3, n_per, K, *B] from x [N, 3, *B]."""
-    return jnp.moveaxis(x[cells.T], 2, 0)
+def _gather_elements(u, cells):
+    """Element nodal values [3, n_per, K, *B] (e.g. displacements) from u [N, 3, *B]."""
+    return jnp.moveaxis(u[cells.T], 2, 0)
 
 
-def _deformation_gradient(xe, b):
-    """F [3, 3, K] = Σ_a x_a ⊗ b_a (explicit sums: XLA on CPU reduces middle axes slowly)."""
-    return _sum_over(lambda a: xe[:, None, a] * b[None, :, a], b.shape[1])
+def _deformation_gradient(ue, b):
+    """F [3, 3, K] = I + Σ_a u_a ⊗ b_a from element nodal displacements ue (explicit sums: XLA on CPU reduces
+    middle axes slowly).
+
+    Displacements, not positions: Σ_a x_a ⊗ b_a adds terms of the size of the coordinates (~ the body's size
+    over the element size) that cancel to ~1, which in float32 leaves F − I with an absolute error ~1e-5;
+    times the bulk modulus of a nearly incompressible solid (K = 2e7 for the paper's beam) that is a pressure
+    noise of ~200. On the paper's beam in float32 the position form gave nodal σ 5.5 % from Abaqus (free
+    nodes, test cases 9, 10, 12, 13), against 2.1 % in float64; the displacement form is exact for the same
+    reason (Σ_a X_a ⊗ b_a = I for the uniform gradients)."""
+    grad_u = _sum_over(lambda a: ue[:, None, a] * b[None, :, a], b.shape[1])
+    return grad_u + jnp.eye(3, dtype=grad_u.dtype).reshape((3, 3) + (1,) * (grad_u.ndim - 2))
 
 
 def _sum_over(term, n):
@@ -435,23 +444,24 @@ def _zero_visco(arr: Arrays, cfg: Config, batch: tuple = ()):
     return z
 
 
-def _hourglass_coordinates(geo, R, xe):
+def _hourglass_coordinates(geo, R, ue):
     """g [12, K] = G Rᵀ x: hourglass coordinates of the co-rotated element nodes (index 3·mode + component).
 
-    Computed as Rᵀ (Σ_a γ_a x_a): rotating the four mode vectors is cheaper than rotating the eight nodes.
+    Computed as Rᵀ (Σ_a γ_a u_a) from the displacements u = x − X: Σ_a γ_a X_a = 0 (γ is orthogonal to linear
+    fields), and rotating the four mode vectors is cheaper than rotating the eight nodes.
     """
-    gx = _sum_over(lambda a: geo.gamma[:, None, a] * xe[None, :, a], 8)   # [4, 3, K] in the global frame
+    gx = _sum_over(lambda a: geo.gamma[:, None, a] * ue[None, :, a], 8)   # [4, 3, K] in the global frame
     return _sum_over(lambda j: R[j][None] * gx[:, j, None], 3).reshape((12,) + gx.shape[2:])
 
 
-def _internal(arr: Arrays, m: Material, hg, x, visco, cfg: Config, h):
-    """Internal nodal forces at x, advancing the viscous variables over a sub-step h.
+def _internal(arr: Arrays, m: Material, hg, u, visco, cfg: Config, h):
+    """Internal nodal forces at the displacements u = x − X, advancing the viscous variables over a sub-step h.
 
     Returns (f_int [N, 3], new visco, min J, element of min J, dissipation rate).
     """
     geo = arr.geo
-    xe = _gather_elements(x, arr.cells)
-    F = _deformation_gradient(xe, geo.b)
+    ue = _gather_elements(u, arr.cells)
+    F = _deformation_gradient(ue, geo.b)
     if _nodal_tet(cfg):
         P, J, new_visco, diss = _nodal_tet_stress(arr, m, F, visco, cfg, h)
         fe = geo.volume * _sum_over(lambda j: P[:, j, None] * geo.b[None, j], 3)
@@ -472,7 +482,7 @@ def _internal(arr: Arrays, m: Material, hg, x, visco, cfg: Config, h):
     fe = geo.volume * _sum_over(lambda j: P[:, j, None] * geo.b[None, j], 3)   # [3, n_per, K]
     if cfg.cell_type == "hexahedron":
         R = _polar_rotation(F)
-        g = _hourglass_coordinates(geo, R, xe)
+        g = _hourglass_coordinates(geo, R, ue)
         k_eq, dk, dk_inv = hg
         Q = _sum_over(lambda j: k_eq[:, j] * g[None, j], 12)
         if cfg.n_prony:
@@ -581,9 +591,9 @@ def _nodal_tet_cauchy(arr: Arrays, m: Material, F, visco, cfg: Config):
             + p * jnp.eye(3, dtype=F.dtype)[:, :, None])
 
 
-def _element_stress(arr: Arrays, m: Material, x, visco, cfg: Config):
-    """Element Cauchy stress [K, 6] at x with the current viscous variables (no update)."""
-    F = _deformation_gradient(_gather_elements(x, arr.cells), arr.geo.b)
+def _element_stress(arr: Arrays, m: Material, u, visco, cfg: Config):
+    """Element Cauchy stress [K, 6] at the displacements u with the current viscous variables (no update)."""
+    F = _deformation_gradient(_gather_elements(u, arr.cells), arr.geo.b)
     if _nodal_tet(cfg):
         return to_voigt(_nodal_tet_cauchy(arr, m, F, visco, cfg))
     S0, J, Cinv = isochoric_pk2(m, F)
@@ -603,15 +613,16 @@ def _nodal_stress(arr: Arrays, sig_e):
     return num / _gather_sum(arr.incidence, jnp.tile(vol, n_per))[:, None]
 
 
-def _stored_energy(arr: Arrays, m: Material, x, visco, hg, cfg: Config, elastic: bool = False):
-    """Stored energy: volumetric + long-term isochoric + energy held in the viscous branches."""
+def _stored_energy(arr: Arrays, m: Material, u, visco, hg, cfg: Config, elastic: bool = False):
+    """Stored energy at the displacements u: volumetric + long-term isochoric + energy held in the viscous
+    branches."""
     geo = arr.geo
-    xe = _gather_elements(x, arr.cells)
-    F = _deformation_gradient(xe, geo.b)
+    ue = _gather_elements(u, arr.cells)
+    F = _deformation_gradient(ue, geo.b)
     ginf = 1.0 if (elastic or cfg.n_prony == 0) else 1.0 - jnp.sum(m.g)
     if cfg.cell_type == "hexahedron":
         e = jnp.sum(geo.volume * (ginf * isochoric_energy(m, F) + volumetric_energy(m, det3(F))))
-        g = _hourglass_coordinates(geo, _polar_rotation(F), xe)
+        g = _hourglass_coordinates(geo, _polar_rotation(F), ue)
         k_eq, dk, _ = hg
         k_use = k_eq + dk if (elastic and dk is not None) else k_eq
         e = e + 0.5 * jnp.sum(g * jnp.sum(k_use * g[None], axis=1))
@@ -710,7 +721,7 @@ def _trailing(tree):
 
 
 def _internal_fn(arr: Arrays, m: Material, hg, cfg: Config, h, batched: bool):
-    """``internal(x, visco) -> _internal(...)`` for one case, or for cases on the trailing axis of x [N, 3, B]
+    """``internal(u, visco) -> _internal(...)`` for one case, or for cases on the trailing axis of u [N, 3, B]
     and of the viscous variables: hex8 natively (per-element data get a trailing singleton axis), tet4 through
     `jax.vmap` over that axis."""
     if batched and cfg.cell_type == "hexahedron":
@@ -723,7 +734,7 @@ def _internal_fn(arr: Arrays, m: Material, hg, cfg: Config, h, batched: bool):
 def _simulate_impl(arr: Arrays, m: Material, loads: Loads, cfg: Config, batched: bool = False) -> Result:
     """One run, or with ``batched`` a batch of load cases (leading axis of every entry of ``loads``).
 
-    Batched layout: the cases are carried as the *last* axis of the sub-step state (x, v, a [N, 3, B], viscous
+    Batched layout: the cases are carried as the *last* axis of the sub-step state (u, v, a [N, 3, B], viscous
     variables [.., K, B]), so the per-element arithmetic of the hex8 hot path runs with the cases as the
     contiguous, vectorised axis and the element gather copies whole rows of B values (measured in
     benchmarks/fem_throughput.py against `jax.vmap`, which puts the case axis first). Work done once per frame
@@ -735,14 +746,14 @@ def _simulate_impl(arr: Arrays, m: Material, loads: Loads, cfg: Config, batched:
     mass = m.density * _gather_sum(arr.incidence, jnp.tile(arr.geo.volume / n_per, n_per))
     hg = _hourglass_stiffness(arr.geo, m) if cfg.cell_type == "hexahedron" else None
     alpha = arr.damping_alpha
-    x0 = arr.points.astype(mass.dtype)
     bshape, bx = (), lambda a: a             # case axes; adds them to per-node data
     if batched:
         n_cases = next(a.shape[0] for a in loads if a is not None)
         bshape = (n_cases,)
         loads = Loads(*(None if a is None else jnp.moveaxis(a, 0, -1) for a in loads))
         bx = lambda a: a[..., None]
-        x0 = jnp.broadcast_to(x0[..., None], x0.shape + bshape)
+    X = bx(arr.points.astype(mass.dtype))     # reference positions; the state carries u = x − X
+    u0 = jnp.zeros(arr.points.shape + bshape, mass.dtype)
     free = bx(arr.free)
     inv_mass = bx(arr.free / mass[:, None])
     mass_x = bx(mass[:, None])
@@ -756,26 +767,26 @@ def _simulate_impl(arr: Arrays, m: Material, loads: Loads, cfg: Config, batched:
     contact_pairs = over_cases(lambda x: _contact_pairs(arr, x, cfg.contact_capacity), -1, 0)
     contact_force = over_cases(lambda pairs, x: _contact_force(arr, pairs, x), (0, -1))
     pairs_missed = over_cases(lambda pairs, x: _pairs_missed(arr, pairs, x), (0, -1), 0)
-    v0 = jnp.zeros_like(x0) if loads.v0 is None else loads.v0 * free
+    v0 = jnp.zeros_like(u0) if loads.v0 is None else loads.v0 * free
     visco0 = _zero_visco(arr, cfg, bshape)
-    f_ext0 = _external_force(arr, loads, cfg, 0, 0.0, x0) if cfg.load_interp == "step" else jnp.zeros_like(x0)
-    f_int0, *_ = internal(x0, visco0)
+    f_ext0 = _external_force(arr, loads, cfg, 0, 0.0, X + u0) if cfg.load_interp == "step" else jnp.zeros_like(u0)
+    f_int0, *_ = internal(u0, visco0)
     if cfg.contact_capacity:
-        f_int0 = f_int0 - contact_force(contact_pairs(x0)[0], x0)
+        f_int0 = f_int0 - contact_force(contact_pairs(X + u0)[0], X + u0)
     a0 = (f_ext0 - f_int0) * inv_mass
     zero = jnp.zeros(bshape, mass.dtype)
-    state0 = State(x0, v0, a0, f_ext0, visco0, zero, zero, zero, jnp.full(bshape, -1, jnp.int32),
+    state0 = State(u0, v0, a0, f_ext0, visco0, zero, zero, zero, jnp.full(bshape, -1, jnp.int32),
                    jnp.full(bshape, jnp.nan, mass.dtype))
 
     def substep(frame, s: State, j, pairs=None):
         v_half = s.v + 0.5 * h * s.a
         if cfg.damping:
             v_half = v_half - 0.5 * h * alpha * s.v
-        x = s.x + h * v_half
-        f_ext = _external_force(arr, loads, cfg, frame, (j + 1.0) / cfg.n_sub, x)
-        f_int, visco, j_min, k_min, diss = internal(x, s.visco)
+        u = s.u + h * v_half
+        f_ext = _external_force(arr, loads, cfg, frame, (j + 1.0) / cfg.n_sub, X + u)
+        f_int, visco, j_min, k_min, diss = internal(u, s.visco)
         if cfg.contact_capacity:   # contact is internal to the system of bodies: not external work
-            f_int = f_int - contact_force(pairs, x)
+            f_int = f_int - contact_force(pairs, X + u)
         a = (f_ext - f_int) * inv_mass
         if cfg.damping:
             v = (v_half + 0.5 * h * a) / (1.0 + 0.5 * h * alpha)   # a stays the undamped acceleration
@@ -783,29 +794,30 @@ def _simulate_impl(arr: Arrays, m: Material, loads: Loads, cfg: Config, batched:
         else:
             v = v_half + 0.5 * h * a
             w_damp = s.w_damp
-        w_ext = s.w_ext + 0.5 * case_sum((s.f_ext + f_ext) * (x - s.x))
+        w_ext = s.w_ext + 0.5 * case_sum((s.f_ext + f_ext) * (u - s.u))
         t = (frame + (j + 1.0) / cfg.n_sub) * cfg.frame_dt
         newly = (j_min <= 0.0) & (s.inverted < 0)
         inverted = jnp.where(newly, k_min.astype(jnp.int32), s.inverted)
         inv_t = jnp.where(newly, t, s.inversion_time)
-        return State(x, v, a, f_ext, visco, w_ext, s.w_visc + h * diss, w_damp, inverted, inv_t)
+        return State(u, v, a, f_ext, visco, w_ext, s.w_visc + h * diss, w_damp, inverted, inv_t)
 
     def frame_fn(carry, frame):
         s, overflow = carry
         pairs = None
         if cfg.contact_capacity:
-            pairs, over = contact_pairs(s.x)
+            pairs, over = contact_pairs(X + s.u)
             overflow = overflow | over
         s, _ = jax.lax.scan(lambda c, j: (substep(frame, c, j, pairs), None), s,
                             jnp.arange(cfg.n_sub, dtype=mass.dtype))
         if cfg.contact_capacity:
-            overflow = overflow | pairs_missed(pairs, s.x)
-        return (s, overflow), outputs(s.x, s.v, s.visco, s.w_visc, s.w_damp, s.w_ext)
+            overflow = overflow | pairs_missed(pairs, X + s.u)
+        return (s, overflow), outputs(s.u, s.v, s.visco, s.w_visc, s.w_damp, s.w_ext)
 
-    def _outputs(x, v, visco, w_visc, w_damp, w_ext):
-        sig = _nodal_stress(arr, _element_stress(arr, m, x, visco, cfg))
+    def _outputs(u, v, visco, w_visc, w_damp, w_ext):
+        x = arr.points.astype(u.dtype) + u
+        sig = _nodal_stress(arr, _element_stress(arr, m, u, visco, cfg))
         kin = 0.5 * jnp.sum(mass[:, None] * v ** 2)
-        stored = _stored_energy(arr, m, x, visco, hg, cfg)
+        stored = _stored_energy(arr, m, u, visco, hg, cfg)
         if cfg.contact_capacity:
             stored = stored + _contact_energy(arr, x)
         return x, v, sig, Energies(kin, stored, w_visc, w_damp, w_ext)
@@ -814,7 +826,7 @@ def _simulate_impl(arr: Arrays, m: Material, loads: Loads, cfg: Config, batched:
     body = jax.checkpoint(frame_fn) if cfg.checkpoint else frame_fn
     (state, overflow), outs = jax.lax.scan(body, (state0, jnp.zeros(bshape, bool)), jnp.arange(cfg.n_frames))
     s0 = state0
-    first = outputs(s0.x, s0.v, s0.visco, s0.w_visc, s0.w_damp, s0.w_ext)
+    first = outputs(s0.u, s0.v, s0.visco, s0.w_visc, s0.w_damp, s0.w_ext)
     stack = lambda a, b: jnp.concatenate([a[None], b])
     q, v, sig, en = jax.tree_util.tree_map(stack, first, outs)
     t = jnp.arange(cfg.n_frames + 1) * cfg.frame_dt

@@ -42,7 +42,7 @@ def interior_nodes(n=4):
 
 
 def element_stress(prob, m, x):
-    fn = jax.jit(lambda arr, m, x: solver._element_stress(arr, m, x, solver._zero_visco(arr, prob.config), prob.config))
+    fn = jax.jit(lambda arr, m, x: solver._element_stress(arr, m, x - arr.points, solver._zero_visco(arr, prob.config), prob.config))
     return np.asarray(fn(prob.arrays, m, x))
 
 
