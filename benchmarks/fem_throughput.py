@@ -195,6 +195,10 @@ def main(argv=None):
              "Single-process rows: one core, XLA intra-op threads 1. '2 processes': two concurrent single-core copies,",
              "half of the cases each, throughputs summed (how `tignn generate --worker K/2` runs). × columns: ratio",
              "against the named variant at the same batch, measured in this run.", "",
+             "Two cores in one process: splitting the cases over two host devices with `jax.shard_map`",
+             "(`XLA_FLAGS=--xla_force_host_platform_device_count=2`) hung in the XLA CPU runtime (jax 0.10.2; a",
+             "trivial shard_map ran, the solver's nested checkpointed scans did not return within 120 s at 5",
+             "sub-steps), so the second core is used by a second process.", "",
              "| scene | elements | variant | processes | batch | µs / sub-step | s / simulated s | element-sub-steps / s | × vmap | × naive |",
              "|---|---|---|---|---|---|---|---|---|---|"]
     fmt = lambda v: "" if v is None else f"{v:.1f}"
