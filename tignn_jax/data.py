@@ -81,6 +81,42 @@ def load(path: str | Path) -> Dataset:
                    dt=float(raw["dt"]), sim_id=sim_id, splits=splits)
 
 
+def concatenate(*sets: Dataset) -> Dataset:
+    """One data set from several on the same mesh: cases stacked in order, the sim ids of each later set shifted
+    past the largest id so far (so ids stay unique), and each split the union of the sets' splits.
+
+    Raises ValueError naming the first field (q0, edges, node_type, dt) in which a set differs from the first.
+    """
+    if not sets:
+        raise ValueError("concatenate needs at least one data set")
+    first = sets[0]
+    for k, d in enumerate(sets[1:], 1):
+        for name in ("q0", "edges", "node_type"):
+            a, b = getattr(first, name), getattr(d, name)
+            if a.shape != b.shape or not np.array_equal(a, b):
+                raise ValueError(f"data set {k} has a different {name} from data set 0 (not the same mesh)")
+        if d.dt != first.dt:
+            raise ValueError(f"data set {k} has dt = {d.dt}, data set 0 has dt = {first.dt}")
+    ids, splits, offset = [], {}, 0
+    for d in sets:
+        ids.append(d.sim_id + offset)
+        for name, members in d.splits.items():
+            splits.setdefault(name, []).append(np.asarray(members, np.int32) + offset)
+        offset = int(max(offset, (d.sim_id + offset).max()))
+    return first._replace(z=np.concatenate([d.z for d in sets]), f=np.concatenate([d.f for d in sets]),
+                          sim_id=np.concatenate(ids).astype(np.int32),
+                          splits={k: np.concatenate(v) for k, v in splits.items()})
+
+
+def save(data: Dataset, path: str | Path, metadata: str = "") -> Path:
+    """Write a data set as one ``.npz`` in the contract's keys (what `load` reads)."""
+    path = Path(path)
+    np.savez(path, q0=data.q0, edges=data.edges, node_type=data.node_type, z=data.z, f=data.f,
+             dt=np.float64(data.dt), sim_id=data.sim_id, metadata=np.array(metadata),
+             **{f"split_{k}": v for k, v in data.splits.items()})
+    return path
+
+
 def split_rows(data: Dataset, split: str | list[int] | np.ndarray) -> np.ndarray:
     """Row indices (0-based, into ``data.z``) of a named split (``"train"``, ``"val"``, ``"test"``, ``"all"``)
     or of an explicit list of 1-based sim ids."""
