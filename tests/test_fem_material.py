@@ -205,3 +205,27 @@ def test_held_step_strain_relaxes_deviatoric_stress_as_g_R(cell_type):
     g_R = np.asarray(fem.relaxation_modulus(m, np.asarray(times) - h / 2))
     np.testing.assert_allclose(ratios, g_R, atol=1e-3)
     assert ratios[-1] < 0.3  # it really relaxed towards g∞ = 0.21
+
+
+@pytest.mark.parametrize("cell_type", ["hexahedron", "tetra"])
+def test_float32_stress_of_a_small_strain_far_from_the_origin(cell_type):
+    """F is built from displacements, so float32 keeps a small strain accurate however large the coordinates:
+    a 1e-4 stretch of a unit element placed 1000 units from the origin (positions would lose F − I entirely to
+    cancellation: eps32 · 1000 ≈ 1e-4) gives the closed-form Cauchy stress to 5e-3 in float32 (what is left is
+    J − 1 ≈ 1e-6 formed from F ≈ I: ~1e-7 absolute, times K = 2e7)."""
+    c10, c01, d1 = MATERIALS["paper_beam"]
+    m = fem.mooney_rivlin(c10, c01, d1)
+    pts, cells = fem.box_hex_mesh((1.0, 1.0, 1.0), (1, 1, 1), origin=(1000.0, 1000.0, 1000.0))
+    if cell_type == "tetra":
+        cells = fem.hex_to_tet(cells)
+    prob = fem.setup(pts, cells, material=m, frame_dt=1.0, n_frames=1, n_sub=1)
+    F = uniaxial_F(c10, c01, d1, 1.0 + 1e-4)
+    ref = principal_cauchy(c10, c01, d1, np.diag(F))
+    u = jnp.asarray((pts - pts.mean(0)) @ (F - np.eye(3)).T, jnp.float32)
+    arr = jax.tree_util.tree_map(lambda a: a.astype(jnp.float32) if jnp.issubdtype(a.dtype, jnp.floating) else a,
+                                 prob.arrays)
+    m32 = jax.tree_util.tree_map(lambda a: jnp.asarray(a, jnp.float32), m)
+    sig = np.asarray(solver._element_stress(arr, m32, u, solver._zero_visco(arr, prob.config), prob.config))
+    assert sig.dtype == np.float32
+    np.testing.assert_allclose(sig[:, 0], ref[0], rtol=5e-3)
+    np.testing.assert_allclose(sig[:, 1:3], 0.0, atol=5e-3 * abs(ref[0]))
