@@ -145,6 +145,9 @@ def main(argv=None):
     ap.add_argument("--naive-batches", default="1,16")
     ap.add_argument("--two-process-batches", default="32,64")
     ap.add_argument("--scenes", default="beam,bunny")
+    ap.add_argument("--bunny-batches", default="1,16",
+                    help="batches for the bunny (its vmap rows at 32+ cases take minutes each)")
+    ap.add_argument("--bunny-two-process-batches", default="32")
     ap.add_argument("--out", default=str(RESULTS))
     ap.add_argument("--child", nargs=3, metavar=("SCENE", "BATCH", "CORE"), help=argparse.SUPPRESS)
     ap.add_argument("--sync", help=argparse.SUPPRESS)
@@ -171,11 +174,13 @@ def main(argv=None):
         h = problem.config.frame_dt / problem.config.n_sub
         for variant in ("trailing", "vmap", "naive"):
             fn = substep_runner(problem, scene.material, args.substeps, variant)
-            for b in (naive_batches if variant == "naive" else batches):
+            scene_batches = batches if name == "beam" else [int(b) for b in args.bunny_batches.split(",")]
+            for b in (naive_batches if variant == "naive" else scene_batches):
                 if variant == "trailing" and b == 1:
                     continue   # one case runs the unbatched solver, the "vmap" row at batch 1
                 add(scene, n_el, variant, b, measure(fn, initial(scene, b, variant), args.repeats) / args.substeps, h)
-        for b in [int(b) for b in args.two_process_batches.split(",") if b]:
+        two = args.two_process_batches if name == "beam" else args.bunny_two_process_batches
+        for b in [int(b) for b in two.split(",") if b]:
             per = two_processes(name, b, args.substeps, args.repeats)
             # throughput of the pair = sum of each copy's throughput; report it as an equivalent time per sub-step
             rate = sum((b // 2) * n_el / t for t in per)
