@@ -635,14 +635,15 @@ def report(result, widths, passes) -> str:
         cells = [f"{grid[f'{h}x{p}']['p50_ms']:.2f}" + ("*" if (h, p) in TRAINED else "") for p in passes]
         lines.append(f"| {h} | " + " | ".join(cells) + " |")
     plan = result.get("train_plan")
+    shipped_epochs = next((p.get("epochs") for p in result["points"] if p["name"] == SHIPPED), None)
     lines += ["", "\\* trained (errors in the table above); the other grid points have a time only."]
     if plan:
         lines += ["", f"Equal training budget: every trained size ran {plan['epochs']} epochs of the shipped recipe "
                   f"(`train.CONFIGS['beam']`, batch 2, {plan['steps_per_epoch']} steps per epoch, seed 0, cosine "
                   f"schedule over those epochs, best val epoch kept), chosen from the measured per-step training "
                   f"time (s: {json.dumps(plan['train_step_s'])}, load average {plan['load_average_1m']}) to fit "
-                  f"{plan['budget_minutes']:g} minutes on one core. The shipped model had 20 epochs: a longer "
-                  "budget than the grid, so its advantage in error is partly budget, not size."]
+                  f"{plan['budget_minutes']:g} minutes on one core. The shipped model had {shipped_epochs} epochs: "
+                  "a longer budget than the grid, so its advantage in error is partly budget, not size."]
     lines += ["", "Not measured: other integrators. Only forward Euler is trained, and a model must be rolled out "
               "with the integrator it was trained with, so another integrator would need its own training run.", "",
               "FEM variants: mass scaling multiplies the density (the stable sub-step grows with √factor, the "
