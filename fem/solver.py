@@ -488,12 +488,11 @@ def _internal(arr: Arrays, m: Material, hg, u, visco, cfg: Config, h):
         if cfg.n_prony:
             HQ, Q0_prev = visco[2], visco[3]
             Q0 = _sum_over(lambda j: dk[:, j] * g[None, j], 12)
-            per_term = lambda c: c.reshape((-1,) + (1,) * (HQ.ndim - 1))
-            HQ = per_term(decay) * HQ + per_term(coef) * (Q0 - Q0_prev)[None]
+            HQ = _per_term(decay, HQ) * HQ + _per_term(coef, HQ) * (Q0 - Q0_prev)[None]
             w = m.g / jnp.sum(m.g)
-            Q = Q + jnp.sum(per_term(w) * HQ, axis=0)
+            Q = Q + jnp.sum(_per_term(w, HQ) * HQ, axis=0)
             dkinv_hq = jnp.sum(dk_inv[None] * HQ[:, None], axis=2)       # [P, 12, K, *B]
-            diss = diss + jnp.sum(per_term(w / m.tau) * HQ * dkinv_hq, axis=(0, 1, 2))
+            diss = diss + jnp.sum(_per_term(w / m.tau, HQ) * HQ * dkinv_hq, axis=(0, 1, 2))
             new_visco = new_visco + (HQ, Q0)
         Q = Q.reshape((4, 3) + Q.shape[1:])
         RQ = _sum_over(lambda j: R[None, :, j] * Q[:, j, None], 3)           # [4, 3, K] = R Q_m
@@ -532,17 +531,21 @@ def _element_mean(cells, nodal):
     return (0.25 * rows[cells].sum(axis=1)).T.reshape(lead + (-1,))
 
 
+def _per_term(c, history):
+    """Per-Prony-term constants c [P] shaped to broadcast against a history [P, ...] (any trailing axes)."""
+    return c.reshape((-1,) + (1,) * (history.ndim - 1))
+
+
 def _prony_step(m: Material, S0, hist, h):
     """Isochoric PK2 g∞ S⁰ + Σ ḡ_i H_i with the history advanced over h, the new history (H, S⁰), and the
     dissipation rate density Σ_i |ḡ_i H_i|²/(2 ḡ_i μ0 τ_i) [..]; S0 [3, 3, n]."""
     decay = jnp.exp(-h / m.tau)
     coef = m.tau / h * (1.0 - decay)
     H, S0_prev = hist
-    per_term = lambda c: c.reshape((-1,) + (1,) * S0.ndim)
-    H = per_term(decay) * H + per_term(coef) * (S0 - S0_prev)[None]
-    S = (1.0 - jnp.sum(m.g)) * S0 + jnp.sum(per_term(m.g) * H, axis=0)
+    H = _per_term(decay, H) * H + _per_term(coef, H) * (S0 - S0_prev)[None]
+    S = (1.0 - jnp.sum(m.g)) * S0 + jnp.sum(_per_term(m.g, H) * H, axis=0)
     rate = m.g / (2.0 * shear_modulus(m) * m.tau)
-    return S, (H, S0), jnp.sum(per_term(rate) * H * H, axis=(0, 1, 2))
+    return S, (H, S0), jnp.sum(_per_term(rate, H) * H * H, axis=(0, 1, 2))
 
 
 def _nodal_tet_stress(arr: Arrays, m: Material, F, visco, cfg: Config, h):
@@ -726,8 +729,8 @@ def _internal_fn(arr: Arrays, m: Material, hg, cfg: Config, h, batched: bool):
     `jax.vmap` over that axis."""
     if batched and cfg.cell_type == "hexahedron":
         arr_hot, hg_hot = arr._replace(geo=_trailing(arr.geo)), _trailing(hg)
-        return lambda x, visco: _internal(arr_hot, m, hg_hot, x, visco, cfg, h)
-    fn = lambda x, visco: _internal(arr, m, hg, x, visco, cfg, h)
+        return lambda u, visco: _internal(arr_hot, m, hg_hot, u, visco, cfg, h)
+    fn = lambda u, visco: _internal(arr, m, hg, u, visco, cfg, h)
     return jax.vmap(fn, in_axes=(-1, -1), out_axes=-1) if batched else fn
 
 
