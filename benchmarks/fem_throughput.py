@@ -50,7 +50,7 @@ VARIANTS = {"trailing": "trailing batch (solver)", "vmap": "vmap (cases first)",
 
 
 def substep_runner(problem, material, n_steps, variant="trailing"):
-    """A jitted function of initial positions running n_steps explicit sub-steps for a batch of cases.
+    """A jitted function of initial displacements running n_steps explicit sub-steps for a batch of cases.
 
     Input: initial displacements u = x − X, [N, 3, B] for "trailing", [B, N, 3] otherwise.
     """
@@ -61,33 +61,33 @@ def substep_runner(problem, material, n_steps, variant="trailing"):
     h = cfg.frame_dt / cfg.n_sub
     energy = lambda u: fem.internal_energy(problem, material, arr.points + u)   # the state is u = x − X
 
-    def scan(x0, force, visco0, inv_m, free):
+    def scan(u0, force, visco0, inv_m, free):
         def step(c, _):
-            x, v, a, visco = c
+            u, v, a, visco = c
             v = v + 0.5 * h * a
-            x = x + h * v
-            f, visco = force(x, visco)
+            u = u + h * v
+            f, visco = force(u, visco)
             a = -f * inv_m
-            return (x, v + 0.5 * h * a, a, visco), None
-        v0 = jnp.zeros_like(x0).at[:, 1].set(1.0) * free   # x0: initial displacements
-        c, _ = jax.lax.scan(step, (x0, v0, jnp.zeros_like(x0), visco0), None, length=n_steps)
+            return (u, v + 0.5 * h * a, a, visco), None
+        v0 = jnp.zeros_like(u0).at[:, 1].set(1.0) * free
+        c, _ = jax.lax.scan(step, (u0, v0, jnp.zeros_like(u0), visco0), None, length=n_steps)
         return c[0]
 
     if variant == "trailing":
         internal = solver._internal_fn(arr, material, hg, cfg, h, batched=True)
 
-        def run(x0):
-            visco0 = solver._zero_visco(arr, cfg, x0.shape[-1:])
-            return scan(x0, lambda x, vis: internal(x, vis)[:2], visco0, inv_m[..., None], arr.free[..., None])
+        def run(u0):
+            visco0 = solver._zero_visco(arr, cfg, u0.shape[-1:])
+            return scan(u0, lambda u, vis: internal(u, vis)[:2], visco0, inv_m[..., None], arr.free[..., None])
         return jax.jit(run)
 
-    def force(x, visco):
+    def force(u, visco):
         if variant == "naive":
-            return jax.grad(energy)(x), visco
-        f, visco, *_ = solver._internal(arr, material, hg, x, visco, cfg, h)
+            return jax.grad(energy)(u), visco
+        f, visco, *_ = solver._internal(arr, material, hg, u, visco, cfg, h)
         return f, visco
 
-    return jax.jit(jax.vmap(lambda x0: scan(x0, force, solver._zero_visco(arr, cfg), inv_m, arr.free)))
+    return jax.jit(jax.vmap(lambda u0: scan(u0, force, solver._zero_visco(arr, cfg), inv_m, arr.free)))
 
 
 def initial(scene, b, variant):

@@ -814,22 +814,21 @@ def _simulate_impl(arr: Arrays, m: Material, loads: Loads, cfg: Config, batched:
                             jnp.arange(cfg.n_sub, dtype=mass.dtype))
         if cfg.contact_capacity:
             overflow = overflow | pairs_missed(pairs, X + s.u)
-        return (s, overflow), outputs(s.u, s.v, s.visco, s.w_visc, s.w_damp, s.w_ext)
+        return (s, overflow), outputs(s)
 
-    def _outputs(u, v, visco, w_visc, w_damp, w_ext):
-        x = arr.points.astype(u.dtype) + u
-        sig = _nodal_stress(arr, _element_stress(arr, m, u, visco, cfg))
-        kin = 0.5 * jnp.sum(mass[:, None] * v ** 2)
-        stored = _stored_energy(arr, m, u, visco, hg, cfg)
+    def _outputs(s: State):
+        x = arr.points.astype(s.u.dtype) + s.u
+        sig = _nodal_stress(arr, _element_stress(arr, m, s.u, s.visco, cfg))
+        kin = 0.5 * jnp.sum(mass[:, None] * s.v ** 2)
+        stored = _stored_energy(arr, m, s.u, s.visco, hg, cfg)
         if cfg.contact_capacity:
             stored = stored + _contact_energy(arr, x)
-        return x, v, sig, Energies(kin, stored, w_visc, w_damp, w_ext)
+        return x, s.v, sig, Energies(kin, stored, s.w_visc, s.w_damp, s.w_ext)
 
-    outputs = over_cases(_outputs, -1, 0)     # per frame, case axis first
+    outputs = over_cases(_outputs, -1, 0)     # per frame, case axis first (every State leaf has it last)
     body = jax.checkpoint(frame_fn) if cfg.checkpoint else frame_fn
     (state, overflow), outs = jax.lax.scan(body, (state0, jnp.zeros(bshape, bool)), jnp.arange(cfg.n_frames))
-    s0 = state0
-    first = outputs(s0.u, s0.v, s0.visco, s0.w_visc, s0.w_damp, s0.w_ext)
+    first = outputs(state0)
     stack = lambda a, b: jnp.concatenate([a[None], b])
     q, v, sig, en = jax.tree_util.tree_map(stack, first, outs)
     t = jnp.arange(cfg.n_frames + 1) * cfg.frame_dt
