@@ -136,3 +136,44 @@ def test_concatenate_refuses_a_different_mesh():
     b = D.synthetic_beam(nx=5, cases=2, frames=2)
     with pytest.raises(ValueError, match="q0"):
         D.concatenate(a, b)
+
+
+def test_case_weights_equalise_relative_errors(toy):
+    # Power 1: a case with half the response gets 4x the weight, so weight * scale^2 is the same for every case.
+    rows = D.split_rows(toy, "train")
+    data = toy._replace(z=toy.z.copy())
+    data.z[rows[0], ..., :3] = data.q0 + 0.5 * (toy.z[rows[0], ..., :3] - data.q0)
+    data.z[rows[0], ..., 3:] *= 0.5
+    w = T.case_weights(data, rows, 1.0)
+    assert w.shape == (len(rows), 12)
+    np.testing.assert_allclose(w.mean(axis=0), 1.0, rtol=1e-6)
+    free = data.node_type == 0
+    z = data.z[rows, 1:].astype(np.float64)
+    ms_u = np.mean((z[:, :, free, :3] - data.q0[free]) ** 2, axis=(1, 2, 3))
+    ms_s = np.mean(z[..., 6:] ** 2, axis=(1, 2, 3))
+    np.testing.assert_allclose(w[:, 0] * ms_u, (w[:, 0] * ms_u).mean(), rtol=1e-5)
+    np.testing.assert_allclose(w[:, 6] * ms_s, (w[:, 6] * ms_s).mean(), rtol=1e-5)
+    before = T.case_weights(toy, rows, 1.0)
+    np.testing.assert_allclose(w[0] / w[1], 4 * before[0] / before[1], rtol=1e-5)
+    np.testing.assert_array_equal(T.case_weights(data, rows, 0.0), 1.0)
+    with pytest.raises(ValueError, match="case_weight"):
+        T.case_weights(data, rows, -1.0)
+
+
+def test_warm_start_begins_from_the_parent_and_records_it(toy, tmp_path):
+    parent = T.train(toy, TINY, tmp_path / "parent", **QUIET)
+    api.save_model(parent, tmp_path / "parent" / "best" / "model.npz")  # what a run with a val split writes
+    child = T.train(toy, TINY._replace(case_weight=1.0), tmp_path / "child", stop_after_epoch=0,
+                    init_from=tmp_path / "parent", **QUIET)
+    # stop_after_epoch=0: no step taken, so the child's weights are the parent's final weights ...
+    np.testing.assert_array_equal(_flat(parent), _flat(child))
+    cfg = json.loads((tmp_path / "child" / "config.json").read_text())
+    assert cfg["init_from"].endswith("model.npz") and cfg["case_weight"] == 1.0
+    # ... and training from them with case weights runs and changes them.
+    trained = T.train(toy, TINY._replace(case_weight=1.0), tmp_path / "child2", init_from=tmp_path / "parent",
+                      **QUIET)
+    assert np.all(np.isfinite(_flat(trained))) and not np.array_equal(_flat(trained), _flat(parent))
+    with pytest.raises(ValueError, match="architecture differs"):
+        T.train(toy, TINY._replace(hidden=12), tmp_path / "bad", init_from=tmp_path / "parent", **QUIET)
+    with pytest.raises(ValueError, match="no model file"):
+        T.train(toy, TINY, tmp_path / "bad2", init_from=tmp_path / "nowhere", **QUIET)

@@ -16,6 +16,8 @@ def register(subparsers) -> None:
     p.add_argument("--run-dir", required=True, help="folder for checkpoints, metrics.jsonl and best/model.npz")
     p.add_argument("--time-limit", type=float, default=None, help="stop (with a checkpoint) after this many s")
     p.add_argument("--no-progress", action="store_true", help="no progress bars")
+    p.add_argument("--init-from", default=None, metavar="MODEL_OR_RUN",
+                   help="warm start from a model.npz or a run folder's best model (same architecture)")
     p.set_defaults(func=_train)
 
     p = subparsers.add_parser("rollout", help="predict states of data-set cases from their first state and forces")
@@ -50,7 +52,7 @@ def _train(args) -> int:
     data = D.load(args.data)
     T.train(data, cfg, args.run_dir, train_split=D.parse_split(args.split),
             val_split=D.parse_split(args.val) if args.val else None, time_limit_s=args.time_limit,
-            progress=not args.no_progress)
+            progress=not args.no_progress, init_from=args.init_from)
     print(f"run folder: {Path(args.run_dir).resolve()}")
     return 0
 

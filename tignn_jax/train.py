@@ -6,6 +6,13 @@ excluded), plus ``deg_weight`` times the squared degeneracy residuals L∇S and 
 noise of ``noise`` × increment std is added to the input state and the target increment is corrected for it,
 so the model learns to pull a perturbed state back (as in the paper and MeshGraphNets).
 
+The evaluation metric is a *relative* error per case, but the loss above is in global units, so cases with a
+small response (a load near the clamp) weigh little in it. ``case_weight`` = p > 0 multiplies each case's loss
+terms by (s̄ / s_c)^(2p) per variable, where s_c is the case's RMS displacement, velocity or stress and s̄ their
+mean over the training cases (weights renormalised to mean 1): p = 1 makes the loss an average of relative
+squared errors. A run can start from a trained model's weights (``init_from``, a warm restart with a fresh
+schedule); its config.json records the parent and the parent's training time.
+
 Batches of same-mesh graphs are vmapped, sharded along the batch axis over all local devices with
 ``jax.sharding`` (parameters replicated; XLA inserts the gradient all-reduce). Orbax checkpoints at epoch
 boundaries hold the step, weights and optimiser state; batch order and noise are functions of (seed, epoch,
@@ -49,6 +56,7 @@ class TrainConfig(NamedTuple):
     warmup_steps: int = 100
     noise: float = 0.2
     deg_weight: float = 1.0
+    case_weight: float = 0.0
     seed: int = 0
     eval_every: int = 2
     ckpt_every: int = 2
@@ -68,10 +76,32 @@ CONFIGS = {
 
 
 class Batch(NamedTuple):
-    """Stacked transitions: z, z_next [B,N,12]; f [B,N,3]."""
+    """Stacked transitions: z, z_next [B,N,12]; f [B,N,3]; optional per-sample feature weights w [B,12]."""
     z: jax.Array
     f: jax.Array
     z_next: jax.Array
+    w: jax.Array | None = None
+
+
+def case_weights(data: D.Dataset, rows, power: float) -> np.ndarray:
+    """Loss weights [len(rows), 12] per case and state feature: (mean scale / case scale)^(2 power), mean 1.
+
+    Scales per case: RMS over frames 1.. of the free nodes' displacement q - q0 (for the q features) and
+    velocity, and of all nodes' stress."""
+    rows = np.asarray(rows)
+    if power < 0 or not np.isfinite(power):
+        raise ValueError(f"case_weight must be a finite number >= 0, got {power}")
+    if power == 0:
+        return np.ones((len(rows), M.STATE_DIM), np.float32)
+    z = data.z[rows, 1:].astype(np.float64)
+    free = data.node_type == 0
+    scales = np.stack([np.sqrt(np.mean((z[:, :, free, :3] - data.q0[free]) ** 2, axis=(1, 2, 3))),
+                       np.sqrt(np.mean(z[:, :, free, 3:6] ** 2, axis=(1, 2, 3))),
+                       np.sqrt(np.mean(z[..., 6:] ** 2, axis=(1, 2, 3)))], axis=1)  # [C, 3]
+    scales = np.maximum(scales, 1e-3 * scales.max(axis=0, keepdims=True) + 1e-30)
+    w = (scales.mean(axis=0) / scales) ** (2 * power)
+    w = w / w.mean(axis=0)
+    return np.repeat(w, [3, 3, 6], axis=1).astype(np.float32)
 
 
 def make_optimizer(cfg: TrainConfig, total_steps: int) -> optax.GradientTransformation:
@@ -91,6 +121,8 @@ def loss_fn(weights, batch: Batch, key, norm, cfg: TrainConfig, node_type, topo)
     rt = jax.vmap(lambda z, f: M.rates(weights, cfg.model, norm, z, f, node_type, topo))(z_in, batch.f)
     to_unit = s / c
     sq = ((rt.dw - target) * to_unit) ** 2 * keep
+    if batch.w is not None:
+        sq = sq * batch.w[:, None, :]
     denom = batch.z.shape[0] * jnp.sum(keep, axis=0)
     per_feature = jnp.sum(sq, axis=(0, 1)) / denom
     data_loss = jnp.sum(sq) / jnp.sum(denom)
@@ -126,13 +158,15 @@ def data_mesh(devices=None) -> Mesh:
 
 def train(data: D.Dataset, cfg: TrainConfig, run_dir: str | Path, train_split="train", val_split="val",
           stop_after_epoch: int | None = None, time_limit_s: float | None = None, devices=None,
-          progress: bool = True, log=print) -> dict:
+          progress: bool = True, log=print, init_from: str | Path | None = None) -> dict:
     """Train (or resume from ``run_dir``'s latest checkpoint) and return the final model params.
 
     Writes ``run_dir``/metrics.jsonl (one line per epoch), checkpoints/ (orbax), best/model.npz (lowest
     validation score = mean rollout error of v + sigma + u over the val split) and config.json.
     ``stop_after_epoch``/``time_limit_s`` end the run early at an epoch boundary (with a checkpoint), as an
-    interruption would; the schedule still spans ``cfg.epochs``."""
+    interruption would; the schedule still spans ``cfg.epochs``. ``init_from`` (a model.npz or a run folder
+    with best/model.npz) starts from that model's weights instead of a random draw; its architecture must
+    match ``cfg``."""
     import orbax.checkpoint as ocp
     from tqdm import tqdm
 
@@ -140,7 +174,11 @@ def train(data: D.Dataset, cfg: TrainConfig, run_dir: str | Path, train_split="t
 
     run_dir = Path(run_dir).resolve()
     run_dir.mkdir(parents=True, exist_ok=True)
-    (run_dir / "config.json").write_text(json.dumps(cfg._asdict(), indent=1))
+    parent = _parent(init_from, cfg) if init_from is not None else None
+    record_cfg = cfg._asdict()
+    if parent is not None:
+        record_cfg.update(init_from=parent["path"], init_elapsed_s=parent["elapsed_s"])
+    (run_dir / "config.json").write_text(json.dumps(record_cfg, indent=1))
     rows = D.split_rows(data, train_split)
     val_rows = D.split_rows(data, val_split) if val_split else None
     norm_np = D.normalization(data, rows)
@@ -164,6 +202,8 @@ def train(data: D.Dataset, cfg: TrainConfig, run_dir: str | Path, train_split="t
 
     weights = M.init_weights(jax.random.PRNGKey(cfg.seed), cfg.model, norm, jnp.asarray(data.z[rows[0], 0]),
                              jnp.asarray(data.f[rows[0], 0]), node_type, topo)
+    if parent is not None:
+        weights = jax.tree.map(lambda a, b: jnp.asarray(b, a.dtype), weights, parent["weights"])
     state = {"step": jnp.zeros((), jnp.int32), "weights": weights, "opt_state": optimizer.init(weights)}
     manager = ocp.CheckpointManager(run_dir / "checkpoints", options=ocp.CheckpointManagerOptions(
         max_to_keep=2, enable_async_checkpointing=False))
@@ -180,6 +220,7 @@ def train(data: D.Dataset, cfg: TrainConfig, run_dir: str | Path, train_split="t
     train_step = make_train_step(cfg, total_steps, norm, node_type, topo)
 
     z_train, f_train = data.z[rows], data.f[rows]
+    w_train = case_weights(data, rows, cfg.case_weight) if cfg.case_weight > 0 else None
     last_epoch = cfg.epochs if stop_after_epoch is None else min(cfg.epochs, stop_after_epoch)
     t_start = time.time()
     elapsed_before = _elapsed(run_dir)
@@ -192,7 +233,8 @@ def train(data: D.Dataset, cfg: TrainConfig, run_dir: str | Path, train_split="t
         for b in bar:
             idx = perm[b * bs:(b + 1) * bs]
             r, k = idx // frames, idx % frames
-            batch = jax.device_put(Batch(z_train[r, k], f_train[r, k], z_train[r, k + 1]), batch_sharding)
+            batch = Batch(z_train[r, k], f_train[r, k], z_train[r, k + 1], None if w_train is None else w_train[r])
+            batch = jax.device_put(batch, batch_sharding)
             state, metrics = train_step(state, batch)
             for name, val in metrics.items():
                 sums[name] = sums.get(name, 0.0) + val
@@ -222,6 +264,24 @@ def train(data: D.Dataset, cfg: TrainConfig, run_dir: str | Path, train_split="t
     manager.close()
     return api.make_params(cfg.model, norm_np, jax.device_get(state["weights"]), data.q0, data.edges,
                            data.node_type)
+
+
+def _parent(init_from, cfg: TrainConfig) -> dict:
+    """Weights of the model a warm-started run begins from, checked against ``cfg``'s architecture."""
+    path = Path(init_from)
+    if path.is_dir():
+        path = path / "best" / "model.npz"
+    if not path.exists():
+        raise ValueError(f"init_from {str(init_from)!r}: no model file at {path}")
+    params = api.load_model(path)
+    mine = cfg.model._asdict()
+    theirs = {k: params["config"].get(k) for k in mine}
+    if theirs != mine:
+        diff = {k: (theirs[k], mine[k]) for k in mine if theirs[k] != mine[k]}
+        raise ValueError(f"init_from {str(init_from)!r}: architecture differs from the config (parent, config): {diff}")
+    run = path.parent.parent
+    elapsed = _elapsed(run) if (run / "metrics.jsonl").exists() else float("nan")
+    return {"path": str(path.resolve()), "weights": params["weights"], "elapsed_s": elapsed}
 
 
 def _truncate_log(path: Path, epoch: int) -> None:
