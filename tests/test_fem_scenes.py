@@ -205,3 +205,12 @@ def test_generated_data_carry_train_val_test_splits():
     other = default_splits(np.arange(1, 101))
     assert [len(other[k]) for k in ("train", "val", "test")] == [80, 10, 10]
     assert sorted(np.concatenate(list(other.values())).tolist()) == list(range(1, 101))
+
+
+def test_generate_rejects_a_bad_damping_before_running(tmp_path):
+    from tignn_jax import cli
+
+    for bad in ("-1", "nan"):
+        with pytest.raises(SystemExit, match="--damping must be a finite number >= 0"):
+            cli.main(["generate", "beam-reference", "--out", str(tmp_path / "x.npz"), "--damping", bad])
+    assert not (tmp_path / "x.npz").exists()
