@@ -131,6 +131,19 @@ def test_concatenated_data_sets_keep_unique_ids_and_splits(tmp_path):
     assert {k: v.tolist() for k, v in back.splits.items()} == {k: v.tolist() for k, v in m.splits.items()}
 
 
+def test_from_frame_keeps_the_later_transitions_aligned():
+    d = D.synthetic_beam(cases=2, frames=5, seed=0)
+    later = D.from_frame(d, 2)
+    assert later.z.shape[1] == 4 and later.f.shape[1] == 3
+    # transition k of the sliced set is transition k + 2 of the original: same state, force and next state
+    np.testing.assert_array_equal(later.z[:, 0], d.z[:, 2])
+    np.testing.assert_array_equal(later.f[:, 1], d.f[:, 3])
+    np.testing.assert_array_equal(later.z[:, -1], d.z[:, -1])
+    for bad in (-1, 5, 1.5):
+        with pytest.raises(ValueError, match="start must be an integer frame in 0..4"):
+            D.from_frame(d, bad)
+
+
 def test_concatenate_refuses_a_different_mesh():
     a = D.synthetic_beam(nx=4, cases=2, frames=2)
     b = D.synthetic_beam(nx=5, cases=2, frames=2)

@@ -108,6 +108,18 @@ def concatenate(*sets: Dataset) -> Dataset:
                           splits={k: np.concatenate(v) for k, v in splits.items()})
 
 
+def from_frame(data: Dataset, start: int) -> Dataset:
+    """The same cases observed from frame ``start`` on: z[:, start:], f[:, start:] (T - start frames left).
+
+    For data whose first frames hold a start-up transient the model is not meant to learn (a body at rest set
+    in motion by a ramp from zero rings at the frame rate for a few frames); the state at ``start`` becomes
+    each case's initial state. Raises ValueError unless 0 <= start < T."""
+    frames = data.f.shape[1]
+    if not (isinstance(start, (int, np.integer)) and 0 <= start < frames):
+        raise ValueError(f"start must be an integer frame in 0..{frames - 1}, got {start!r}")
+    return data._replace(z=data.z[:, start:], f=data.f[:, start:])
+
+
 def save(data: Dataset, path: str | Path, metadata: str = "") -> Path:
     """Write a data set as one ``.npz`` in the contract's keys (what `load` reads)."""
     path = Path(path)
