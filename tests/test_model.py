@@ -96,6 +96,34 @@ def test_rates_residuals_equal_operators_times_gradients(toy):
     np.testing.assert_allclose(np.asarray(rt.dw)[free], dw[free], rtol=1e-4, atol=1e-6 * np.abs(dw).max())
 
 
+def test_exact_degeneracy_projection_meets_generic_to_float_precision(toy):
+    # With exact_degeneracy the same weights give L'∇S = M'∇E = 0 to rounding, L' skew and M' PSD, dw equal to
+    # the projected operators times the gradients, and per-node entropy production ∇Sᵀ M' ∇S >= 0.
+    cfg = CONFIG._replace(exact_degeneracy=True)
+    args = (toy["weights"], cfg, toy["norm"], toy["z"], toy["f"], toy["nt"], toy["topo"])
+    plain = M.rates(*_args(toy))
+    rt = M.rates(*args)
+    big_l, big_m = M.operators(*args)
+    size_l = float(jnp.max(jnp.abs(big_l))) * float(jnp.max(jnp.abs(rt.grad_s)))
+    size_m = float(jnp.max(jnp.abs(big_m))) * float(jnp.max(jnp.abs(rt.grad_e)))
+    assert float(jnp.max(jnp.abs(plain.deg_l))) > 1e-3 * size_l       # the unprojected model is not degenerate
+    assert float(jnp.max(jnp.abs(rt.deg_l))) <= 1e-5 * size_l
+    assert float(jnp.max(jnp.abs(rt.deg_m))) <= 1e-5 * size_m
+    assert float(jnp.max(jnp.abs(jnp.einsum("nij,nj->ni", big_l, rt.grad_s)))) <= 1e-5 * size_l
+    assert float(jnp.max(jnp.abs(big_l + jnp.swapaxes(big_l, 1, 2)))) <= 1e-6 * float(jnp.max(jnp.abs(big_l)))
+    eig = np.linalg.eigvalsh(np.asarray(big_m, np.float64))
+    assert eig.min() >= -1e-6 * float(jnp.max(jnp.abs(big_m)))
+    free = np.asarray(toy["nt"]) == 0
+    dw = np.asarray(jnp.einsum("nij,nj->ni", big_l, rt.grad_e) + jnp.einsum("nij,nj->ni", big_m, rt.grad_s))
+    np.testing.assert_allclose(np.asarray(rt.dw)[free], dw[free], rtol=1e-4, atol=1e-5 * np.abs(dw).max())
+    production = np.einsum("ni,nij,nj->n", np.asarray(rt.grad_s, np.float64), np.asarray(big_m, np.float64),
+                           np.asarray(rt.grad_s, np.float64))
+    assert production.min() >= -1e-6 * np.abs(production).max()
+    # per node, the increment's entropy change equals that production (the L' part is orthogonal to ∇S)
+    per_node = np.sum(np.asarray(rt.grad_s) * dw, axis=1)
+    np.testing.assert_allclose(per_node, production, rtol=1e-3, atol=1e-5 * np.abs(production).max())
+
+
 def test_neighbor_gather_gradient_matches_plain_gather(toy):
     # The slot gather's hand-written transpose (a gather through reverse edges) is its true adjoint.
     topo = toy["topo"]

@@ -40,7 +40,11 @@ class ModelConfig(NamedTuple):
     is a velocity-gradient estimate, what stress rates depend on); edge_strain: add (q_j − q_i) − (X_j − X_i)
     and the change of length; node_position: add the node's displacement q − X and rest position X (the
     model is bound to one mesh anyway; message passing alone only sees differences over a few hops, while the
-    inertia of a body's global modes depends on its displacement field, which is not local)."""
+    inertia of a body's global modes depends on its displacement field, which is not local);
+    exact_degeneracy: apply L and M through per-node projections, L' = P_S L P_S and M' = P_E M P_E with
+    P_g = I − ĝĝᵀ (ĝ = g / |g| for g = ∇S or ∇E at that node), so that L'∇S = 0 and M'∇E = 0 hold exactly
+    instead of only as far as the loss enforces them: then dE = 0 and dS = ∇Sᵀ M' ∇S ≥ 0 per node (before the
+    clamped rows are zeroed). L' stays skew-symmetric and M' symmetric PSD."""
     hidden: int = 32
     mlp_layers: int = 2
     passes: int = 4
@@ -48,6 +52,7 @@ class ModelConfig(NamedTuple):
     edge_velocity: bool = True
     edge_strain: bool = False
     node_position: bool = False
+    exact_degeneracy: bool = False
 
 
 class Rates(NamedTuple):
@@ -74,15 +79,21 @@ def rates(weights, config: ModelConfig, norm: dict, z, f, node_type, topo) -> Ra
     """The GENERIC increment with gradients, degeneracy residuals and entropy production (for training and
     evaluation; inference uses ``step_state``, which skips the residuals)."""
     dw, g_e, g_s, (l_mat, m_mat) = _generic(weights, config, norm, z, f, node_type, topo)
-    deg_l = _apply_l(l_mat, g_s)
-    deg_m = _apply_m(m_mat, g_e)
+    apply_l, apply_m = _appliers(config, g_e, g_s)
+    deg_l = apply_l(l_mat, g_s)
+    deg_m = apply_m(m_mat, g_e)
     return Rates(dw=dw, grad_e=g_e, grad_s=g_s, deg_l=deg_l, deg_m=deg_m, entropy_rate=jnp.sum(g_s * dw))
 
 
 def operators(weights, config: ModelConfig, norm: dict, z, f, node_type, topo):
-    """Per-node L [N,12,12] (skew-symmetric) and M [N,12,12] (symmetric PSD) at state z."""
-    _, _, (l_mat, m_mat) = _potentials_and_grads(weights, config, norm, z, f, node_type, topo)
-    return l_mat - jnp.swapaxes(l_mat, 1, 2), m_mat @ jnp.swapaxes(m_mat, 1, 2)
+    """Per-node L [N,12,12] (skew-symmetric) and M [N,12,12] (symmetric PSD) at state z (projected when
+    ``config.exact_degeneracy``)."""
+    g_e, g_s, (l_mat, m_mat) = _potentials_and_grads(weights, config, norm, z, f, node_type, topo)
+    l_op, m_op = l_mat - jnp.swapaxes(l_mat, 1, 2), m_mat @ jnp.swapaxes(m_mat, 1, 2)
+    if config.exact_degeneracy:
+        p_s, p_e = _projector(g_s), _projector(g_e)
+        l_op, m_op = p_s @ l_op @ p_s, p_e @ m_op @ p_e
+    return l_op, m_op
 
 
 def energy_entropy(weights, config: ModelConfig, norm: dict, z, f, node_type, topo):
@@ -287,7 +298,8 @@ sum_reverse.defvjp(_sum_fwd, _sum_bwd)
 
 def _generic(weights, config, norm, z, f, node_type, topo):
     g_e, g_s, (l_mat, m_mat) = _potentials_and_grads(weights, config, norm, z, f, node_type, topo)
-    dw = _apply_l(l_mat, g_e) + _apply_m(m_mat, g_s)
+    apply_l, apply_m = _appliers(config, g_e, g_s)
+    dw = apply_l(l_mat, g_e) + apply_m(m_mat, g_s)
     clamped = (node_type != 0)[:, None] & (jnp.arange(STATE_DIM) < 6)[None, :]
     dw = jnp.where(clamped, 0.0, dw)
     return dw, g_e, g_s, (l_mat, m_mat)
@@ -325,6 +337,28 @@ def _apply_l(l_mat, g):
 def _apply_m(m_mat, g):
     """m mᵀ g per node."""
     return jnp.einsum("nij,nj->ni", m_mat, jnp.einsum("nji,nj->ni", m_mat, g))
+
+
+_TINY = 1e-30   # keeps ĝ finite where a node's gradient vanishes (the projection is then the identity)
+
+
+def _project(g, x):
+    """(I − ĝĝᵀ) x per node, ĝ = g / |g|: removes from x its component along g."""
+    return x - g * (jnp.sum(g * x, axis=-1, keepdims=True) / (jnp.sum(g * g, axis=-1, keepdims=True) + _TINY))
+
+
+def _projector(g):
+    """Per-node matrices I − ĝĝᵀ [N,12,12]."""
+    outer = g[:, :, None] * g[:, None, :] / (jnp.sum(g * g, axis=-1)[:, None, None] + _TINY)
+    return jnp.eye(g.shape[-1], dtype=g.dtype) - outer
+
+
+def _appliers(config, g_e, g_s):
+    """(l, g) -> L g and (m, g) -> M g, through the degeneracy projections when the config asks for them."""
+    if not config.exact_degeneracy:
+        return _apply_l, _apply_m
+    return (lambda l_mat, g: _project(g_s, _apply_l(l_mat, _project(g_s, g))),
+            lambda m_mat, g: _project(g_e, _apply_m(m_mat, _project(g_e, g))))
 
 
 def _embedding(strict: bool, offset: int) -> np.ndarray:
