@@ -144,6 +144,17 @@ def test_from_frame_keeps_the_later_transitions_aligned():
             D.from_frame(d, bad)
 
 
+def test_select_keeps_the_chosen_cases_and_their_splits():
+    d = D.synthetic_beam(cases=5, frames=2, seed=0)
+    part = D.select(d, [0, 3, 4])
+    np.testing.assert_array_equal(part.z, d.z[[0, 3, 4]])
+    assert part.sim_id.tolist() == d.sim_id[[0, 3, 4]].tolist()
+    for name, ids in part.splits.items():
+        assert set(ids.tolist()) == set(d.splits[name].tolist()) & set(part.sim_id.tolist())
+    with pytest.raises(ValueError, match="rows must be non-empty indices in 0..4"):
+        D.select(d, [5])
+
+
 def test_concatenate_refuses_a_different_mesh():
     a = D.synthetic_beam(nx=4, cases=2, frames=2)
     b = D.synthetic_beam(nx=5, cases=2, frames=2)

@@ -108,6 +108,16 @@ def concatenate(*sets: Dataset) -> Dataset:
                           splits={k: np.concatenate(v) for k, v in splits.items()})
 
 
+def select(data: Dataset, rows) -> Dataset:
+    """The cases at ``rows`` (indices into the case axis), with each split reduced to the kept sim ids."""
+    rows = np.asarray(rows, int).ravel()
+    if rows.size == 0 or rows.min() < 0 or rows.max() >= len(data.sim_id):
+        raise ValueError(f"rows must be non-empty indices in 0..{len(data.sim_id) - 1}, got {rows.tolist()[:10]}")
+    kept = data.sim_id[rows]
+    return data._replace(z=data.z[rows], f=data.f[rows], sim_id=kept,
+                         splits={k: np.asarray(v)[np.isin(v, kept)] for k, v in data.splits.items()})
+
+
 def from_frame(data: Dataset, start: int) -> Dataset:
     """The same cases observed from frame ``start`` on: z[:, start:], f[:, start:] (T - start frames left).
 
