@@ -234,13 +234,16 @@ def test_loader_reads_the_reference_beam():
     assert all(np.all(v > 0) for k, v in norm.items() if k.endswith("std"))
 
 
-def test_shipped_beam_model_loads_with_its_mesh():
-    # The shipped model is small and brings the rest-state graph of the Abaqus beam mesh.
-    path = Path(api.MODELS_DIR) / "beam-abaqus" / "model.npz"
+@pytest.mark.parametrize("name", ["beam-abaqus", "beam"])
+def test_shipped_beam_model_loads_with_its_mesh(name):
+    # The shipped models are small and bring the rest-state graph of the beam mesh (the FEM's beam uses the
+    # reference mesh and numbering).
+    path = Path(api.MODELS_DIR) / name / "model.npz"
     if not path.exists():
-        pytest.skip("no shipped beam-abaqus model in this checkout")
+        pytest.skip(f"no shipped {name} model in this checkout")
     assert path.stat().st_size <= 5 * 2 ** 20
-    params, graph = api.load_pretrained("beam-abaqus")
+    assert (path.parent / "MODEL_CARD.md").exists()
+    params, graph = api.load_pretrained(name)
     assert graph.nodes["z"].shape == (756, 12) and int(np.sum(graph.nodes["node_type"])) == 36
     moved = api.step(params, graph, np.zeros((756, 3), np.float32))
     assert np.all(np.isfinite(np.asarray(moved.nodes["z"])))
