@@ -348,9 +348,8 @@ def _project(g, x):
 
 
 def _projector(g):
-    """Per-node matrices I − ĝĝᵀ [N,12,12]."""
-    outer = g[:, :, None] * g[:, None, :] / (jnp.sum(g * g, axis=-1)[:, None, None] + _TINY)
-    return jnp.eye(g.shape[-1], dtype=g.dtype) - outer
+    """Per-node matrices I − ĝĝᵀ [N,12,12]: ``_project`` applied to the unit vectors (the matrix is symmetric)."""
+    return _project(g[:, None, :], jnp.eye(g.shape[-1], dtype=g.dtype))
 
 
 def _appliers(config, g_e, g_s):
