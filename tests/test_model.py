@@ -397,3 +397,65 @@ def test_shipped_beam_model_beats_the_published_test_errors():
     errs = EV.summarize(EV.split_errors(params, data, D.split_rows(data, "test")))["all"]
     for name, published in EV.PUBLISHED_TEST.items():
         assert errs[name]["mean"] < published, (name, errs[name]["mean"], published)
+
+
+@pytest.fixture(scope="module")
+def pooled(toy):
+    """The toy model with global pooling (one virtual node per body)."""
+    config = CONFIG._replace(global_pool=True)
+    weights = M.init_weights(jax.random.PRNGKey(2), config, toy["norm"], toy["z"], toy["f"], toy["nt"], toy["topo"])
+    data = toy["data"]
+    params = api.make_params(config, {k: np.asarray(v) for k, v in toy["norm"].items()}, weights, data.q0,
+                             data.edges, data.node_type)
+    return dict(toy, config=config, weights=weights, params=params)
+
+
+def test_global_pool_reaches_every_node_in_one_pass(pooled):
+    # Without pooling a force reaches only nodes within `passes` hops; with it, every node's rate depends on it.
+    t = pooled
+    data = t["data"]
+    far = int(np.argmax(np.linalg.norm(data.q0 - data.q0[0], axis=1)))   # the farthest node from node 0
+    one_pass = {"pool": t["config"]._replace(passes=1), "plain": CONFIG._replace(passes=1)}
+    seen = {}
+    for name, config in one_pass.items():
+        w = M.init_weights(jax.random.PRNGKey(3), config, t["norm"], t["z"], t["f"], t["nt"], t["topo"])
+        rate = lambda f: M.rates(w, config, t["norm"], t["z"], f, t["nt"], t["topo"]).dw[far]
+        push = jnp.zeros_like(t["f"]).at[0].set(jnp.array([1.0, -2.0, 0.5]))
+        seen[name] = float(jnp.max(jnp.abs(rate(t["f"] + push) - rate(t["f"]))))
+    assert seen["plain"] == 0.0          # node 0 is more than one pass (plus the ∇ reverse pass) away
+    assert seen["pool"] > 1e-6
+
+
+def test_global_pool_keeps_generic_structure_and_exact_gradients(pooled):
+    t = pooled
+    args = (t["weights"], t["config"], t["norm"], t["z"], t["f"], t["nt"], t["topo"])
+    big_l, big_m = M.operators(*args)
+    assert float(jnp.max(jnp.abs(big_l + jnp.swapaxes(big_l, 1, 2)))) <= 1e-6 * float(jnp.max(jnp.abs(big_l)))
+    assert np.linalg.eigvalsh(np.asarray(big_m, np.float64)).min() >= -1e-6 * float(jnp.max(jnp.abs(big_m)))
+    with jax.enable_x64(True):
+        w64 = jax.tree_util.tree_map(lambda x: jnp.asarray(x, jnp.float64), t["weights"])
+        n64 = {k: jnp.asarray(v, jnp.float64) for k, v in t["norm"].items()}
+        z64, f64 = jnp.asarray(t["z"], jnp.float64), jnp.asarray(t["f"], jnp.float64)
+        rt = M.rates(w64, t["config"], n64, z64, f64, t["nt"], t["topo"])
+        scale = M.state_scale(n64)
+        potentials = lambda z: M.energy_entropy(w64, t["config"], n64, z, f64, t["nt"], t["topo"])
+        direction = jnp.asarray(np.random.default_rng(1).normal(size=z64.shape)) * scale
+        fd = (potentials(z64 + 1e-6 * direction) - potentials(z64 - 1e-6 * direction)) / 2e-6
+        unit = direction / scale
+        analytic = jnp.stack([jnp.sum(rt.grad_e * unit), jnp.sum(rt.grad_s * unit)])
+        np.testing.assert_allclose(np.asarray(analytic), np.asarray(fd), rtol=1e-6, atol=1e-9)
+
+
+def test_global_pool_pools_each_body_of_a_batch_separately(pooled):
+    # Two bodies in one graph: each body's summary comes from its own nodes only.
+    t = pooled
+    data = t["data"]
+    g1, g2 = G.from_data(data, 0, 1), G.from_data(data, 1, 2)
+    both = api.step(t["params"], G.batch([g1, g2]), np.concatenate([data.f[0, 1], data.f[1, 2]]))
+    n = len(data.q0)
+    np.testing.assert_allclose(np.asarray(both.nodes["z"][:n]),
+                               np.asarray(api.step(t["params"], g1, data.f[0, 1]).nodes["z"]), atol=1e-5)
+    np.testing.assert_allclose(np.asarray(both.nodes["z"][n:]),
+                               np.asarray(api.step(t["params"], g2, data.f[1, 2]).nodes["z"]), atol=1e-5)
+    with pytest.raises(ValueError, match="already tiled"):
+        M.tile_topology(M.tile_topology(t["topo"], 2), 2)

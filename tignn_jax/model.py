@@ -44,7 +44,11 @@ class ModelConfig(NamedTuple):
     exact_degeneracy: apply L and M through per-node projections, L' = P_S L P_S and M' = P_E M P_E with
     P_g = I − ĝĝᵀ (ĝ = g / |g| for g = ∇S or ∇E at that node), so that L'∇S = 0 and M'∇E = 0 hold exactly
     instead of only as far as the loss enforces them: then dE = 0 and dS = ∇Sᵀ M' ∇S ≥ 0 per node (before the
-    clamped rows are zeroed). L' stays skew-symmetric and M' symmetric PSD."""
+    clamped rows are zeroed). L' stays skew-symmetric and M' symmetric PSD; global_pool: every pass also
+    feeds each node a summary of its whole graph (the mean of a projection of the latents and an attention-
+    weighted sum, softmax over the graph's nodes): one "virtual node" per body, so that information crosses a
+    body in one step instead of one hop per pass (a point load on a nearly incompressible solid changes the
+    pressure everywhere within a frame). Cost O(nodes · hidden) per pass."""
     hidden: int = 32
     mlp_layers: int = 2
     passes: int = 4
@@ -53,6 +57,7 @@ class ModelConfig(NamedTuple):
     edge_strain: bool = False
     node_position: bool = False
     exact_degeneracy: bool = False
+    global_pool: bool = False
 
 
 class Rates(NamedTuple):
@@ -129,7 +134,8 @@ class Topology(NamedTuple):
     slot (r,k); dx0 [R,K,3] float32: rest edge vector X_j − X_i (zero in padding; None without a rest mesh);
     row_node [R] int32: the node that owns each row; node_rows [N,X] int32: each node's extra rows (R = a
     zero row in padding; X = 0 when every node has one row, R = N); x0 [N,3] float32: rest positions (None
-    without a rest mesh)."""
+    without a rest mesh); member [G,N] float32: which of G disjoint graphs each node belongs to (None: one
+    graph; set by ``tile_topology``, read by global pooling)."""
     nbr: jax.Array
     mask: jax.Array
     rev: jax.Array
@@ -137,6 +143,7 @@ class Topology(NamedTuple):
     row_node: jax.Array | None = None
     node_rows: jax.Array | None = None
     x0: jax.Array | None = None
+    member: jax.Array | None = None
 
 
 def topology(senders, receivers, n_nodes: int, q0=None, slots: int | None = None) -> Topology:
@@ -227,8 +234,12 @@ def tile_topology(topo: Topology, copies: int) -> Topology:
     node_rows_t = padded.reshape(copies * n, -1)
     dx0 = None if topo.dx0 is None else jnp.asarray(stack(np.asarray(topo.dx0)))
     x0 = None if topo.x0 is None else jnp.asarray(np.tile(np.asarray(topo.x0), (copies, 1)))
+    if topo.member is not None:
+        raise ValueError("tile_topology: the topology is already tiled; tile the single graph instead")
+    member = np.kron(np.eye(copies, dtype=np.float32), np.ones((1, n), np.float32))
     return Topology(jnp.asarray(nbr_t, jnp.int32), jnp.asarray(stack(mask)), jnp.asarray(rev_t, jnp.int32), dx0,
-                    jnp.asarray(row_node_t, jnp.int32), jnp.asarray(node_rows_t, jnp.int32), x0)
+                    jnp.asarray(row_node_t, jnp.int32), jnp.asarray(node_rows_t, jnp.int32), x0,
+                    jnp.asarray(member))
 
 
 def _one_row_per_node(topo: Topology, n: int) -> bool:
@@ -410,6 +421,19 @@ def _network_out(weights, config, norm, z, f, node_type, topo, split=False):
     return (es, heads) if split else jnp.concatenate([es, heads], axis=1)
 
 
+def graph_pool(values, logits, topo: Topology):
+    """Per-graph summaries broadcast back to the nodes: [N,F] values and [N,1] attention logits → [N, 2F]
+    (the graph's mean of ``values`` | its softmax(logits)-weighted sum of ``values``)."""
+    e = jnp.exp(logits - jax.lax.stop_gradient(jnp.max(logits)))
+    if topo.member is None:
+        pooled = jnp.concatenate([jnp.mean(values, axis=0), jnp.sum(e * values, axis=0) / jnp.sum(e)])
+        return jnp.broadcast_to(pooled, (values.shape[0], pooled.shape[0]))
+    member = topo.member
+    mean = member @ values / jnp.sum(member, axis=1, keepdims=True)
+    att = member @ (e * values) / (member @ e)
+    return member.T @ jnp.concatenate([mean, att], axis=1)
+
+
 class MLP(nn.Module):
     """Dense layers of width ``hidden`` with the activation between them; the last layer has ``out`` units.
     With ``split`` = k the output is returned as the pair (first k columns, the rest), computed as two
@@ -471,5 +495,8 @@ class Network(nn.Module):
             a = nn.Dense(hid)(x_edge) + gather_neighbors(nn.Dense(hid, use_bias=False)(h), topo) \
                 + expand_rows(nn.Dense(hid, use_bias=False)(h), topo)[:, None, :]
             msg = reduce_rows(jnp.sum(act(a) * mask, axis=1), topo) * inv_k
-            h = h + MLP(hid, hid, c.mlp_layers, c.activation)(jnp.concatenate([h, msg, f], axis=1))
+            parts = [h, msg, f]
+            if c.global_pool:
+                parts.append(graph_pool(nn.Dense(hid)(h), nn.Dense(1)(h), topo))
+            h = h + MLP(hid, hid, c.mlp_layers, c.activation)(jnp.concatenate(parts, axis=1))
         return MLP(hid, 2 + N_L + N_M, c.mlp_layers, c.activation, out_scale=0.1, split=2)(h)
