@@ -459,3 +459,59 @@ def test_global_pool_pools_each_body_of_a_batch_separately(pooled):
                                np.asarray(api.step(t["params"], g2, data.f[1, 2]).nodes["z"]), atol=1e-5)
     with pytest.raises(ValueError, match="already tiled"):
         M.tile_topology(M.tile_topology(t["topo"], 2), 2)
+
+
+@pytest.fixture(scope="module")
+def kinematic(toy):
+    """The toy model with the canonical q–v coupling and kinetic energy built in."""
+    data = toy["data"]
+    norm = D.normalization(data, D.split_rows(data, "train"))
+    jnorm = {k: jnp.asarray(v) for k, v in norm.items()}
+    config = CONFIG._replace(kinematic_prior=True)
+    weights = M.init_weights(jax.random.PRNGKey(4), config, jnorm, toy["z"], toy["f"], toy["nt"], toy["topo"])
+    return dict(toy, config=config, weights=weights, norm=jnorm, dt=data.dt)
+
+
+def test_kinematic_prior_moves_positions_by_dt_v_before_training(kinematic):
+    # With every weight zero the network contributes nothing: L = L0, E = ½|w_v|², M = 0, so the step is
+    # exactly q' = q + Δt v (free nodes), v' = v, σ' = σ.
+    t = kinematic
+    zero = jax.tree_util.tree_map(jnp.zeros_like, t["weights"])
+    z_next = M.step_state(zero, t["config"], t["norm"], t["z"], t["f"], t["nt"], t["topo"])
+    free = np.asarray(t["nt"]) == 0
+    z, zn = np.asarray(t["z"], np.float64), np.asarray(z_next, np.float64)
+    np.testing.assert_allclose(zn[free, :3], z[free, :3] + t["dt"] * z[free, 3:6], rtol=1e-5, atol=1e-6)
+    np.testing.assert_allclose(zn[:, 3:], z[:, 3:], rtol=1e-6, atol=1e-6)
+    np.testing.assert_array_equal(zn[~free, :3], z[~free, :3])
+
+
+def test_kinematic_prior_keeps_generic_structure_and_exact_gradients(kinematic):
+    t = kinematic
+    args = (t["weights"], t["config"], t["norm"], t["z"], t["f"], t["nt"], t["topo"])
+    big_l, big_m = M.operators(*args)
+    scale_l = float(jnp.max(jnp.abs(big_l)))
+    assert float(jnp.max(jnp.abs(big_l + jnp.swapaxes(big_l, 1, 2)))) <= 1e-6 * scale_l
+    # the operator applied to ∇E, ∇S is what the step uses
+    rt = M.rates(*args)
+    dw = jnp.einsum("nij,nj->ni", big_l, rt.grad_e) + jnp.einsum("nij,nj->ni", big_m, rt.grad_s)
+    clamped = (np.asarray(t["nt"]) != 0)[:, None] & (np.arange(12) < 6)[None, :]
+    np.testing.assert_allclose(np.where(clamped, 0.0, np.asarray(dw)), np.asarray(rt.dw), rtol=1e-4, atol=1e-6)
+    with jax.enable_x64(True):   # ∇E includes the kinetic term: check against finite differences of E
+        w64 = jax.tree_util.tree_map(lambda x: jnp.asarray(x, jnp.float64), t["weights"])
+        n64 = {k: jnp.asarray(v, jnp.float64) for k, v in t["norm"].items()}
+        z64, f64 = jnp.asarray(t["z"], jnp.float64), jnp.asarray(t["f"], jnp.float64)
+        r64 = M.rates(w64, t["config"], n64, z64, f64, t["nt"], t["topo"])
+        scale = M.state_scale(n64)
+        potentials = lambda z: M.energy_entropy(w64, t["config"], n64, z, f64, t["nt"], t["topo"])
+        direction = jnp.asarray(np.random.default_rng(2).normal(size=z64.shape)) * scale
+        fd = (potentials(z64 + 1e-6 * direction) - potentials(z64 - 1e-6 * direction)) / 2e-6
+        unit = direction / scale
+        analytic = jnp.stack([jnp.sum(r64.grad_e * unit), jnp.sum(r64.grad_s * unit)])
+        np.testing.assert_allclose(np.asarray(analytic), np.asarray(fd), rtol=1e-6, atol=1e-9)
+
+
+def test_kinematic_prior_needs_the_time_step_in_the_normalisation(kinematic):
+    t = kinematic
+    old = {k: v for k, v in t["norm"].items() if k != "dt"}
+    with pytest.raises(ValueError, match="dt"):
+        M.step_state(t["weights"], t["config"], old, t["z"], t["f"], t["nt"], t["topo"])

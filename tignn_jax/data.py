@@ -173,7 +173,7 @@ def normalization(data: Dataset, rows: np.ndarray) -> dict:
     out-of-distribution bound of ``api.force_check``); dq_std [3] and dqn_mean, dqn_std [1]: edge vector
     q_j - q_i and its length over all frames; dv_std [3]: edge velocity difference v_j - v_i; du_std [3]: edge displacement
     difference (q_j - q_i) - (X_j - X_i); u_std [3]: node displacement q - X; x0_mean [3], x0_std [3]: rest
-    positions (mean and isotropic scale). Vectors (q, v, their increments, f, dq) get one isotropic scale
+    positions (mean and isotropic scale); dt [1]: the frame time step. Vectors (q, v, their increments, f, dq) get one isotropic scale
     (RMS over components), so a direction unseen in training is not blown up; stress components get their own
     std, floored at 1e-2 of the largest; every scale is positive.
     """
@@ -204,6 +204,7 @@ def normalization(data: Dataset, rows: np.ndarray) -> dict:
         x0_std=_iso(data.q0 - data.q0.mean(0)),
         dqn_mean=np.array([dqn_mean]),
         dqn_std=np.array([max(dqn.std(), 1e-3 * dqn_mean, 1e-12)]),
+        dt=np.array([data.dt]),
     )
     return {k: np.asarray(v, np.float32) for k, v in stats.items()}
 

@@ -48,7 +48,11 @@ class ModelConfig(NamedTuple):
     feeds each node a summary of its whole graph (the mean of a projection of the latents and an attention-
     weighted sum, softmax over the graph's nodes): one "virtual node" per body, so that information crosses a
     body in one step instead of one hop per pass (a point load on a nearly incompressible solid changes the
-    pressure everywhere within a frame). Cost O(nodes · hidden) per pass."""
+    pressure everywhere within a frame). Cost O(nodes · hidden) per pass; kinematic_prior: add to the learned
+    L the canonical coupling of positions and velocities (L₀ with L₀_qv = −L₀_vqᵀ = c·I, c = Δt s_v / s_q in the
+    scaled coordinates) and to E the kinetic term ½|w_v|² per node, so that an untrained model already moves
+    q by Δt·v and the network's E acts on the velocities through −∇_q E (a learned potential's force); the
+    learned l, m, E, S correct the rest. L = L₀ + l − lᵀ stays skew-symmetric. Needs ``norm["dt"]``."""
     hidden: int = 32
     mlp_layers: int = 2
     passes: int = 4
@@ -58,6 +62,7 @@ class ModelConfig(NamedTuple):
     node_position: bool = False
     exact_degeneracy: bool = False
     global_pool: bool = False
+    kinematic_prior: bool = False
 
 
 class Rates(NamedTuple):
@@ -84,7 +89,7 @@ def rates(weights, config: ModelConfig, norm: dict, z, f, node_type, topo) -> Ra
     """The GENERIC increment with gradients, degeneracy residuals and entropy production (for training and
     evaluation; inference uses ``step_state``, which skips the residuals)."""
     dw, g_e, g_s, (l_mat, m_mat) = _generic(weights, config, norm, z, f, node_type, topo)
-    apply_l, apply_m = _appliers(config, g_e, g_s)
+    apply_l, apply_m = _appliers(config, norm, g_e, g_s)
     deg_l = apply_l(l_mat, g_s)
     deg_m = apply_m(m_mat, g_e)
     return Rates(dw=dw, grad_e=g_e, grad_s=g_s, deg_l=deg_l, deg_m=deg_m, entropy_rate=jnp.sum(g_s * dw))
@@ -95,6 +100,8 @@ def operators(weights, config: ModelConfig, norm: dict, z, f, node_type, topo):
     ``config.exact_degeneracy``)."""
     g_e, g_s, (l_mat, m_mat) = _potentials_and_grads(weights, config, norm, z, f, node_type, topo)
     l_op, m_op = l_mat - jnp.swapaxes(l_mat, 1, 2), m_mat @ jnp.swapaxes(m_mat, 1, 2)
+    if config.kinematic_prior:
+        l_op = l_op + _canonical_matrix(norm)
     if config.exact_degeneracy:
         p_s, p_e = _projector(g_s), _projector(g_e)
         l_op, m_op = p_s @ l_op @ p_s, p_e @ m_op @ p_e
@@ -104,7 +111,10 @@ def operators(weights, config: ModelConfig, norm: dict, z, f, node_type, topo):
 def energy_entropy(weights, config: ModelConfig, norm: dict, z, f, node_type, topo):
     """Total E and S [2] of the graph at state z (the potentials whose gradients drive the dynamics)."""
     out = _network_out(weights, config, norm, z, f, node_type, topo)
-    return jnp.stack([out[:, 0].sum(), out[:, 1].sum()])
+    e = out[:, 0].sum()
+    if config.kinematic_prior:
+        e = e + 0.5 * jnp.sum((z[:, 3:6] / state_scale(norm)[3:6]) ** 2)
+    return jnp.stack([e, out[:, 1].sum()])
 
 
 def init_weights(key, config: ModelConfig, norm: dict, z, f, node_type, topo):
@@ -309,7 +319,7 @@ sum_reverse.defvjp(_sum_fwd, _sum_bwd)
 
 def _generic(weights, config, norm, z, f, node_type, topo):
     g_e, g_s, (l_mat, m_mat) = _potentials_and_grads(weights, config, norm, z, f, node_type, topo)
-    apply_l, apply_m = _appliers(config, g_e, g_s)
+    apply_l, apply_m = _appliers(config, norm, g_e, g_s)
     dw = apply_l(l_mat, g_e) + apply_m(m_mat, g_s)
     clamped = (node_type != 0)[:, None] & (jnp.arange(STATE_DIM) < 6)[None, :]
     dw = jnp.where(clamped, 0.0, dw)
@@ -328,7 +338,10 @@ def _potentials_and_grads(weights, config, norm, z, f, node_type, topo):
     (_, pullback, heads) = jax.vjp(potentials, z, has_aux=True)
     (grads,) = jax.vmap(pullback)(jnp.eye(2, dtype=z.dtype))
     scale = state_scale(norm)
-    return grads[0] * scale, grads[1] * scale, _matrices(heads)
+    g_e = grads[0] * scale
+    if config.kinematic_prior:   # ∇_w of ½|w_v|²: w_v in the velocity columns
+        g_e = g_e + jnp.pad(z[:, 3:6] / scale[3:6], ((0, 0), (3, 6)))
+    return g_e, grads[1] * scale, _matrices(heads)
 
 
 def _matrices(heads):
@@ -363,11 +376,34 @@ def _projector(g):
     return _project(g[:, None, :], jnp.eye(g.shape[-1], dtype=g.dtype))
 
 
-def _appliers(config, g_e, g_s):
-    """(l, g) -> L g and (m, g) -> M g, through the degeneracy projections when the config asks for them."""
+def _canonical_coefficient(norm):
+    """c [3] = Δt s_v / s_q: the q–v coupling of L₀ in the scaled coordinates (so that Δq = Δt v)."""
+    if "dt" not in norm:
+        raise ValueError("kinematic_prior needs the frame time step in the normalisation (norm['dt']); "
+                         "recompute it with tignn_jax.data.normalization")
+    scale = state_scale(norm)
+    return norm["dt"][0] * scale[3:6] / scale[:3]
+
+
+def _canonical_matrix(norm):
+    """L₀ [12,12]: c·I in the (q, v) block, −c·I in the (v, q) block, zero elsewhere (skew-symmetric)."""
+    c = jnp.diag(_canonical_coefficient(norm))
+    zero3, zero6 = jnp.zeros((3, 3), c.dtype), jnp.zeros((6, 6), c.dtype)
+    top = jnp.concatenate([jnp.concatenate([zero3, c], 1), jnp.concatenate([-c, zero3], 1)], 0)
+    return jax.scipy.linalg.block_diag(top, zero6)
+
+
+def _appliers(config, norm, g_e, g_s):
+    """(l, g) -> L g and (m, g) -> M g, with the canonical L₀ added for ``kinematic_prior`` and through the
+    degeneracy projections when the config asks for them."""
+    base_l = _apply_l
+    if config.kinematic_prior:
+        c = _canonical_coefficient(norm)
+        base_l = lambda l_mat, g: _apply_l(l_mat, g) + jnp.concatenate(
+            [c * g[:, 3:6], -c * g[:, :3], jnp.zeros_like(g[:, 6:])], axis=1)
     if not config.exact_degeneracy:
-        return _apply_l, _apply_m
-    return (lambda l_mat, g: _project(g_s, _apply_l(l_mat, _project(g_s, g))),
+        return base_l, _apply_m
+    return (lambda l_mat, g: _project(g_s, base_l(l_mat, _project(g_s, g))),
             lambda m_mat, g: _project(g_e, _apply_m(m_mat, _project(g_e, g))))
 
 

@@ -50,6 +50,7 @@ class TrainConfig(NamedTuple):
     node_position: bool = False
     exact_degeneracy: bool = False
     global_pool: bool = False
+    kinematic_prior: bool = False
     lr: float = 3e-3
     lr_end: float = 2e-5
     weight_decay: float = 1e-6
