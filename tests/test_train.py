@@ -201,3 +201,14 @@ def test_warm_start_begins_from_the_parent_and_records_it(toy, tmp_path):
         T.train(toy, TINY._replace(hidden=12), tmp_path / "bad", init_from=tmp_path / "parent", **QUIET)
     with pytest.raises(ValueError, match="no model file"):
         T.train(toy, TINY, tmp_path / "bad2", init_from=tmp_path / "nowhere", **QUIET)
+
+
+def test_force_scale_is_the_rms_of_the_loaded_nodes():
+    # A point load on one node of many: the force feature of the loaded node is O(1), not O(sqrt(N)).
+    data = D.synthetic_beam(nx=6, ny=2, nz=2, cases=2, frames=3)
+    f = np.zeros_like(data.f)
+    f[:, :, 5] = [0.0, 3.0, 4.0]          # |f| = 5 on one node in every frame
+    norm = D.normalization(data._replace(f=f), np.arange(2))
+    np.testing.assert_allclose(norm["f_std"], np.full(3, 5.0 / np.sqrt(3.0)), rtol=1e-6)
+    unloaded = D.normalization(data._replace(f=np.zeros_like(f)), np.arange(2))
+    np.testing.assert_array_equal(unloaded["f_std"], np.ones(3))
