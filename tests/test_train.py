@@ -212,3 +212,15 @@ def test_force_scale_is_the_rms_of_the_loaded_nodes():
     np.testing.assert_allclose(norm["f_std"], np.full(3, 5.0 / np.sqrt(3.0)), rtol=1e-6)
     unloaded = D.normalization(data._replace(f=np.zeros_like(f)), np.arange(2))
     np.testing.assert_array_equal(unloaded["f_std"], np.ones(3))
+
+
+def test_warm_start_keeps_the_parent_normalisation_and_may_switch_weight_free_options(toy, tmp_path):
+    parent = T.train(toy, TINY, tmp_path / "parent", **QUIET)
+    api.save_model(parent, tmp_path / "parent" / "best" / "model.npz")
+    # data with doubled forces would change f_std; the warm start keeps the parent's
+    louder = toy._replace(f=toy.f * 2.0)
+    child = T.train(louder, TINY._replace(exact_degeneracy=True), tmp_path / "child", stop_after_epoch=0,
+                    init_from=tmp_path / "parent", **QUIET)
+    np.testing.assert_array_equal(np.asarray(child["norm"]["f_std"]), np.asarray(parent["norm"]["f_std"]))
+    assert child["config"]["exact_degeneracy"] is True
+    np.testing.assert_array_equal(_flat(parent), _flat(child))

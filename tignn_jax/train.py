@@ -168,8 +168,9 @@ def train(data: D.Dataset, cfg: TrainConfig, run_dir: str | Path, train_split="t
     validation score = mean rollout error of v + sigma + u over the val split) and config.json.
     ``stop_after_epoch``/``time_limit_s`` end the run early at an epoch boundary (with a checkpoint), as an
     interruption would; the schedule still spans ``cfg.epochs``. ``init_from`` (a model.npz or a run folder
-    with best/model.npz) starts from that model's weights instead of a random draw; its architecture must
-    match ``cfg``."""
+    with best/model.npz) starts from that model's weights and normalisation instead of a random draw and the
+    data's statistics; its architecture must match ``cfg`` (up to the ``WEIGHT_FREE`` options, e.g. a model
+    fine-tuned into ``exact_degeneracy``)."""
     import orbax.checkpoint as ocp
     from tqdm import tqdm
 
@@ -185,6 +186,8 @@ def train(data: D.Dataset, cfg: TrainConfig, run_dir: str | Path, train_split="t
     rows = D.split_rows(data, train_split)
     val_rows = D.split_rows(data, val_split) if val_split else None
     norm_np = D.normalization(data, rows)
+    if parent is not None:   # the parent's scales are part of the function its weights compute: keep them
+        norm_np.update(parent["norm"])
     norm = {k: jnp.asarray(v) for k, v in norm_np.items()}
     node_type = jnp.asarray(data.node_type, jnp.int32)
     topo = M.topology(data.edges[0], data.edges[1], len(data.node_type), data.q0)
@@ -269,22 +272,28 @@ def train(data: D.Dataset, cfg: TrainConfig, run_dir: str | Path, train_split="t
                            data.node_type)
 
 
+# model options that change how the weights are used but not their shapes: a warm start may switch them
+WEIGHT_FREE = ("exact_degeneracy", "kinematic_prior")
+
+
 def _parent(init_from, cfg: TrainConfig) -> dict:
-    """Weights of the model a warm-started run begins from, checked against ``cfg``'s architecture."""
+    """Weights and normalisation of the model a warm-started run begins from, checked against ``cfg``'s
+    architecture (every ModelConfig field but those in ``WEIGHT_FREE`` must agree)."""
     path = Path(init_from)
     if path.is_dir():
         path = path / "best" / "model.npz"
     if not path.exists():
         raise ValueError(f"init_from {str(init_from)!r}: no model file at {path}")
     params = api.load_model(path)
-    mine = cfg.model._asdict()
-    theirs = {k: params["config"].get(k) for k in mine}
+    mine = {k: v for k, v in cfg.model._asdict().items() if k not in WEIGHT_FREE}
+    theirs = {k: params["config"].get(k, M.ModelConfig._field_defaults[k]) for k in mine}
     if theirs != mine:
         diff = {k: (theirs[k], mine[k]) for k in mine if theirs[k] != mine[k]}
         raise ValueError(f"init_from {str(init_from)!r}: architecture differs from the config (parent, config): {diff}")
     run = path.parent.parent
     elapsed = _elapsed(run) if (run / "metrics.jsonl").exists() else float("nan")
-    return {"path": str(path.resolve()), "weights": params["weights"], "elapsed_s": elapsed}
+    return {"path": str(path.resolve()), "weights": params["weights"], "elapsed_s": elapsed,
+            "norm": {k: np.asarray(v) for k, v in params["norm"].items()}}
 
 
 def _truncate_log(path: Path, epoch: int) -> None:
