@@ -11,7 +11,9 @@ training horizon) steps of Δt = 0.05 under five loadings:
 Reported per run: NaN/Inf count, max |u| and |v| against the FEM on the same loads (the FEM for the first
 ``--fem-steps`` frames, batched), the first step at which the u error against the FEM exceeds 10 % (L2 over
 the nodes, relative to the largest FEM displacement norm over the horizon; NaN counts as over),
-the learned energy and entropy along the rollout and the fraction of steps with S_{k+1} ≥ S_k, and the two
+the learned energy and entropy along the rollout, the fraction of steps with S_{k+1} ≥ S_k and the fraction
+with entropy production ∇S·Δw ≥ 0 (the step's GENERIC rate: ≥ 0 by construction for an ``exact_degeneracy``
+model, up to the clamped rows and rounding), and the two
 guards: ``api.force_check`` (loads beyond the training range) and ``api.state_check`` (the first step at
 which the state leaves the training envelope, against the first non-finite step).
 FEM: the beam at 0.9 (default), 1.0 and 1.5 × its stable sub-step (fewer sub-steps than stable): the run
@@ -21,7 +23,7 @@ training data (``info["velocity"]``): "gradient" (the reference data: v(0) is th
 difference of the trajectory, so it is taken from the FEM run) or "solver" (v(0) = 0).
 Writes benchmarks/results/stability.{json,md} and stability.png.
 
-    python benchmarks/stability.py [--steps 1000] [--fem-steps 100] [--scenes beam,bunny]
+    python benchmarks/stability.py [--steps 1000] [--fem-steps 100] [--scenes beam,bunny] [--models beam=beam]
 """
 from __future__ import annotations
 
@@ -80,6 +82,8 @@ def model_runs(name: str, model: str, steps: int, fem_steps: int) -> dict:
 
     params, graph = api.load_pretrained(model)
     scene, loads = loadings(name, steps)
+    if "fem_damping" in params.get("info", {}):   # the model was trained on FEM data with this damping
+        scene = scene._replace(damping=float(params["info"]["fem_damping"]))
     q0 = np.asarray(params["mesh"]["q0"], np.float64)
     units = float(np.sum(q0 * scene.points) / np.sum(scene.points ** 2))
     if not np.allclose(q0, scene.points * units, atol=1e-3 * np.abs(q0).max()):
@@ -98,6 +102,11 @@ def model_runs(name: str, model: str, steps: int, fem_steps: int) -> dict:
     z_std = np.asarray(norm["z_std"])
     step = api.stepper(params)
     energy = jax.jit(jax.vmap(lambda z, f: M.energy_entropy(w, cfg, norm, z, f, nt, topo)))
+    production = jax.jit(jax.vmap(lambda z, f: M.rates(w, cfg, norm, z, f, nt, topo).entropy_rate))
+
+    def entropy_production(zs, fs, chunk=50):   # ∇S·Δw per step (the GENERIC entropy production of the step)
+        return np.concatenate([np.asarray(production(jnp.asarray(zs[i:i + chunk]), fs[i:i + chunk]))
+                               for i in range(0, len(zs), chunk)])
     out = {"model": model, "fem_wall_s": fem_s, "fem_steps": fem_steps, "runs": {}}
     key = jax.random.PRNGKey(0)
     gradient_velocity = params.get("info", {}).get("velocity", "gradient") == "gradient"
@@ -131,6 +140,7 @@ def model_runs(name: str, model: str, steps: int, fem_steps: int) -> dict:
             float(np.linalg.norm(uf, axis=(1, 2)).max()), 1e-12)
         over = np.where(~(err[1:] <= 0.10))[0]   # NaN counts as over
         ds = np.diff(e_s[:, 1])
+        rate = entropy_production(np.nan_to_num(zs[:-1]), f_seq)
         checks = [api.state_check(params, zk) for zk in zs]
         flagged = [k for k, c in enumerate(checks) if c["out_of_distribution"]]
         nonfinite = [k for k, c in enumerate(checks) if not c["finite"]]
@@ -142,6 +152,8 @@ def model_runs(name: str, model: str, steps: int, fem_steps: int) -> dict:
             "u_error_at_fem_horizon": float(err[-1]),
             "first_step_u_error_over_10pct": int(over[0] + 1) if len(over) else None,
             "entropy_non_decreasing_fraction": float(np.mean(ds >= 0)),
+            "entropy_production_non_negative_fraction": float(np.mean(rate >= 0)),
+            "entropy_production_min_mean": [float(np.min(rate)), float(np.mean(rate))],
             "energy_first_last": [float(e_s[0, 0]), float(e_s[-1, 0])],
             "guard": guard, "ms_per_step": 1e3 * wall / steps,
             "first_step_state_flagged": flagged[0] if flagged else None,
@@ -202,14 +214,22 @@ def main(argv=None) -> int:
     ap.add_argument("--steps", type=int, default=1000)
     ap.add_argument("--fem-steps", type=int, default=100)
     ap.add_argument("--scenes", default="beam,bunny")
+    ap.add_argument("--models", default="", help="override the demo's models, e.g. beam=beam (the FEM then runs "
+                    "with the damping recorded in the model, info['fem_damping'], when there is one)")
     args = ap.parse_args(argv)
     if args.steps < args.fem_steps or args.fem_steps < 20:
         raise SystemExit(f"need --steps ≥ --fem-steps ≥ 20, got {args.steps} and {args.fem_steps}")
     machine = describe()
+    chosen = dict(DEFAULT_MODELS)
+    for item in [m for m in args.models.split(",") if m]:
+        scene_name, _, model_name = item.partition("=")
+        if scene_name not in chosen or not model_name:
+            raise SystemExit(f"--models wants SCENE=MODEL with SCENE in {sorted(chosen)}, got {item!r}")
+        chosen[scene_name] = model_name
     models = {}
     for name in [s for s in args.scenes.split(",") if s]:
         try:
-            models[name] = model_runs(name, DEFAULT_MODELS[name], args.steps, args.fem_steps)
+            models[name] = model_runs(name, chosen[name], args.steps, args.fem_steps)
         except ValueError as err:
             print(f"{name}: skipped ({err})")
     result = {"machine": machine, "steps": args.steps, "models": models, "fem_limit": fem_limit()}
@@ -221,8 +241,9 @@ def main(argv=None) -> int:
              f"{machine['load_average_1m']} at start. {args.steps}-step rollouts (Δt = 0.05; the training horizon "
              f"is 20); FEM reference over the first {args.fem_steps} steps.", "",
              "| scene | loading | NaN/Inf | max u model / FEM | max v model / FEM | u error at FEM horizon | "
-             "first step u error > 10 % | S non-decreasing | force guard | first step state flagged / non-finite |",
-             "|---|---|---|---|---|---|---|---|---|---|"]
+             "first step u error > 10 % | S non-decreasing | entropy production ≥ 0 (min) | force guard | "
+             "first step state flagged / non-finite |",
+             "|---|---|---|---|---|---|---|---|---|---|---|"]
     for name, r in models.items():
         for s, run in r["runs"].items():
             g = run["guard"]
@@ -230,6 +251,8 @@ def main(argv=None) -> int:
                 f"| {name} | {s} | {run['nan_or_inf']} | {run['max_u_model']:.3g} / {run['max_u_fem']:.3g} | "
                 f"{run['max_v_model']:.3g} / {run['max_v_fem']:.3g} | {run['u_error_at_fem_horizon']:.3f} | "
                 f"{run['first_step_u_error_over_10pct']} | {100 * run['entropy_non_decreasing_fraction']:.0f} % | "
+                f"{100 * run['entropy_production_non_negative_fraction']:.0f} % "
+                f"({run['entropy_production_min_mean'][0]:.2g}) | "
                 f"{'FLAGGED' if g['out_of_distribution'] else 'ok'} ({g['max_force_ratio']:.2f}× train max) | "
                 f"{run['first_step_state_flagged']} / {run['first_step_non_finite']} |")
     lines += ["", "FEM near its stability limit (beam, 20 frames; sub-step relative to the stable one):", "",

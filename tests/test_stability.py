@@ -1,0 +1,54 @@
+"""The fast subset of benchmarks/stability.py: short rollouts of the shipped beam model under the five stress
+loadings (against the FEM on the same loads), its guards, and the FEM past its stability limit."""
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+import stability  # noqa: E402
+
+from tignn_jax import api  # noqa: E402
+
+
+@pytest.fixture(scope="module")
+def beam_runs():
+    if not (Path(api.MODELS_DIR) / "beam-abaqus" / "model.npz").exists():
+        pytest.skip("no shipped beam-abaqus model in this checkout")
+    return stability.model_runs("beam", "beam-abaqus", steps=24, fem_steps=20)
+
+
+def test_short_rollouts_stay_finite_and_near_the_fem(beam_runs):
+    runs = beam_runs["runs"]
+    assert set(runs) == set(stability.SCENARIOS)
+    for name, run in runs.items():
+        assert run["nan_or_inf"] == 0, name
+        assert len(run["series"]["u_max"]) == 25
+        assert run["first_step_non_finite"] is None, name
+    # within the training horizon, on a training-like load, the model follows the FEM
+    assert runs["constant"]["u_error_at_fem_horizon"] < 0.15
+    assert runs["release"]["u_error_at_fem_horizon"] < 0.3
+
+
+def test_force_guard_flags_the_3x_load_only(beam_runs):
+    runs = beam_runs["runs"]
+    assert runs["3x load"]["guard"]["out_of_distribution"]
+    assert runs["3x load"]["guard"]["max_force_ratio"] > 2.5
+    assert not runs["constant"]["guard"]["out_of_distribution"]
+
+
+def test_entropy_diagnostics_are_reported_per_step(beam_runs):
+    for run in beam_runs["runs"].values():
+        assert 0.0 <= run["entropy_production_non_negative_fraction"] <= 1.0
+        assert 0.0 <= run["entropy_non_decreasing_fraction"] <= 1.0
+        assert np.all(np.isfinite(run["series"]["S"]))
+
+
+def test_fem_beyond_its_stable_step_reports_rather_than_hides():
+    # 1.5x the stable sub-step: the run must end in a reported inversion (or stay bounded), never silent NaN
+    (row,) = stability.fem_limit(factors=(1.5,), frames=4)
+    if row["nan_or_inf"] > 0 or row["inverted_element"] >= 0:
+        assert row["reported"], row
+    else:
+        assert np.isfinite(row["max_u"])
