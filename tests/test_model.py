@@ -45,23 +45,28 @@ def test_L_is_skew_symmetric_and_M_symmetric_positive_semidefinite(toy):
     assert np.all(np.abs(np.diagonal(np.asarray(big_l), axis1=1, axis2=2)) == 0)
 
 
-def test_energy_gradient_matches_finite_differences(toy):
-    # dz/dt uses ∇E, ∇S from autodiff; check them along random directions by central differences in float64.
+def _assert_gradients_match_finite_differences(weights, config, norm, z, f, nt, topo, directions=3, seed=0):
+    """∇E, ∇S of ``rates`` against central differences of ``energy_entropy`` along random directions (float64)."""
     with jax.enable_x64(True):
-        w64 = jax.tree_util.tree_map(lambda x: jnp.asarray(x, jnp.float64), toy["weights"])
-        n64 = {k: jnp.asarray(v, jnp.float64) for k, v in toy["norm"].items()}
-        z64, f64 = jnp.asarray(toy["z"], jnp.float64), jnp.asarray(toy["f"], jnp.float64)
-        rt = M.rates(w64, CONFIG, n64, z64, f64, toy["nt"], toy["topo"])
+        w64 = jax.tree_util.tree_map(lambda x: jnp.asarray(x, jnp.float64), weights)
+        n64 = {k: jnp.asarray(v, jnp.float64) for k, v in norm.items()}
+        z64, f64 = jnp.asarray(z, jnp.float64), jnp.asarray(f, jnp.float64)
+        rt = M.rates(w64, config, n64, z64, f64, nt, topo)
         scale = M.state_scale(n64)
-        potentials = lambda z: M.energy_entropy(w64, CONFIG, n64, z, f64, toy["nt"], toy["topo"])
-        rng = np.random.default_rng(0)
-        for _ in range(3):
+        potentials = lambda z_: M.energy_entropy(w64, config, n64, z_, f64, nt, topo)
+        rng = np.random.default_rng(seed)
+        for _ in range(directions):
             direction = jnp.asarray(rng.normal(size=z64.shape)) * scale   # a step in w = z / s
             h = 1e-6
             fd = (potentials(z64 + h * direction) - potentials(z64 - h * direction)) / (2 * h)
             unit = direction / scale
             analytic = jnp.stack([jnp.sum(rt.grad_e * unit), jnp.sum(rt.grad_s * unit)])
             np.testing.assert_allclose(np.asarray(analytic), np.asarray(fd), rtol=1e-6, atol=1e-9)
+
+
+def test_energy_gradient_matches_finite_differences(toy):
+    # dz/dt uses ∇E, ∇S from autodiff; check them along random directions by central differences in float64.
+    _assert_gradients_match_finite_differences(*_args(toy))
 
 
 def test_degeneracy_residuals_on_a_hand_built_case():
@@ -432,18 +437,7 @@ def test_global_pool_keeps_generic_structure_and_exact_gradients(pooled):
     big_l, big_m = M.operators(*args)
     assert float(jnp.max(jnp.abs(big_l + jnp.swapaxes(big_l, 1, 2)))) <= 1e-6 * float(jnp.max(jnp.abs(big_l)))
     assert np.linalg.eigvalsh(np.asarray(big_m, np.float64)).min() >= -1e-6 * float(jnp.max(jnp.abs(big_m)))
-    with jax.enable_x64(True):
-        w64 = jax.tree_util.tree_map(lambda x: jnp.asarray(x, jnp.float64), t["weights"])
-        n64 = {k: jnp.asarray(v, jnp.float64) for k, v in t["norm"].items()}
-        z64, f64 = jnp.asarray(t["z"], jnp.float64), jnp.asarray(t["f"], jnp.float64)
-        rt = M.rates(w64, t["config"], n64, z64, f64, t["nt"], t["topo"])
-        scale = M.state_scale(n64)
-        potentials = lambda z: M.energy_entropy(w64, t["config"], n64, z, f64, t["nt"], t["topo"])
-        direction = jnp.asarray(np.random.default_rng(1).normal(size=z64.shape)) * scale
-        fd = (potentials(z64 + 1e-6 * direction) - potentials(z64 - 1e-6 * direction)) / 2e-6
-        unit = direction / scale
-        analytic = jnp.stack([jnp.sum(rt.grad_e * unit), jnp.sum(rt.grad_s * unit)])
-        np.testing.assert_allclose(np.asarray(analytic), np.asarray(fd), rtol=1e-6, atol=1e-9)
+    _assert_gradients_match_finite_differences(*args, directions=1, seed=1)
 
 
 def test_global_pool_pools_each_body_of_a_batch_separately(pooled):
@@ -496,18 +490,7 @@ def test_kinematic_prior_keeps_generic_structure_and_exact_gradients(kinematic):
     dw = jnp.einsum("nij,nj->ni", big_l, rt.grad_e) + jnp.einsum("nij,nj->ni", big_m, rt.grad_s)
     clamped = (np.asarray(t["nt"]) != 0)[:, None] & (np.arange(12) < 6)[None, :]
     np.testing.assert_allclose(np.where(clamped, 0.0, np.asarray(dw)), np.asarray(rt.dw), rtol=1e-4, atol=1e-6)
-    with jax.enable_x64(True):   # ∇E includes the kinetic term: check against finite differences of E
-        w64 = jax.tree_util.tree_map(lambda x: jnp.asarray(x, jnp.float64), t["weights"])
-        n64 = {k: jnp.asarray(v, jnp.float64) for k, v in t["norm"].items()}
-        z64, f64 = jnp.asarray(t["z"], jnp.float64), jnp.asarray(t["f"], jnp.float64)
-        r64 = M.rates(w64, t["config"], n64, z64, f64, t["nt"], t["topo"])
-        scale = M.state_scale(n64)
-        potentials = lambda z: M.energy_entropy(w64, t["config"], n64, z, f64, t["nt"], t["topo"])
-        direction = jnp.asarray(np.random.default_rng(2).normal(size=z64.shape)) * scale
-        fd = (potentials(z64 + 1e-6 * direction) - potentials(z64 - 1e-6 * direction)) / 2e-6
-        unit = direction / scale
-        analytic = jnp.stack([jnp.sum(r64.grad_e * unit), jnp.sum(r64.grad_s * unit)])
-        np.testing.assert_allclose(np.asarray(analytic), np.asarray(fd), rtol=1e-6, atol=1e-9)
+    _assert_gradients_match_finite_differences(*args, directions=1, seed=2)   # ∇E includes the kinetic term
 
 
 def test_kinematic_prior_needs_the_time_step_in_the_normalisation(kinematic):

@@ -169,14 +169,14 @@ def normalization(data: Dataset, rows: np.ndarray) -> dict:
     """Per-feature statistics of the rows' cases (the training split), float32 numpy arrays.
 
     z_mean, z_std [12]: node state; dz_std [12]: per-frame increment z[k+1]-z[k] of free nodes' q, v and all
-    nodes' stress (the output scale); f_std [3]: RMS of the nodal forces that are not zero (a load on a
-    few nodes of a large mesh would otherwise be scaled by the near-zero RMS over all nodes and enter the network
-    as an outlier: a unit point load on the 1330-node bunny would read ≈ 40); f_max [1]: the largest nodal force magnitude (the
+    nodes' stress (the output scale); f_std [3]: RMS of the nodal forces that are not zero (a load on a few
+    nodes of a large mesh would otherwise be scaled by the near-zero RMS over all nodes and enter the network as
+    an outlier: the bunny's unit point load read as 75); f_max [1]: the largest nodal force magnitude (the
     out-of-distribution bound of ``api.force_check``); dq_std [3] and dqn_mean, dqn_std [1]: edge vector
     q_j - q_i and its length over all frames; dv_std [3]: edge velocity difference v_j - v_i; du_std [3]: edge displacement
     difference (q_j - q_i) - (X_j - X_i); u_std [3]: node displacement q - X; x0_mean [3], x0_std [3]: rest
-    positions (mean and isotropic scale); dt [1]: the frame time step. Vectors (q, v, their increments, f, dq) get one isotropic scale
-    (RMS over components), so a direction unseen in training is not blown up; stress components get their own
+    positions (mean and isotropic scale); dt [1]: the frame time step. Vectors (q, v, their increments, f,
+    dq) get one isotropic scale (RMS over components), so a direction unseen in training is not blown up; stress components get their own
     std, floored at 1e-2 of the largest; every scale is positive.
     """
     z, f = data.z[rows].astype(np.float64), data.f[rows].astype(np.float64)

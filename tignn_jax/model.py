@@ -376,18 +376,14 @@ def _projector(g):
     return _project(g[:, None, :], jnp.eye(g.shape[-1], dtype=g.dtype))
 
 
-def _canonical_coefficient(norm):
-    """c [3] = Δt s_v / s_q: the q–v coupling of L₀ in the scaled coordinates (so that Δq = Δt v)."""
+def _canonical_matrix(norm):
+    """L₀ [12,12]: c·I in the (q, v) block, −c·I in the (v, q) block, zero elsewhere (skew-symmetric), with
+    c = Δt s_v / s_q per axis, the q–v coupling in the scaled coordinates (so that Δq = Δt v)."""
     if "dt" not in norm:
         raise ValueError("kinematic_prior needs the frame time step in the normalisation (norm['dt']); "
                          "recompute it with tignn_jax.data.normalization")
     scale = state_scale(norm)
-    return norm["dt"][0] * scale[3:6] / scale[:3]
-
-
-def _canonical_matrix(norm):
-    """L₀ [12,12]: c·I in the (q, v) block, −c·I in the (v, q) block, zero elsewhere (skew-symmetric)."""
-    c = jnp.diag(_canonical_coefficient(norm))
+    c = jnp.diag(norm["dt"][0] * scale[3:6] / scale[:3])
     zero3, zero6 = jnp.zeros((3, 3), c.dtype), jnp.zeros((6, 6), c.dtype)
     top = jnp.concatenate([jnp.concatenate([zero3, c], 1), jnp.concatenate([-c, zero3], 1)], 0)
     return jax.scipy.linalg.block_diag(top, zero6)
@@ -398,9 +394,8 @@ def _appliers(config, norm, g_e, g_s):
     degeneracy projections when the config asks for them."""
     base_l = _apply_l
     if config.kinematic_prior:
-        c = _canonical_coefficient(norm)
-        base_l = lambda l_mat, g: _apply_l(l_mat, g) + jnp.concatenate(
-            [c * g[:, 3:6], -c * g[:, :3], jnp.zeros_like(g[:, 6:])], axis=1)
+        l_0 = _canonical_matrix(norm)
+        base_l = lambda l_mat, g: _apply_l(l_mat, g) + g @ l_0.T
     if not config.exact_degeneracy:
         return base_l, _apply_m
     return (lambda l_mat, g: _project(g_s, base_l(l_mat, _project(g_s, g))),
@@ -461,10 +456,7 @@ def graph_pool(values, logits, topo: Topology):
     """Per-graph summaries broadcast back to the nodes: [N,F] values and [N,1] attention logits → [N, 2F]
     (the graph's mean of ``values`` | its softmax(logits)-weighted sum of ``values``)."""
     e = jnp.exp(logits - jax.lax.stop_gradient(jnp.max(logits)))
-    if topo.member is None:
-        pooled = jnp.concatenate([jnp.mean(values, axis=0), jnp.sum(e * values, axis=0) / jnp.sum(e)])
-        return jnp.broadcast_to(pooled, (values.shape[0], pooled.shape[0]))
-    member = topo.member
+    member = jnp.ones((1, values.shape[0]), values.dtype) if topo.member is None else topo.member
     mean = member @ values / jnp.sum(member, axis=1, keepdims=True)
     att = member @ (e * values) / (member @ e)
     return member.T @ jnp.concatenate([mean, att], axis=1)
