@@ -45,8 +45,8 @@ class ModelConfig(NamedTuple):
     P_g = I − ĝĝᵀ (ĝ = g / |g| for g = ∇S or ∇E at that node), so that L'∇S = 0 and M'∇E = 0 hold exactly
     instead of only as far as the loss enforces them: then dE = 0 and dS = ∇Sᵀ M' ∇S ≥ 0 per node (before the
     clamped rows are zeroed). L' stays skew-symmetric and M' symmetric PSD; global_pool: every pass also
-    feeds each node a summary of its whole graph (the mean of a projection of the latents and an attention-
-    weighted sum, softmax over the graph's nodes): one "virtual node" per body, so that information crosses a
+    feeds each node a summary of its whole graph (the mean over the graph's nodes of a projection of the
+    latents): one "virtual node" per body, so that information crosses a
     body in one step instead of one hop per pass (a point load on a nearly incompressible solid changes the
     pressure everywhere within a frame). Cost O(nodes · hidden) per pass; kinematic_prior: add to the learned
     L the canonical coupling of positions and velocities (L₀ with L₀_qv = −L₀_vqᵀ = c·I, c = Δt s_v / s_q in the
@@ -452,14 +452,14 @@ def _network_out(weights, config, norm, z, f, node_type, topo, split=False):
     return (es, heads) if split else jnp.concatenate([es, heads], axis=1)
 
 
-def graph_pool(values, logits, topo: Topology):
-    """Per-graph summaries broadcast back to the nodes: [N,F] values and [N,1] attention logits → [N, 2F]
-    (the graph's mean of ``values`` | its softmax(logits)-weighted sum of ``values``)."""
-    e = jnp.exp(logits - jax.lax.stop_gradient(jnp.max(logits)))
+def graph_pool(values, topo: Topology):
+    """Each graph's mean of ``values`` [N,F], broadcast back to its nodes [N,F].
+
+    A mean (not an attention-weighted sum) keeps ∂E/∂z_i = Σ_j ∂E_j/∂z_i of order one: every node's energy
+    depends on node i only through a 1/N share. An attention variant that could single out the loaded node made
+    ∇E there of order N, and its first bunny training diverged (loss 1e3 in epoch 1)."""
     member = jnp.ones((1, values.shape[0]), values.dtype) if topo.member is None else topo.member
-    mean = member @ values / jnp.sum(member, axis=1, keepdims=True)
-    att = member @ (e * values) / (member @ e)
-    return member.T @ jnp.concatenate([mean, att], axis=1)
+    return member.T @ (member @ values / jnp.sum(member, axis=1, keepdims=True))
 
 
 class MLP(nn.Module):
@@ -525,6 +525,6 @@ class Network(nn.Module):
             msg = reduce_rows(jnp.sum(act(a) * mask, axis=1), topo) * inv_k
             parts = [h, msg, f]
             if c.global_pool:
-                parts.append(graph_pool(nn.Dense(hid)(h), nn.Dense(1)(h), topo))
+                parts.append(graph_pool(nn.Dense(hid)(h), topo))
             h = h + MLP(hid, hid, c.mlp_layers, c.activation)(jnp.concatenate(parts, axis=1))
         return MLP(hid, 2 + N_L + N_M, c.mlp_layers, c.activation, out_scale=0.1, split=2)(h)
