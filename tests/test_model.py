@@ -171,16 +171,20 @@ def test_rollout_equals_repeated_steps(toy):
         np.testing.assert_allclose(np.asarray(states[k + 1]), np.asarray(g.nodes["z"]), rtol=1e-5, atol=1e-5)
 
 
-def test_batched_copies_step_like_separate_graphs(toy):
-    # Two bodies of the model's mesh in one graph (jraph-style batch) evolve independently.
-    data = toy["data"]
+def _assert_batched_bodies_step_separately(params, data):
+    """Two bodies of the model's mesh in one graph (jraph-style batch) step as each does alone."""
     g1, g2 = G.from_data(data, 0, 1), G.from_data(data, 1, 2)
-    both = api.step(toy["params"], G.batch([g1, g2]), np.concatenate([data.f[0, 1], data.f[1, 2]]))
+    both = api.step(params, G.batch([g1, g2]), np.concatenate([data.f[0, 1], data.f[1, 2]]))
     n = len(data.q0)
     np.testing.assert_allclose(np.asarray(both.nodes["z"][:n]),
-                               np.asarray(api.step(toy["params"], g1, data.f[0, 1]).nodes["z"]), atol=1e-5)
+                               np.asarray(api.step(params, g1, data.f[0, 1]).nodes["z"]), atol=1e-5)
     np.testing.assert_allclose(np.asarray(both.nodes["z"][n:]),
-                               np.asarray(api.step(toy["params"], g2, data.f[1, 2]).nodes["z"]), atol=1e-5)
+                               np.asarray(api.step(params, g2, data.f[1, 2]).nodes["z"]), atol=1e-5)
+
+
+def test_batched_copies_step_like_separate_graphs(toy):
+    # Two bodies of the model's mesh in one graph (jraph-style batch) evolve independently.
+    _assert_batched_bodies_step_separately(toy["params"], toy["data"])
 
 
 def test_step_rejects_bad_inputs_naming_them(toy):
@@ -443,14 +447,7 @@ def test_global_pool_keeps_generic_structure_and_exact_gradients(pooled):
 def test_global_pool_pools_each_body_of_a_batch_separately(pooled):
     # Two bodies in one graph: each body's summary comes from its own nodes only.
     t = pooled
-    data = t["data"]
-    g1, g2 = G.from_data(data, 0, 1), G.from_data(data, 1, 2)
-    both = api.step(t["params"], G.batch([g1, g2]), np.concatenate([data.f[0, 1], data.f[1, 2]]))
-    n = len(data.q0)
-    np.testing.assert_allclose(np.asarray(both.nodes["z"][:n]),
-                               np.asarray(api.step(t["params"], g1, data.f[0, 1]).nodes["z"]), atol=1e-5)
-    np.testing.assert_allclose(np.asarray(both.nodes["z"][n:]),
-                               np.asarray(api.step(t["params"], g2, data.f[1, 2]).nodes["z"]), atol=1e-5)
+    _assert_batched_bodies_step_separately(t["params"], t["data"])
     with pytest.raises(ValueError, match="already tiled"):
         M.tile_topology(M.tile_topology(t["topo"], 2), 2)
 
