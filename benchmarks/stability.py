@@ -12,8 +12,8 @@ Reported per run: NaN/Inf count, max |u| and |v| against the FEM on the same loa
 ``--fem-steps`` frames, batched), the first step at which the u error against the FEM exceeds 10 % (L2 over
 the nodes, relative to the largest FEM displacement norm over the horizon; NaN counts as over),
 the learned energy and entropy along the rollout, the fraction of steps with S_{k+1} ≥ S_k and the fraction
-with entropy production ∇S·Δw ≥ 0 (both over the steps before the first non-finite state) (the step's GENERIC rate: ≥ 0 by construction for an ``exact_degeneracy``
-model, up to the clamped rows and rounding), and the two
+with entropy production ∇S·Δw ≥ 0 (the step's GENERIC rate: ≥ 0 by construction for an ``exact_degeneracy``
+model, up to the clamped rows and rounding), both over the steps before the first non-finite state, and the two
 guards: ``api.force_check`` (loads beyond the training range) and ``api.state_check`` (the first step at
 which the state leaves the training envelope, against the first non-finite step).
 FEM: the beam at 0.9 (default), 1.0 and 1.5 × its stable sub-step (fewer sub-steps than stable): the run

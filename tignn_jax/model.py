@@ -46,9 +46,8 @@ class ModelConfig(NamedTuple):
     instead of only as far as the loss enforces them: then dE = 0 and dS = ∇Sᵀ M' ∇S ≥ 0 per node (before the
     clamped rows are zeroed). L' stays skew-symmetric and M' symmetric PSD; global_pool: every pass also
     feeds each node a summary of its whole graph (the mean over the graph's nodes of a projection of the
-    latents): one "virtual node" per body, so that information crosses a
-    body in one step instead of one hop per pass (a point load on a nearly incompressible solid changes the
-    pressure everywhere within a frame). Cost O(nodes · hidden) per pass; kinematic_prior: add to the learned
+    latents): one "virtual node" per body, so that information crosses a body in one step instead of one hop
+    per pass (a point load on a nearly incompressible solid changes the pressure everywhere within a frame). Cost O(nodes · hidden) per pass; kinematic_prior: add to the learned
     L the canonical coupling of positions and velocities (L₀ with L₀_qv = −L₀_vqᵀ = c·I, c = Δt s_v / s_q in the
     scaled coordinates) and to E the kinetic term ½|w_v|² per node, so that an untrained model already moves
     q by Δt·v and the network's E acts on the velocities through −∇_q E (a learned potential's force); the
