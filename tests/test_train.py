@@ -224,3 +224,33 @@ def test_warm_start_keeps_the_parent_normalisation_and_may_switch_weight_free_op
     np.testing.assert_array_equal(np.asarray(child["norm"]["f_std"]), np.asarray(parent["norm"]["f_std"]))
     assert child["config"]["exact_degeneracy"] is True
     np.testing.assert_array_equal(_flat(parent), _flat(child))
+
+
+def test_unrolled_loss_is_the_mean_of_its_steps_from_the_model_own_states(toy):
+    # unroll K: step 1 starts from the data, step 2 from the model's own prediction, each scored against the truth.
+    cfg = TINY._replace(noise=0.0)
+    topo = M.topology(toy.edges[0], toy.edges[1], len(toy.q0))
+    node_type = jnp.asarray(toy.node_type, jnp.int32)
+    norm = {k: jnp.asarray(v) for k, v in D.normalization(toy, D.split_rows(toy, "train")).items()}
+    z, f = jnp.asarray(toy.z[:2]), jnp.asarray(toy.f[:2])
+    weights = M.init_weights(jax.random.PRNGKey(1), cfg.model, norm, z[0, 0], f[0, 0], node_type, topo)
+    key = jax.random.PRNGKey(0)
+    one = lambda z0, f0, z1: float(_jit_loss(weights, T.Batch(z0, f0, z1), key, norm, cfg, node_type, topo)[0])
+    two, _ = _jit_loss(weights, T.Batch(z[:, 0], f[:, 0:2], z[:, 1:3]), key, norm, cfg, node_type, topo)
+    pred = jax.vmap(lambda a, b: M.step_state(weights, cfg.model, norm, a, b, node_type, topo))(z[:, 0], f[:, 0])
+    expected = 0.5 * (one(z[:, 0], f[:, 0], z[:, 1]) + one(pred, f[:, 1], z[:, 2]))
+    assert float(two) == pytest.approx(expected, rel=1e-5)
+    # a step axis of length 1 is the plain one-step loss
+    assert float(_jit_loss(weights, T.Batch(z[:, 0], f[:, 0:1], z[:, 1:2]), key, norm, cfg, node_type, topo)[0]) \
+        == pytest.approx(one(z[:, 0], f[:, 0], z[:, 1]), rel=1e-6)
+
+
+def test_unrolled_training_runs_resumes_and_checks_its_length(toy, tmp_path):
+    cfg = TINY._replace(unroll=2)
+    whole = T.train(toy, cfg, tmp_path / "whole", **QUIET)
+    T.train(toy, cfg, tmp_path / "split", stop_after_epoch=1, **QUIET)
+    np.testing.assert_array_equal(_flat(whole), _flat(T.train(toy, cfg, tmp_path / "split", **QUIET)))
+    lines = [json.loads(x) for x in (tmp_path / "whole" / "metrics.jsonl").read_text().splitlines()]
+    assert all(np.isfinite(x["loss"]) for x in lines)
+    with pytest.raises(ValueError, match="unroll must be between 1 and the 4 frames.*got 5"):
+        T.train(toy, TINY._replace(unroll=5), tmp_path / "bad", **QUIET)

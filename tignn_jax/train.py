@@ -40,7 +40,9 @@ from tignn_jax import model as M
 class TrainConfig(NamedTuple):
     """Architecture (see ModelConfig) and optimisation settings. lr peaks after ``warmup_steps`` and decays
     by cosine to ``lr_end`` at the end of ``epochs``; ``noise`` is the input-noise std as a fraction of the
-    per-feature increment std; ``eval_every``/``ckpt_every`` are in epochs."""
+    per-feature increment std; ``eval_every``/``ckpt_every`` are in epochs. ``unroll`` = K > 1 trains on K
+    consecutive steps from each sampled state: step j+1 starts from the model's own prediction of step j (held
+    constant in the gradient, the "pushforward" trick), so the loss sees the states a rollout visits."""
     hidden: int = 24
     mlp_layers: int = 2
     passes: int = 3
@@ -60,6 +62,7 @@ class TrainConfig(NamedTuple):
     noise: float = 0.2
     deg_weight: float = 1.0
     case_weight: float = 0.0
+    unroll: int = 1
     seed: int = 0
     eval_every: int = 2
     ckpt_every: int = 2
@@ -79,7 +82,8 @@ CONFIGS = {
 
 
 class Batch(NamedTuple):
-    """Stacked transitions: z, z_next [B,N,12]; f [B,N,3]; optional per-sample feature weights w [B,12]."""
+    """Stacked transitions: z, z_next [B,N,12]; f [B,N,3]; optional per-sample feature weights w [B,12].
+    For unrolled training f [B,K,N,3] and z_next [B,K,N,12] hold the K steps after z."""
     z: jax.Array
     f: jax.Array
     z_next: jax.Array
@@ -115,21 +119,30 @@ def make_optimizer(cfg: TrainConfig, total_steps: int) -> optax.GradientTransfor
 
 
 def loss_fn(weights, batch: Batch, key, norm, cfg: TrainConfig, node_type, topo):
-    """Scalar loss and a dict of metrics for a batch of transitions on one mesh."""
+    """Scalar loss and a dict of metrics for a batch of transitions on one mesh (K unrolled steps when
+    ``batch.f`` has a step axis: each step's error is measured against the true next state from the model's
+    own current state, and the losses are averaged over the steps)."""
     c, s = norm["dz_std"], M.state_scale(norm)
     keep = ~((node_type != 0)[:, None] & (jnp.arange(M.STATE_DIM) < 6)[None, :])
     keep = keep.astype(batch.z.dtype)
+    f_seq, z_seq = (batch.f, batch.z_next) if batch.f.ndim == 4 else (batch.f[:, None], batch.z_next[:, None])
     z_in = batch.z + jax.random.normal(key, batch.z.shape, batch.z.dtype) * (cfg.noise * c) * keep
-    target = (batch.z_next - z_in) / s
-    rt = jax.vmap(lambda z, f: M.rates(weights, cfg.model, norm, z, f, node_type, topo))(z_in, batch.f)
     to_unit = s / c
-    sq = ((rt.dw - target) * to_unit) ** 2 * keep
-    if batch.w is not None:
-        sq = sq * batch.w[:, None, :]
     denom = batch.z.shape[0] * jnp.sum(keep, axis=0)
-    per_feature = jnp.sum(sq, axis=(0, 1)) / denom
-    data_loss = jnp.sum(sq) / jnp.sum(denom)
-    deg = jnp.mean((rt.deg_l * to_unit) ** 2 + (rt.deg_m * to_unit) ** 2)
+    sq_sum, deg_sum = 0.0, 0.0
+    n_steps = f_seq.shape[1]
+    for j in range(n_steps):
+        target = (z_seq[:, j] - z_in) / s
+        rt = jax.vmap(lambda z, f: M.rates(weights, cfg.model, norm, z, f, node_type, topo))(z_in, f_seq[:, j])
+        sq = ((rt.dw - target) * to_unit) ** 2 * keep
+        if batch.w is not None:
+            sq = sq * batch.w[:, None, :]
+        sq_sum = sq_sum + jnp.sum(sq, axis=(0, 1))
+        deg_sum = deg_sum + jnp.mean((rt.deg_l * to_unit) ** 2 + (rt.deg_m * to_unit) ** 2)
+        z_in = jax.lax.stop_gradient(z_in + rt.dw * s)
+    per_feature = sq_sum / (denom * n_steps)
+    data_loss = jnp.sum(sq_sum) / (jnp.sum(denom) * n_steps)
+    deg = deg_sum / n_steps
     loss = data_loss + cfg.deg_weight * deg
     metrics = {"loss": loss, "mse": data_loss, "degeneracy": deg, "mse_q": per_feature[:3].mean(),
                "mse_v": per_feature[3:6].mean(), "mse_sigma": per_feature[6:].mean()}
@@ -192,7 +205,11 @@ def train(data: D.Dataset, cfg: TrainConfig, run_dir: str | Path, train_split="t
     node_type = jnp.asarray(data.node_type, jnp.int32)
     topo = M.topology(data.edges[0], data.edges[1], len(data.node_type), data.q0)
     frames = data.f.shape[1]
-    n_samples = len(rows) * frames
+    unroll = int(cfg.unroll)
+    if not 1 <= unroll <= frames:
+        raise ValueError(f"unroll must be between 1 and the {frames} frames of a case, got {cfg.unroll}")
+    starts = frames - unroll + 1   # start frames per case
+    n_samples = len(rows) * starts
     bs = cfg.batch_size
     steps_per_epoch = n_samples // bs
     if steps_per_epoch == 0:
@@ -238,8 +255,13 @@ def train(data: D.Dataset, cfg: TrainConfig, run_dir: str | Path, train_split="t
                    leave=False)
         for b in bar:
             idx = perm[b * bs:(b + 1) * bs]
-            r, k = idx // frames, idx % frames
-            batch = Batch(z_train[r, k], f_train[r, k], z_train[r, k + 1], None if w_train is None else w_train[r])
+            r, k = idx // starts, idx % starts
+            w = None if w_train is None else w_train[r]
+            if unroll == 1:
+                batch = Batch(z_train[r, k], f_train[r, k], z_train[r, k + 1], w)
+            else:
+                ahead = k[:, None] + np.arange(unroll)[None, :]
+                batch = Batch(z_train[r, k], f_train[r[:, None], ahead], z_train[r[:, None], ahead + 1], w)
             batch = jax.device_put(batch, batch_sharding)
             state, metrics = train_step(state, batch)
             for name, val in metrics.items():
