@@ -495,3 +495,36 @@ def test_kinematic_prior_needs_the_time_step_in_the_normalisation(kinematic):
     old = {k: v for k, v in t["norm"].items() if k != "dt"}
     with pytest.raises(ValueError, match="dt"):
         M.step_state(t["weights"], t["config"], old, t["z"], t["f"], t["nt"], t["topo"])
+
+
+@pytest.mark.parametrize("options", [dict(), dict(edge_velocity=False), dict(edge_strain=True),
+                                     dict(edge_strain=True, global_pool=True, passes=3)])
+def test_factored_edge_inputs_compute_the_straightforward_network(toy, options):
+    # The model computes the edge MLP's first layer in parts (node-level for the features linear in q, v):
+    # outputs and their gradients with respect to the state equal those of the assembled x_edge, same weights.
+    data = toy["data"]
+    s, r, n = _irregular_graph(seed=3)   # an irregular graph: several rows per node, padding slots
+    q0 = np.random.default_rng(4).normal(size=(n, 3))
+    topo = M.topology(s, r, n, q0=q0, slots=3)
+    assert topo.nbr.shape[0] > n and float(jnp.min(topo.mask)) == 0.0
+    config = CONFIG._replace(**options)
+    norm = {**toy["norm"], "du_std": jnp.asarray([0.3, 0.2, 0.25])}
+    key = jax.random.split(jax.random.PRNGKey(5), 3)
+    z = jnp.concatenate([jnp.asarray(q0) + 0.1 * jax.random.normal(key[0], (n, 3)),
+                         jax.random.normal(key[1], (n, 9))], axis=1).astype(jnp.float32)
+    f = 0.1 * jax.random.normal(key[2], (n, 3))
+    nt = jnp.asarray(np.arange(n) % 5 == 0, jnp.int32)
+    weights = M.init_weights(jax.random.PRNGKey(6), config, norm, z, f, nt, topo)
+    assert weights["Dense_0"]["kernel"].shape[0] == M.edge_columns(config.edge_velocity, config.edge_strain)[0]
+
+    def dense(z_):
+        x_node, x_edge = M._features(norm, z_, f, nt, topo, config.edge_velocity, config.edge_strain,
+                                     config.node_position)
+        return jnp.concatenate(M.Network(config).apply({"params": weights}, x_node, x_edge, topo), axis=1)
+
+    factored = lambda z_: M._network_out(weights, config, norm, z_, f, nt, topo)
+    out = dense(z)   # float32: agreement to rounding of the output's scale
+    np.testing.assert_allclose(factored(z), out, rtol=1e-5, atol=1e-6 * float(jnp.max(jnp.abs(out))))
+    energy = lambda fn: jax.grad(lambda z_: jnp.sum(fn(z_)[:, :2] * jnp.asarray([1.0, -0.5])))(z)
+    g = energy(dense)
+    np.testing.assert_allclose(energy(factored), g, rtol=1e-4, atol=1e-6 * float(jnp.max(jnp.abs(g))))

@@ -118,9 +118,9 @@ def energy_entropy(weights, config: ModelConfig, norm: dict, z, f, node_type, to
 
 def init_weights(key, config: ModelConfig, norm: dict, z, f, node_type, topo):
     """Flax parameters of the network for graphs like the example (z [N,12], f [N,3])."""
-    x_node, x_edge = _features(norm, z, f, node_type, topo, config.edge_velocity,
-                                config.edge_strain, config.node_position)
-    return Network(config).init(key, x_node, x_edge, topo)["params"]
+    x_node, _ = _features(norm, z, f, node_type, topo, node_position=config.node_position, with_edges=False)
+    edges = _edge_inputs(norm, z, topo, config.edge_velocity, config.edge_strain)
+    return Network(config).init(key, x_node, edges, topo)["params"]
 
 
 def state_scale(norm: dict):
@@ -413,7 +413,10 @@ _L_INDEX = _embedding(strict=True, offset=0)
 _M_INDEX = _embedding(strict=False, offset=N_L)
 
 
-def _features(norm, z, f, node_type, topo, edge_velocity=False, edge_strain=False, node_position=False):
+def _features(norm, z, f, node_type, topo, edge_velocity=False, edge_strain=False, node_position=False,
+              with_edges=True):
+    """(x_node [N,F_n], x_edge [R,K,F_e]) of the straightforward form; x_edge is None without ``with_edges``
+    (the model itself uses the factored ``_edge_inputs``)."""
     q, v, sigma = z[:, :3], z[:, 3:6], z[:, 6:]
     mean, std = norm["z_mean"], norm["z_std"]
     one_hot = jax.nn.one_hot(node_type, 2, dtype=z.dtype)
@@ -424,6 +427,8 @@ def _features(norm, z, f, node_type, topo, edge_velocity=False, edge_strain=Fals
         position = [(q - topo.x0) / norm["u_std"], (topo.x0 - norm["x0_mean"]) / norm["x0_std"]]
     x_node = jnp.concatenate(   # the force stays last: the processor reads it as x_node[:, -3:]
         [(v - mean[3:6]) / std[3:6], (sigma - mean[6:]) / std[6:], one_hot, *position, f / norm["f_std"]], axis=1)
+    if not with_edges:
+        return x_node, None
     dq = gather_neighbors(q, topo) - expand_rows(q, topo)[:, None, :]
     pad = (1.0 - topo.mask)[..., None]
     length = jnp.sqrt(jnp.sum(dq * dq, axis=-1, keepdims=True) + pad)
@@ -443,11 +448,65 @@ def _features(norm, z, f, node_type, topo, edge_velocity=False, edge_strain=Fals
     return x_node, x_edge * topo.mask[..., None]
 
 
+class EdgeInputs(NamedTuple):
+    """The edge features of ``_features`` in factored form, for the fast path of ``Network``:
+    x_edge[r,k] = (lin[sender] − lin[receiver]) + slot[r,k] placed in the feature columns ``edge_columns``
+    gives for the slot part. The features linear in q and v (q_j − q_i, v_j − v_i and the strain's q part)
+    live in ``lin`` [N,F] at node level, so their share of the edge MLP's first layer is a node-level product
+    that rides on the gathers the layer does anyway; only the nonlinear ones (lengths, the products
+    (v_j − v_i)(q_j − q_i)) and the rest-state constants are computed per slot ([R,K,S])."""
+    lin: jax.Array
+    slot: jax.Array
+
+
+def edge_columns(edge_velocity=False, edge_strain=False, rest=False) -> tuple[int, np.ndarray]:
+    """(F, cols): the number of edge features and, for each column of ``EdgeInputs.slot``, the feature it
+    adds to (the order of ``_features``: dq 3, length 1 [, dv 3, dv⊗dq 9] [, strain 3, length change 1]).
+    With ``rest`` (a Topology with rest positions) the slot part starts with the rest edge vector's share of dq."""
+    cols, width = ([0, 1, 2] if rest else []) + [3], 4
+    if edge_velocity:
+        cols += list(range(width + 3, width + 12))
+        width += 12
+    if edge_strain:
+        cols += [width + 3]
+        width += 4
+    return width, np.asarray(cols, np.int32)
+
+
+def _edge_inputs(norm, z, topo, edge_velocity=False, edge_strain=False) -> EdgeInputs:
+    """The factored form of ``_features``' x_edge (the same numbers once assembled; see ``EdgeInputs``).
+
+    With rest positions the node-level part is built from displacements q − X (q_j − q_i = (u_j − u_i) +
+    (X_j − X_i), the rest edge vector a per-slot constant), so the difference of node values loses no
+    precision to large coordinates."""
+    q, v = z[:, :3], z[:, 3:6]
+    n = q.shape[0]
+    rest = topo.x0 is not None
+    u = q - topo.x0 if rest else q
+    dq = gather_neighbors(q, topo) - expand_rows(q, topo)[:, None, :]
+    pad = (1.0 - topo.mask)[..., None]
+    length = jnp.sqrt(jnp.sum(dq * dq, axis=-1, keepdims=True) + pad)
+    lin = [u / norm["dq_std"], jnp.zeros((n, 1), z.dtype)]
+    slot = ([topo.dx0 / norm["dq_std"]] if rest else []) + [(length - norm["dqn_mean"]) / norm["dqn_std"]]
+    if edge_velocity:
+        dv = (gather_neighbors(v, topo) - expand_rows(v, topo)[:, None, :]) / norm["dv_std"]
+        dq_unit = dq / norm["dqn_mean"]
+        lin += [v / norm["dv_std"], jnp.zeros((n, 9), z.dtype)]
+        slot += [dv[..., a:a + 1] * dq_unit[..., b:b + 1] for a in range(3) for b in range(3)]
+    if edge_strain:
+        if topo.dx0 is None:
+            raise ValueError("this model needs the rest edge vectors: build its Topology with q0")
+        length0 = jnp.sqrt(jnp.sum(topo.dx0 * topo.dx0, axis=-1, keepdims=True) + pad)
+        lin += [u / norm["du_std"], jnp.zeros((n, 1), z.dtype)]   # (q_j − q_i) − (X_j − X_i) = u_j − u_i
+        slot += [(length - length0) / norm["du_std"][:1]]
+    return EdgeInputs(jnp.concatenate(lin, axis=1), jnp.concatenate(slot, axis=-1) * topo.mask[..., None])
+
+
 def _network_out(weights, config, norm, z, f, node_type, topo, split=False):
     """[N, 2 + 66 + 78] decoder outputs, or with ``split`` the pair ([N,2] E_i, S_i; [N,144] l, m entries)."""
-    x_node, x_edge = _features(norm, z, f, node_type, topo, config.edge_velocity,
-                                config.edge_strain, config.node_position)
-    es, heads = Network(config).apply({"params": weights}, x_node, x_edge, topo)
+    x_node, _ = _features(norm, z, f, node_type, topo, node_position=config.node_position, with_edges=False)
+    edges = _edge_inputs(norm, z, topo, config.edge_velocity, config.edge_strain)
+    es, heads = Network(config).apply({"params": weights}, x_node, edges, topo)
     return (es, heads) if split else jnp.concatenate([es, heads], axis=1)
 
 
@@ -498,6 +557,18 @@ class SplitDense(nn.Module):
         return x @ kernel[:, :k] + bias[:k], x @ kernel[:, k:] + bias[k:]
 
 
+class DenseParams(nn.Module):
+    """The parameters of an ``nn.Dense`` (same names, shapes and initialisers), returned instead of applied,
+    for a layer whose product is computed in parts."""
+    features: int
+    inputs: int
+
+    @nn.compact
+    def __call__(self):
+        kernel = self.param("kernel", nn.initializers.lecun_normal(), (self.inputs, self.features))
+        return kernel, self.param("bias", nn.initializers.zeros_init(), (self.features,))
+
+
 class Network(nn.Module):
     """Encode-process-decode. Returns ([N, 2] E_i, S_i; [N, 66 + 78] l_i entries, m_i entries).
 
@@ -507,7 +578,12 @@ class Network(nn.Module):
     neighbours, so it is folded into φ's first layer. An edge then costs one gather, an add and an activation;
     all matrix products act on the N nodes. Edges live in the receiver-major slots of ``topo`` ([R,K]); x_ij
     are the (normalised) edge features q_j − q_i and |q_j − q_i| (and, with ``edge_velocity``, v_j − v_i and
-    its outer product with q_j − q_i)."""
+    its outer product with q_j − q_i).
+
+    The edge features come either as the array x_edge [R,K,F] or factored (``EdgeInputs``, what the model
+    uses): then A x_ij = (A lin)_j − (A lin)_i + A_slot slot_ij, the node-level part joins B h_j and C h_i
+    before their gathers, and only the slot part is a per-slot product. Both give the same numbers with
+    the same parameters."""
     config: ModelConfig
 
     @nn.compact
@@ -518,12 +594,25 @@ class Network(nn.Module):
         f = x_node[:, -3:]
         mask = topo.mask[..., None]
         inv_k = 1.0 / topo.mask.shape[1]
-        for _ in range(c.passes):
-            a = nn.Dense(hid)(x_edge) + gather_neighbors(nn.Dense(hid, use_bias=False)(h), topo) \
-                + expand_rows(nn.Dense(hid, use_bias=False)(h), topo)[:, None, :]
+        per_pass = 4 if c.global_pool else 3   # Dense layers per pass (the names nn.Dense would get)
+        factored = isinstance(x_edge, EdgeInputs)
+        width, cols = edge_columns(c.edge_velocity, c.edge_strain, rest=factored and topo.x0 is not None)
+        if not factored and x_edge.shape[-1] != width:
+            raise ValueError(f"x_edge has {x_edge.shape[-1]} features, the config needs {width}")
+        first = [DenseParams(hid, width, name=f"Dense_{p * per_pass}")() for p in range(c.passes)]
+        for p in range(c.passes):
+            kernel, bias = first[p]
+            b_h = nn.Dense(hid, use_bias=False, name=f"Dense_{p * per_pass + 1}")(h)
+            c_h = nn.Dense(hid, use_bias=False, name=f"Dense_{p * per_pass + 2}")(h)
+            if factored:
+                lin = x_edge.lin @ kernel
+                a = gather_neighbors(b_h + lin, topo) + expand_rows(c_h - lin, topo)[:, None, :] \
+                    + x_edge.slot @ kernel[cols] + bias
+            else:
+                a = x_edge @ kernel + bias + gather_neighbors(b_h, topo) + expand_rows(c_h, topo)[:, None, :]
             msg = reduce_rows(jnp.sum(act(a) * mask, axis=1), topo) * inv_k
             parts = [h, msg, f]
             if c.global_pool:
-                parts.append(graph_pool(nn.Dense(hid)(h), topo))
+                parts.append(graph_pool(nn.Dense(hid, name=f"Dense_{p * per_pass + 3}")(h), topo))
             h = h + MLP(hid, hid, c.mlp_layers, c.activation)(jnp.concatenate(parts, axis=1))
         return MLP(hid, 2 + N_L + N_M, c.mlp_layers, c.activation, out_scale=0.1, split=2)(h)
