@@ -11,7 +11,10 @@ Speed-ups are measured in the same run, as ratios of the step time of each scene
   * straightforward: edge list (one row per edge), edge MLP on the concatenated [x_ij, h_j, h_i], scatter-add
     aggregation, two reverse passes for ∇E and ∇S, L and M assembled with 0/1 matmuls;
   * max-degree slots: the shipped gather-only layout but with one row of K = max degree slots per node;
-  * shipped: rows of K slots near the mean degree (`model.topology`), fused first edge layer, one reverse pass.
+  * assembled edge features: the shipped layout, but the edge features assembled per slot and multiplied by
+    the first edge layer there (before the factored form of ``model.EdgeInputs``);
+  * shipped: rows of K slots near the mean degree (`model.topology`), fused first edge layer, one reverse pass,
+    features linear in q and v multiplied at node level (``model.EdgeInputs``).
 A scene whose model is not shipped runs with the labelled stand-in dynamics and is reported as not valid.
 Writes benchmarks/results/realtime.{json,md}.
 
@@ -64,8 +67,8 @@ def run_scene(name: str, frames: int, warmup: int) -> dict:
 
 
 def step_variants(name: str, repeats: int) -> dict:
-    """Median step time of the scene's model written three ways (see the module docstring)."""
-    from model_step import EdgeListNetwork, edge_list_features, edge_list_rates
+    """Median step time of the scene's model written four ways (see the module docstring)."""
+    from model_step import EdgeListNetwork, assembled_step, edge_list_features, edge_list_rates
 
     from tignn_jax import api
     from tignn_jax import model as M
@@ -93,6 +96,7 @@ def step_variants(name: str, repeats: int) -> dict:
         "straightforward (edge list)": jax.jit(lambda z, f: z + edge_list_rates(
             w_edge, plain_cfg, norm, z, f, nt, jnp.asarray(s), jnp.asarray(r))[0] * M.state_scale(norm)),
         "max-degree slots": jax.jit(lambda z, f: M.step_state(w, cfg, norm, z, f, nt, slots)),
+        "assembled edge features": assembled_step(w, cfg, norm, nt, rows),
         "shipped (rows)": jax.jit(lambda z, f: M.step_state(w, cfg, norm, z, f, nt, rows)),
     }
     for fn in fns.values():
@@ -111,11 +115,14 @@ def step_variants(name: str, repeats: int) -> dict:
 
 
 def untrained_step(name: str, repeats: int, sizes=((16, 3), (24, 3))) -> dict:
-    """Step time of untrained models of the shipped sizes on a scene's mesh, for scenes without a shipped
-    model (the cost a trained model of that size would have; its weights do not change the time)."""
+    """Step time of untrained models of the given sizes on a scene's mesh, for scenes without a shipped model
+    (the cost a trained model of that size would have; its weights do not change the time), with the features
+    of the scene's training config, written the shipped way and with assembled edge features (interleaved)."""
     from fem import scenes as fs
+    from model_step import assembled_step
 
     from tignn_jax import model as M
+    from tignn_jax import train as T
 
     scene = fs.bunny_scene() if name == "bunny" else fs.beam_scene()
     q0 = np.asarray(scene.points, np.float32)
@@ -125,23 +132,29 @@ def untrained_step(name: str, repeats: int, sizes=((16, 3), (24, 3))) -> dict:
     z = jnp.asarray(np.concatenate([q0, 0.01 * rng.normal(size=(n, 9))], 1), jnp.float32)
     f = jnp.zeros((n, 3), jnp.float32)
     norm = {k: jnp.ones(d, jnp.float32) for k, d in (("z_mean", 12), ("z_std", 12), ("dz_std", 12), ("f_std", 3),
-                                                        ("dq_std", 3), ("dv_std", 3), ("du_std", 3),
+                                                        ("dq_std", 3), ("dv_std", 3), ("du_std", 3), ("u_std", 3),
+                                                        ("x0_mean", 3), ("x0_std", 3),
                                                         ("dqn_mean", 1), ("dqn_std", 1))}
     nt = jnp.asarray(scene.node_type, jnp.int32)
     topo = M.topology(s, r, n, q0)
-    out = {}
+    base = T.CONFIGS.get(name, T.CONFIGS["beam"]).model._replace(edge_strain=True)
+    fns = {}
     for hid, passes in sizes:
-        cfg = M.ModelConfig(hidden=hid, passes=passes)
+        cfg = base._replace(hidden=hid, passes=passes)
         w = M.init_weights(jax.random.PRNGKey(0), cfg, norm, z, f, nt, topo)
-        fn = jax.jit(lambda z, f, w=w, cfg=cfg: M.step_state(w, cfg, norm, z, f, nt, topo))
+        fns[f"{hid}x{passes}"] = jax.jit(lambda z, f, w=w, cfg=cfg: M.step_state(w, cfg, norm, z, f, nt, topo))
+        fns[f"{hid}x{passes} assembled"] = assembled_step(w, cfg, norm, nt, topo)
+    for fn in fns.values():
         jax.block_until_ready(fn(z, f))
-        t = []
-        for _ in range(repeats):
+    times = {k: [] for k in fns}
+    for _ in range(repeats):
+        for k, fn in fns.items():
             t0 = time.perf_counter()
             jax.block_until_ready(fn(z, f))
-            t.append(1e3 * (time.perf_counter() - t0))
-        out[f"{hid}x{passes}"] = float(np.median(t))
-    return {"nodes": n, "slots": list(topo.nbr.shape), "step_p50_ms": out}
+            times[k].append(1e3 * (time.perf_counter() - t0))
+    features = {k: getattr(base, k) for k in ("edge_velocity", "edge_strain", "node_position")}
+    return {"nodes": n, "slots": list(topo.nbr.shape), "features": features,
+            "step_p50_ms": {k: float(np.median(v)) for k, v in times.items()}}
 
 
 def main(argv=None) -> int:
@@ -197,21 +210,24 @@ def format_md(result: dict) -> str:
     for name, sc_ in result["scenes"].items():
         if "untrained_model_step" in sc_:
             u = sc_["untrained_model_step"]
-            lines += ["", f"{name}: no shipped model; step time of untrained models of the shipped sizes on its mesh "
-                      f"({u['nodes']} nodes, rows × slots {u['slots']}): " +
+            lines += ["", f"{name}: no shipped model; step time of untrained models on its mesh "
+                      f"({u['nodes']} nodes, rows × slots {u['slots']}, features {u.get('features', {})}; "
+                      "'assembled' = edge features assembled per slot, the form before the factored one): " +
                       ", ".join(f"{k} {v:.2f} ms" for k, v in u["step_p50_ms"].items()) +
                       f" (budget {result['budgets_ms']['simulation_p50'][name]:.0f} ms)."]
     if result["step_variants"]:
-        lines += ["", "Step time of each scene's model written three ways (median of interleaved calls, same run):",
-                  "", "| scene | model | slots (max-degree → rows) | straightforward | max-degree slots | shipped | "
-                  "speed-up |", "|---|---|---|---|---|---|---|"]
+        lines += ["", "Step time of each scene's model written four ways (median of interleaved calls, same run):",
+                  "", "| scene | model | slots (max-degree → rows) | straightforward | max-degree slots | "
+                  "assembled edge features | shipped | speed-up vs straightforward | vs assembled |",
+                  "|---|---|---|---|---|---|---|---|---|"]
         for name, v in result["step_variants"].items():
             t = v["step_p50_ms"]
             lines.append(
                 f"| {name} | {v['model']} {v['hidden']}×{v['passes']} | {v['slots']['max-degree']} → "
                 f"{v['slots']['rows']} ({v['slots']['edges']} edges) | {t['straightforward (edge list)']:.2f} ms | "
-                f"{t['max-degree slots']:.2f} ms | {t['shipped (rows)']:.2f} ms | "
-                f"{v['speedup_vs_straightforward']['shipped (rows)']:.2f}× |")
+                f"{t['max-degree slots']:.2f} ms | {t['assembled edge features']:.2f} ms | "
+                f"{t['shipped (rows)']:.2f} ms | {v['speedup_vs_straightforward']['shipped (rows)']:.2f}× | "
+                f"{t['assembled edge features'] / t['shipped (rows)']:.2f}× |")
     return "\n".join(lines) + "\n"
 
 

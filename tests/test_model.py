@@ -498,7 +498,8 @@ def test_kinematic_prior_needs_the_time_step_in_the_normalisation(kinematic):
 
 
 @pytest.mark.parametrize("options", [dict(), dict(edge_velocity=False), dict(edge_strain=True),
-                                     dict(edge_strain=True, global_pool=True, passes=3)])
+                                     dict(edge_strain=True, global_pool=True, passes=3),
+                                     dict(edge_velocity=False, edge_traction=True)])
 def test_factored_edge_inputs_compute_the_straightforward_network(toy, options):
     # The model computes the edge MLP's first layer in parts (node-level for the features linear in q, v):
     # outputs and their gradients with respect to the state equal those of the assembled x_edge, same weights.
@@ -515,11 +516,12 @@ def test_factored_edge_inputs_compute_the_straightforward_network(toy, options):
     f = 0.1 * jax.random.normal(key[2], (n, 3))
     nt = jnp.asarray(np.arange(n) % 5 == 0, jnp.int32)
     weights = M.init_weights(jax.random.PRNGKey(6), config, norm, z, f, nt, topo)
-    assert weights["Dense_0"]["kernel"].shape[0] == M.edge_columns(config.edge_velocity, config.edge_strain)[0]
+    assert weights["Dense_0"]["kernel"].shape[0] == M.edge_columns(config.edge_velocity, config.edge_strain,
+                                                                   edge_traction=config.edge_traction)[0]
 
     def dense(z_):
         x_node, x_edge = M._features(norm, z_, f, nt, topo, config.edge_velocity, config.edge_strain,
-                                     config.node_position)
+                                     config.node_position, edge_traction=config.edge_traction)
         return jnp.concatenate(M.Network(config).apply({"params": weights}, x_node, x_edge, topo), axis=1)
 
     factored = lambda z_: M._network_out(weights, config, norm, z_, f, nt, topo)
@@ -528,3 +530,30 @@ def test_factored_edge_inputs_compute_the_straightforward_network(toy, options):
     energy = lambda fn: jax.grad(lambda z_: jnp.sum(fn(z_)[:, :2] * jnp.asarray([1.0, -0.5])))(z)
     g = energy(dense)
     np.testing.assert_allclose(energy(factored), g, rtol=1e-4, atol=1e-6 * float(jnp.max(jnp.abs(g))))
+
+
+def test_traction_features_turn_with_the_body_and_read_the_stress_tensor(toy):
+    # σ·n with σ from its Voigt vector (11, 22, 33, 12, 13, 23): rotating positions and stress by R rotates each
+    # traction by R (a wrong Voigt order would not); a uniaxial σ11 on an edge along x gives (σ11 |dq|, 0, 0).
+    s, r, n = _irregular_graph(seed=7)
+    rng = np.random.default_rng(8)
+    q = rng.normal(size=(n, 3))
+    topo = M.topology(s, r, n, q0=q)
+    sig = rng.normal(size=(n, 6))
+    norm = {**toy["norm"], "dqn_mean": jnp.ones(1), "z_std": jnp.ones(12)}
+    rot = np.linalg.qr(rng.normal(size=(3, 3)))[0]
+    idx = [(0, 0), (1, 1), (2, 2), (0, 1), (0, 2), (1, 2)]
+    tensor = np.zeros((n, 3, 3))
+    for a, (i, j) in enumerate(idx):
+        tensor[:, i, j] = tensor[:, j, i] = sig[:, a]
+    turned = np.einsum("ab,nbc,dc->nad", rot, tensor, rot)
+    sig_rot = np.stack([turned[:, i, j] for i, j in idx], axis=1)
+    dq = lambda x: M.gather_neighbors(jnp.asarray(x), topo) - M.expand_rows(jnp.asarray(x), topo)[:, None, :]
+    t = M._tractions(norm, jnp.asarray(sig), dq(q), topo)
+    t_rot = M._tractions(norm, jnp.asarray(sig_rot), dq(q @ rot.T), topo)
+    expected = np.concatenate([np.asarray(t[..., :3]) @ rot.T, np.asarray(t[..., 3:]) @ rot.T], axis=-1)
+    np.testing.assert_allclose(np.asarray(t_rot), expected, atol=1e-4)
+    line = M.topology(np.array([0, 1]), np.array([1, 0]), 2, q0=np.array([[0.0, 0, 0], [2.0, 0, 0]]))
+    uni = jnp.asarray([[3.0, 0, 0, 0, 0, 0]] * 2)
+    np.testing.assert_allclose(M._tractions(norm, uni, M.gather_neighbors(line.x0, line) - line.x0[:, None, :], line)[1, 0],
+                               [-6.0, 0, 0, -6.0, 0, 0], atol=1e-6)

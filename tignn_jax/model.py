@@ -51,7 +51,11 @@ class ModelConfig(NamedTuple):
     L the canonical coupling of positions and velocities (L₀ with L₀_qv = −L₀_vqᵀ = c·I, c = Δt s_v / s_q in the
     scaled coordinates) and to E the kinetic term ½|w_v|² per node, so that an untrained model already moves
     q by Δt·v and the network's E acts on the velocities through −∇_q E (a learned potential's force); the
-    learned l, m, E, S correct the rest. L = L₀ + l − lᵀ stays skew-symmetric. Needs ``norm["dt"]``."""
+    learned l, m, E, S correct the rest. L = L₀ + l − lᵀ stays skew-symmetric. Needs ``norm["dt"]``;
+    edge_traction: add the edge features σ_j·n and σ_i·n (n = (q_j − q_i) / mean edge length, σ the node's
+    stress tensor over one scalar scale, so the features turn with the body): the tractions whose sum over a
+    node's edges estimates the stress divergence, i.e. the internal force. A one-hidden-layer edge MLP of
+    additive inputs can only approximate such products, and a narrow one poorly."""
     hidden: int = 32
     mlp_layers: int = 2
     passes: int = 4
@@ -62,6 +66,7 @@ class ModelConfig(NamedTuple):
     exact_degeneracy: bool = False
     global_pool: bool = False
     kinematic_prior: bool = False
+    edge_traction: bool = False
 
 
 class Rates(NamedTuple):
@@ -119,7 +124,7 @@ def energy_entropy(weights, config: ModelConfig, norm: dict, z, f, node_type, to
 def init_weights(key, config: ModelConfig, norm: dict, z, f, node_type, topo):
     """Flax parameters of the network for graphs like the example (z [N,12], f [N,3])."""
     x_node, _ = _features(norm, z, f, node_type, topo, node_position=config.node_position, with_edges=False)
-    edges = _edge_inputs(norm, z, topo, config.edge_velocity, config.edge_strain)
+    edges = _edge_inputs(norm, z, topo, config.edge_velocity, config.edge_strain, config.edge_traction)
     return Network(config).init(key, x_node, edges, topo)["params"]
 
 
@@ -414,7 +419,7 @@ _M_INDEX = _embedding(strict=False, offset=N_L)
 
 
 def _features(norm, z, f, node_type, topo, edge_velocity=False, edge_strain=False, node_position=False,
-              with_edges=True):
+              with_edges=True, edge_traction=False):
     """(x_node [N,F_n], x_edge [R,K,F_e]) of the straightforward form; x_edge is None without ``with_edges``
     (the model itself uses the factored ``_edge_inputs``)."""
     q, v, sigma = z[:, :3], z[:, 3:6], z[:, 6:]
@@ -444,6 +449,8 @@ def _features(norm, z, f, node_type, topo, edge_velocity=False, edge_strain=Fals
             raise ValueError("this model needs the rest edge vectors: build its Topology with q0")
         length0 = jnp.sqrt(jnp.sum(topo.dx0 * topo.dx0, axis=-1, keepdims=True) + pad)
         parts += [(dq - topo.dx0) / norm["du_std"], (length - length0) / norm["du_std"][:1]]
+    if edge_traction:
+        parts += [_tractions(norm, sigma, dq, topo)]
     x_edge = jnp.concatenate(parts, axis=-1)
     return x_node, x_edge * topo.mask[..., None]
 
@@ -459,7 +466,23 @@ class EdgeInputs(NamedTuple):
     slot: jax.Array
 
 
-def edge_columns(edge_velocity=False, edge_strain=False, rest=False) -> tuple[int, np.ndarray]:
+def _tractions(norm, sigma, dq, topo):
+    """[R,K,6]: S(σ_j)·n and S(σ_i)·n per slot (S the symmetric tensor of the Voigt vector σ, order 11, 22, 33,
+    12, 13, 23, over one scalar stress scale; n = dq / mean edge length)."""
+    scale = jnp.sqrt(jnp.mean(norm["z_std"][6:] ** 2))
+    n = dq / norm["dqn_mean"]
+
+    def apply(sv):   # sv [..., 6] broadcast against n [R,K,3]
+        s11, s22, s33, s12, s13, s23 = (sv[..., a:a + 1] for a in range(6))
+        nx, ny, nz = n[..., 0:1], n[..., 1:2], n[..., 2:3]
+        return [s11 * nx + s12 * ny + s13 * nz, s12 * nx + s22 * ny + s23 * nz, s13 * nx + s23 * ny + s33 * nz]
+
+    sender = gather_neighbors(sigma / scale, topo)
+    receiver = expand_rows(sigma / scale, topo)[:, None, :]
+    return jnp.concatenate(apply(sender) + apply(receiver), axis=-1)
+
+
+def edge_columns(edge_velocity=False, edge_strain=False, rest=False, edge_traction=False) -> tuple[int, np.ndarray]:
     """(F, cols): the number of edge features and, for each column of ``EdgeInputs.slot``, the feature it
     adds to (the order of ``_features``: dq 3, length 1 [, dv 3, dv⊗dq 9] [, strain 3, length change 1]).
     With ``rest`` (a Topology with rest positions) the slot part starts with the rest edge vector's share of dq."""
@@ -470,10 +493,13 @@ def edge_columns(edge_velocity=False, edge_strain=False, rest=False) -> tuple[in
     if edge_strain:
         cols += [width + 3]
         width += 4
+    if edge_traction:
+        cols += list(range(width, width + 6))
+        width += 6
     return width, np.asarray(cols, np.int32)
 
 
-def _edge_inputs(norm, z, topo, edge_velocity=False, edge_strain=False) -> EdgeInputs:
+def _edge_inputs(norm, z, topo, edge_velocity=False, edge_strain=False, edge_traction=False) -> EdgeInputs:
     """The factored form of ``_features``' x_edge (the same numbers once assembled; see ``EdgeInputs``).
 
     With rest positions the node-level part is built from displacements q − X (q_j − q_i = (u_j − u_i) +
@@ -499,13 +525,16 @@ def _edge_inputs(norm, z, topo, edge_velocity=False, edge_strain=False) -> EdgeI
         length0 = jnp.sqrt(jnp.sum(topo.dx0 * topo.dx0, axis=-1, keepdims=True) + pad)
         lin += [u / norm["du_std"], jnp.zeros((n, 1), z.dtype)]   # (q_j − q_i) − (X_j − X_i) = u_j − u_i
         slot += [(length - length0) / norm["du_std"][:1]]
+    if edge_traction:
+        lin += [jnp.zeros((n, 6), z.dtype)]
+        slot += [_tractions(norm, z[:, 6:], dq, topo)]
     return EdgeInputs(jnp.concatenate(lin, axis=1), jnp.concatenate(slot, axis=-1) * topo.mask[..., None])
 
 
 def _network_out(weights, config, norm, z, f, node_type, topo, split=False):
     """[N, 2 + 66 + 78] decoder outputs, or with ``split`` the pair ([N,2] E_i, S_i; [N,144] l, m entries)."""
     x_node, _ = _features(norm, z, f, node_type, topo, node_position=config.node_position, with_edges=False)
-    edges = _edge_inputs(norm, z, topo, config.edge_velocity, config.edge_strain)
+    edges = _edge_inputs(norm, z, topo, config.edge_velocity, config.edge_strain, config.edge_traction)
     es, heads = Network(config).apply({"params": weights}, x_node, edges, topo)
     return (es, heads) if split else jnp.concatenate([es, heads], axis=1)
 
@@ -596,7 +625,8 @@ class Network(nn.Module):
         inv_k = 1.0 / topo.mask.shape[1]
         per_pass = 4 if c.global_pool else 3   # Dense layers per pass (the names nn.Dense would get)
         factored = isinstance(x_edge, EdgeInputs)
-        width, cols = edge_columns(c.edge_velocity, c.edge_strain, rest=factored and topo.x0 is not None)
+        width, cols = edge_columns(c.edge_velocity, c.edge_strain, rest=factored and topo.x0 is not None,
+                                   edge_traction=c.edge_traction)
         if not factored and x_edge.shape[-1] != width:
             raise ValueError(f"x_edge has {x_edge.shape[-1]} features, the config needs {width}")
         first = [DenseParams(hid, width, name=f"Dense_{p * per_pass}")() for p in range(c.passes)]
