@@ -259,6 +259,12 @@ def tile_topology(topo: Topology, copies: int) -> Topology:
                     jnp.asarray(member))
 
 
+def max_degree(topo: Topology):
+    """The largest number of incoming edges of a node (a scalar array; the same for every row/slot layout of the
+    graph). The network divides its message sums by it, a fixed scale that must not depend on the slot width."""
+    return jnp.max(reduce_rows(jnp.sum(topo.mask, axis=1, keepdims=True), topo))
+
+
 def _one_row_per_node(topo: Topology, n: int) -> bool:
     return topo.nbr.shape[0] == n
 
@@ -604,7 +610,8 @@ class DenseParams(nn.Module):
 class Network(nn.Module):
     """Encode-process-decode. Returns ([N, 2] E_i, S_i; [N, 66 + 78] l_i entries, m_i entries).
 
-    Each pass is a residual node update h ← h + φ([h, Σ_j ψ(x_ij, h_i, h_j) / K, f_i]) with a one-hidden-layer
+    Each pass is a residual node update h ← h + φ([h, Σ_j ψ(x_ij, h_i, h_j) / D, f_i]) (D the graph's maximum
+    degree, whatever the slot layout) with a one-hidden-layer
     edge MLP ψ = W₂·act(A x_ij + B h_j + C h_i + b). Its first layer is split per operand: B h and C h are
     computed once per node and gathered (N products instead of E), and the linear W₂ commutes with the sum over
     neighbours, so it is folded into φ's first layer. An edge then costs one gather, an add and an activation;
@@ -625,7 +632,7 @@ class Network(nn.Module):
         h = MLP(hid, hid, c.mlp_layers, c.activation)(x_node)
         f = x_node[:, -3:]
         mask = topo.mask[..., None]
-        inv_k = 1.0 / topo.mask.shape[1]
+        inv_k = 1.0 / max_degree(topo)
         per_pass = 4 if c.global_pool else 3   # Dense layers per pass (the names nn.Dense would get)
         factored = isinstance(x_edge, EdgeInputs)
         width, cols = edge_columns(c.edge_velocity, c.edge_strain, rest=factored and topo.x0 is not None,
