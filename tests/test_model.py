@@ -576,3 +576,24 @@ def test_network_output_does_not_depend_on_the_slot_layout():
     for out in outs[1:]:
         np.testing.assert_allclose(out, outs[0], rtol=1e-5, atol=1e-6)
     assert float(M.max_degree(layouts[0])) == np.bincount(r).max()
+
+
+def test_force_port_adds_a_positive_gain_times_the_force_to_the_velocities_only(toy):
+    # dz/dt = L∇E + M∇S + B f: the step minus the operators' part is g_i f_i / f_std in the v rows of free
+    # nodes (g_i > 0), nothing in q and σ, nothing at clamped nodes; L and M keep their structure.
+    config = CONFIG._replace(force_port=True)
+    z, nt, norm, topo = toy["z"], toy["nt"], toy["norm"], toy["topo"]
+    f = jnp.asarray(toy["f"]) + 0.3 * jax.random.normal(jax.random.PRNGKey(13), toy["f"].shape)
+    weights = M.init_weights(jax.random.PRNGKey(14), config, norm, z, f, nt, topo)
+    rt = M.rates(weights, config, norm, z, f, nt, topo)
+    l_op, m_op = M.operators(weights, config, norm, z, f, nt, topo)
+    port = rt.dw - (jnp.einsum("nij,nj->ni", l_op, rt.grad_e) + jnp.einsum("nij,nj->ni", m_op, rt.grad_s))
+    free = np.asarray(nt) == 0
+    port = np.asarray(port)[free]
+    np.testing.assert_allclose(port[:, :3], 0.0, atol=1e-6)
+    np.testing.assert_allclose(port[:, 6:], 0.0, atol=1e-6)
+    np.testing.assert_allclose(np.asarray(rt.dw)[~free, :6], 0.0)   # clamped: no port either
+    gain = port[:, 3:6] / (np.asarray(f)[free] / np.asarray(norm["f_std"]))
+    assert np.all(gain > 0)
+    np.testing.assert_allclose(gain, np.repeat(gain[:, :1], 3, axis=1), rtol=1e-3)   # one gain per node
+    np.testing.assert_allclose(l_op, -jnp.swapaxes(l_op, 1, 2), atol=1e-6)

@@ -55,7 +55,11 @@ class ModelConfig(NamedTuple):
     edge_traction: add the edge features σ_j·n and σ_i·n (n = (q_j − q_i) / mean edge length, σ the node's
     stress tensor over one scalar scale, so the features turn with the body): the tractions whose sum over a
     node's edges estimates the stress divergence, i.e. the internal force. A one-hidden-layer edge MLP of
-    additive inputs can only approximate such products, and a narrow one poorly."""
+    additive inputs can only approximate such products, and a narrow one poorly; force_port: the external
+    force also acts directly on the velocities, dz/dt = L∇E + M∇S + B f with B f = g_i f_i / f_std in node i's
+    velocity rows and g_i = softplus(a decoder output) ≥ 0 a learned per-node gain (an inverse mass): the
+    open-system (port) form of GENERIC, so a point load moves its node from the first step instead of only
+    through the network's reading of f."""
     hidden: int = 32
     mlp_layers: int = 2
     passes: int = 4
@@ -67,6 +71,7 @@ class ModelConfig(NamedTuple):
     global_pool: bool = False
     kinematic_prior: bool = False
     edge_traction: bool = False
+    force_port: bool = False
 
 
 class Rates(NamedTuple):
@@ -102,7 +107,7 @@ def rates(weights, config: ModelConfig, norm: dict, z, f, node_type, topo) -> Ra
 def operators(weights, config: ModelConfig, norm: dict, z, f, node_type, topo):
     """Per-node L [N,12,12] (skew-symmetric) and M [N,12,12] (symmetric PSD) at state z (projected when
     ``config.exact_degeneracy``)."""
-    g_e, g_s, (l_mat, m_mat) = _potentials_and_grads(weights, config, norm, z, f, node_type, topo)
+    g_e, g_s, (l_mat, m_mat), _ = _potentials_and_grads(weights, config, norm, z, f, node_type, topo)
     l_op, m_op = l_mat - jnp.swapaxes(l_mat, 1, 2), m_mat @ jnp.swapaxes(m_mat, 1, 2)
     if config.kinematic_prior:
         l_op = l_op + _canonical_matrix(norm)
@@ -331,9 +336,11 @@ sum_reverse.defvjp(_sum_fwd, _sum_bwd)
 # --- internals -----------------------------------------------------------------------------------------------
 
 def _generic(weights, config, norm, z, f, node_type, topo):
-    g_e, g_s, (l_mat, m_mat) = _potentials_and_grads(weights, config, norm, z, f, node_type, topo)
+    g_e, g_s, (l_mat, m_mat), port = _potentials_and_grads(weights, config, norm, z, f, node_type, topo)
     apply_l, apply_m = _appliers(config, norm, g_e, g_s)
     dw = apply_l(l_mat, g_e) + apply_m(m_mat, g_s)
+    if config.force_port:
+        dw = dw + force_term(port, f, norm)
     clamped = (node_type != 0)[:, None] & (jnp.arange(STATE_DIM) < 6)[None, :]
     dw = jnp.where(clamped, 0.0, dw)
     return dw, g_e, g_s, (l_mat, m_mat)
@@ -354,7 +361,13 @@ def _potentials_and_grads(weights, config, norm, z, f, node_type, topo):
     g_e = grads[0] * scale
     if config.kinematic_prior:   # ∇_w of ½|w_v|²: w_v in the velocity columns
         g_e = g_e + jnp.pad(z[:, 3:6] / scale[3:6], ((0, 0), (3, 6)))
-    return g_e, grads[1] * scale, _matrices(heads)
+    return g_e, grads[1] * scale, _matrices(heads), heads[:, N_L + N_M:]
+
+
+def force_term(port, f, norm):
+    """B f [N,12]: the port gain softplus(port[:, 0]) times f / f_std in the velocity rows, zero elsewhere."""
+    gain = jax.nn.softplus(port[:, :1])
+    return jnp.pad(gain * f / norm["f_std"], ((0, 0), (3, 6)))
 
 
 def _matrices(heads):
@@ -655,4 +668,4 @@ class Network(nn.Module):
             if c.global_pool:
                 parts.append(graph_pool(nn.Dense(hid, name=f"Dense_{p * per_pass + 3}")(h), topo))
             h = h + MLP(hid, hid, c.mlp_layers, c.activation)(jnp.concatenate(parts, axis=1))
-        return MLP(hid, 2 + N_L + N_M, c.mlp_layers, c.activation, out_scale=0.1, split=2)(h)
+        return MLP(hid, 2 + N_L + N_M + int(c.force_port), c.mlp_layers, c.activation, out_scale=0.1, split=2)(h)

@@ -54,6 +54,7 @@ class TrainConfig(NamedTuple):
     global_pool: bool = False
     kinematic_prior: bool = False
     edge_traction: bool = False
+    force_port: bool = False
     lr: float = 3e-3
     lr_end: float = 2e-5
     weight_decay: float = 1e-6
