@@ -169,8 +169,8 @@ def topology(senders, receivers, n_nodes: int, q0=None, slots: int | None = None
     """Row/slot layout of a graph whose edges come in both directions (each mesh edge twice), numpy → Topology.
 
     ``slots`` (K) defaults to the maximum degree or a power of two below it, whichever minimises the slot
-    work (the maximum degree on a structured hex mesh, 4 on the bunny's tet mesh). With the rest positions ``q0`` [N,3] the rest edge vectors are
-    stored too (needed by ``edge_strain``). Raises ValueError when an edge lacks its reverse or appears twice."""
+    work (the maximum degree on a structured hex mesh, 4 on the bunny's tet mesh). With the rest positions
+    ``q0`` [N,3] the rest edge vectors are stored too (needed by ``edge_strain``). Raises ValueError when an edge lacks its reverse or appears twice."""
     senders, receivers = np.asarray(senders, np.int64), np.asarray(receivers, np.int64)
     order = np.lexsort((senders, receivers))
     s, r = senders[order], receivers[order]
@@ -442,8 +442,8 @@ _M_INDEX = _embedding(strict=False, offset=N_L)
 
 def _features(norm, z, f, node_type, topo, edge_velocity=False, edge_strain=False, node_position=False,
               with_edges=True, edge_traction=False):
-    """(x_node [N,F_n], x_edge [R,K,F_e]) of the straightforward form; x_edge is None without ``with_edges``
-    (the model itself uses the factored ``_edge_inputs``)."""
+    """(x_node [N,F_n], x_edge [R,K,F_e]): the edge features assembled per slot from ``_edge_inputs`` (the
+    model itself uses that factored form); x_edge is None without ``with_edges``."""
     q, v, sigma = z[:, :3], z[:, 3:6], z[:, 6:]
     mean, std = norm["z_mean"], norm["z_std"]
     one_hot = jax.nn.one_hot(node_type, 2, dtype=z.dtype)
@@ -456,25 +456,10 @@ def _features(norm, z, f, node_type, topo, edge_velocity=False, edge_strain=Fals
         [(v - mean[3:6]) / std[3:6], (sigma - mean[6:]) / std[6:], one_hot, *position, f / norm["f_std"]], axis=1)
     if not with_edges:
         return x_node, None
-    dq = gather_neighbors(q, topo) - expand_rows(q, topo)[:, None, :]
-    pad = (1.0 - topo.mask)[..., None]
-    length = jnp.sqrt(jnp.sum(dq * dq, axis=-1, keepdims=True) + pad)
-    parts = [dq / norm["dq_std"], (length - norm["dqn_mean"]) / norm["dqn_std"]]
-    if edge_velocity:
-        dv = (gather_neighbors(v, topo) - expand_rows(v, topo)[:, None, :]) / norm["dv_std"]
-        dq_unit = dq / norm["dqn_mean"]
-        # the 9 products dv_a dq_b, written as slices (not a broadcast outer product): their transpose is then
-        # elementwise, where the broadcast form's is a small-axis reduction that is slow on CPU
-        parts += [dv] + [dv[..., a:a + 1] * dq_unit[..., b:b + 1] for a in range(3) for b in range(3)]
-    if edge_strain:
-        if topo.dx0 is None:
-            raise ValueError("this model needs the rest edge vectors: build its Topology with q0")
-        length0 = jnp.sqrt(jnp.sum(topo.dx0 * topo.dx0, axis=-1, keepdims=True) + pad)
-        parts += [(dq - topo.dx0) / norm["du_std"], (length - length0) / norm["du_std"][:1]]
-    if edge_traction:
-        parts += [_tractions(norm, sigma, dq, topo)]
-    x_edge = jnp.concatenate(parts, axis=-1)
-    return x_node, x_edge * topo.mask[..., None]
+    edges = _edge_inputs(norm, z, topo, edge_velocity, edge_strain, edge_traction)
+    _, cols = edge_columns(edge_velocity, edge_strain, rest=topo.x0 is not None, edge_traction=edge_traction)
+    x_edge = gather_neighbors(edges.lin, topo) - expand_rows(edges.lin, topo)[:, None, :]
+    return x_node, x_edge.at[..., cols].add(edges.slot) * topo.mask[..., None]
 
 
 class EdgeInputs(NamedTuple):
@@ -554,7 +539,8 @@ def _edge_inputs(norm, z, topo, edge_velocity=False, edge_strain=False, edge_tra
 
 
 def _network_out(weights, config, norm, z, f, node_type, topo, split=False):
-    """[N, 2 + 66 + 78] decoder outputs, or with ``split`` the pair ([N,2] E_i, S_i; [N,144] l, m entries)."""
+    """[N, 2 + 66 + 78 (+ 1 port gain with ``force_port``)] decoder outputs, or with ``split`` the pair
+    ([N,2] E_i, S_i; the rest)."""
     x_node, _ = _features(norm, z, f, node_type, topo, node_position=config.node_position, with_edges=False)
     edges = _edge_inputs(norm, z, topo, config.edge_velocity, config.edge_strain, config.edge_traction)
     es, heads = Network(config).apply({"params": weights}, x_node, edges, topo)
@@ -621,11 +607,11 @@ class DenseParams(nn.Module):
 
 
 class Network(nn.Module):
-    """Encode-process-decode. Returns ([N, 2] E_i, S_i; [N, 66 + 78] l_i entries, m_i entries).
+    """Encode-process-decode. Returns ([N, 2] E_i, S_i; [N, 66 + 78] l_i entries, m_i entries, then the port
+    gain's column with ``force_port``).
 
     Each pass is a residual node update h ← h + φ([h, Σ_j ψ(x_ij, h_i, h_j) / D, f_i]) (D the graph's maximum
-    degree, whatever the slot layout) with a one-hidden-layer
-    edge MLP ψ = W₂·act(A x_ij + B h_j + C h_i + b). Its first layer is split per operand: B h and C h are
+    degree, whatever the slot layout) with a one-hidden-layer edge MLP ψ = W₂·act(A x_ij + B h_j + C h_i + b). Its first layer is split per operand: B h and C h are
     computed once per node and gathered (N products instead of E), and the linear W₂ commutes with the sum over
     neighbours, so it is folded into φ's first layer. An edge then costs one gather, an add and an activation;
     all matrix products act on the N nodes. Edges live in the receiver-major slots of ``topo`` ([R,K]); x_ij
