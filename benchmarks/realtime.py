@@ -11,8 +11,8 @@ Speed-ups are measured in the same run, as ratios of the step time of each scene
   * straightforward: edge list (one row per edge), edge MLP on the concatenated [x_ij, h_j, h_i], scatter-add
     aggregation, two reverse passes for ∇E and ∇S, L and M assembled with 0/1 matmuls;
   * max-degree slots: the shipped gather-only layout but with one row of K = max degree slots per node;
-  * assembled edge features: the shipped layout, but the edge features assembled per slot and multiplied by
-    the first edge layer there (before the factored form of ``model.EdgeInputs``);
+  * assembled edge features: the shipped layout, but the edge features assembled per slot (from the factored
+    ``model.EdgeInputs``, by a gather and a column add) and multiplied by the first edge layer there;
   * shipped: rows of K slots near the mean degree (`model.topology`), fused first edge layer, one reverse pass,
     features linear in q and v multiplied at node level (``model.EdgeInputs``).
 A scene whose model is not shipped runs with the labelled stand-in dynamics and is reported as not valid.
@@ -212,7 +212,7 @@ def format_md(result: dict) -> str:
             u = sc_["untrained_model_step"]
             lines += ["", f"{name}: no shipped model; step time of untrained models on its mesh "
                       f"({u['nodes']} nodes, rows × slots {u['slots']}, features {u.get('features', {})}; "
-                      "'assembled' = edge features assembled per slot, the form before the factored one): " +
+                      "'assembled' = the edge features assembled per slot from the factored ones, then the dense first layer): " +
                       ", ".join(f"{k} {v:.2f} ms" for k, v in u["step_p50_ms"].items()) +
                       f" (budget {result['budgets_ms']['simulation_p50'][name]:.0f} ms)."]
     if result["step_variants"]:
