@@ -176,8 +176,8 @@ def normalization(data: Dataset, rows: np.ndarray) -> dict:
     q_j - q_i and its length over all frames; dv_std [3]: edge velocity difference v_j - v_i; du_std [3]: edge displacement
     difference (q_j - q_i) - (X_j - X_i); u_std [3]: node displacement q - X; x0_mean [3], x0_std [3]: rest
     positions (mean and isotropic scale); dt [1]: the frame time step. Vectors (q, v, their increments, f,
-    dq) get one isotropic scale (RMS over components), so a direction unseen in training is not blown up; stress components get their own
-    std, floored at 1e-2 of the largest; every scale is positive.
+    dq) get one isotropic scale (RMS over components), so a direction unseen in training is not blown up;
+    stress components get their own std, floored at 1e-2 of the largest; every scale is positive.
     """
     z, f = data.z[rows].astype(np.float64), data.f[rows].astype(np.float64)
     s, r = data.edges

@@ -128,9 +128,7 @@ def energy_entropy(weights, config: ModelConfig, norm: dict, z, f, node_type, to
 
 def init_weights(key, config: ModelConfig, norm: dict, z, f, node_type, topo):
     """Flax parameters of the network for graphs like the example (z [N,12], f [N,3])."""
-    x_node, _ = _features(norm, z, f, node_type, topo, node_position=config.node_position, with_edges=False)
-    edges = _edge_inputs(norm, z, topo, config.edge_velocity, config.edge_strain, config.edge_traction)
-    return Network(config).init(key, x_node, edges, topo)["params"]
+    return Network(config).init(key, *_inputs(config, norm, z, f, node_type, topo), topo)["params"]
 
 
 def state_scale(norm: dict):
@@ -154,7 +152,8 @@ class Topology(NamedTuple):
     row_node [R] int32: the node that owns each row; node_rows [N,X] int32: each node's extra rows (R = a
     zero row in padding; X = 0 when every node has one row, R = N); x0 [N,3] float32: rest positions (None
     without a rest mesh); member [G,N] float32: which of G disjoint graphs each node belongs to (None: one
-    graph; set by ``tile_topology``, read by global pooling)."""
+    graph; set by ``tile_topology``, read by global pooling); degree_max [] float32: the largest number of
+    incoming edges of a node (the same for every layout of the graph; the network's message scale)."""
     nbr: jax.Array
     mask: jax.Array
     rev: jax.Array
@@ -163,6 +162,7 @@ class Topology(NamedTuple):
     node_rows: jax.Array | None = None
     x0: jax.Array | None = None
     member: jax.Array | None = None
+    degree_max: jax.Array | None = None
 
 
 def topology(senders, receivers, n_nodes: int, q0=None, slots: int | None = None) -> Topology:
@@ -221,7 +221,8 @@ def topology(senders, receivers, n_nodes: int, q0=None, slots: int | None = None
         dx0 = jnp.asarray((q0[nbr] - q0[row_node][:, None, :]) * mask[..., None], jnp.float32)
         x0 = jnp.asarray(q0, jnp.float32)
     return Topology(jnp.asarray(nbr, jnp.int32), jnp.asarray(mask), jnp.asarray(rev, jnp.int32), dx0,
-                    jnp.asarray(row_node, jnp.int32), jnp.asarray(node_rows, jnp.int32), x0)
+                    jnp.asarray(row_node, jnp.int32), jnp.asarray(node_rows, jnp.int32), x0,
+                    degree_max=jnp.asarray(k_max, jnp.float32))
 
 
 def tile_topology(topo: Topology, copies: int) -> Topology:
@@ -261,13 +262,14 @@ def tile_topology(topo: Topology, copies: int) -> Topology:
     member = np.kron(np.eye(copies, dtype=np.float32), np.ones((1, n), np.float32))
     return Topology(jnp.asarray(nbr_t, jnp.int32), jnp.asarray(stack(mask)), jnp.asarray(rev_t, jnp.int32), dx0,
                     jnp.asarray(row_node_t, jnp.int32), jnp.asarray(node_rows_t, jnp.int32), x0,
-                    jnp.asarray(member))
+                    jnp.asarray(member), topo.degree_max)
 
 
 def max_degree(topo: Topology):
-    """The largest number of incoming edges of a node (a scalar array; the same for every row/slot layout of the
-    graph). The network divides its message sums by it, a fixed scale that must not depend on the slot width."""
-    return jnp.max(reduce_rows(jnp.sum(topo.mask, axis=1, keepdims=True), topo))
+    """The largest number of incoming edges of a node (a scalar array, stored by ``topology``; the same for
+    every row/slot layout of the graph). The network divides its message sums by it, a fixed scale that must
+    not depend on the slot width."""
+    return topo.degree_max
 
 
 def _one_row_per_node(topo: Topology, n: int) -> bool:
@@ -538,12 +540,16 @@ def _edge_inputs(norm, z, topo, edge_velocity=False, edge_strain=False, edge_tra
     return EdgeInputs(jnp.concatenate(lin, axis=1), jnp.concatenate(slot, axis=-1) * topo.mask[..., None])
 
 
+def _inputs(config, norm, z, f, node_type, topo):
+    """(x_node, EdgeInputs): what the network reads, in the factored form the model uses."""
+    x_node, _ = _features(norm, z, f, node_type, topo, node_position=config.node_position, with_edges=False)
+    return x_node, _edge_inputs(norm, z, topo, config.edge_velocity, config.edge_strain, config.edge_traction)
+
+
 def _network_out(weights, config, norm, z, f, node_type, topo, split=False):
     """[N, 2 + 66 + 78 (+ 1 port gain with ``force_port``)] decoder outputs, or with ``split`` the pair
     ([N,2] E_i, S_i; the rest)."""
-    x_node, _ = _features(norm, z, f, node_type, topo, node_position=config.node_position, with_edges=False)
-    edges = _edge_inputs(norm, z, topo, config.edge_velocity, config.edge_strain, config.edge_traction)
-    es, heads = Network(config).apply({"params": weights}, x_node, edges, topo)
+    es, heads = Network(config).apply({"params": weights}, *_inputs(config, norm, z, f, node_type, topo), topo)
     return (es, heads) if split else jnp.concatenate([es, heads], axis=1)
 
 
@@ -611,8 +617,8 @@ class Network(nn.Module):
     gain's column with ``force_port``).
 
     Each pass is a residual node update h ← h + φ([h, Σ_j ψ(x_ij, h_i, h_j) / D, f_i]) (D the graph's maximum
-    degree, whatever the slot layout) with a one-hidden-layer edge MLP ψ = W₂·act(A x_ij + B h_j + C h_i + b). Its first layer is split per operand: B h and C h are
-    computed once per node and gathered (N products instead of E), and the linear W₂ commutes with the sum over
+    degree, whatever the slot layout) with a one-hidden-layer edge MLP ψ = W₂·act(A x_ij + B h_j + C h_i + b).
+    Its first layer is split per operand: B h and C h are computed once per node and gathered (N products instead of E), and the linear W₂ commutes with the sum over
     neighbours, so it is folded into φ's first layer. An edge then costs one gather, an add and an activation;
     all matrix products act on the N nodes. Edges live in the receiver-major slots of ``topo`` ([R,K]); x_ij
     are the (normalised) edge features q_j − q_i and |q_j − q_i| (and, with ``edge_velocity``, v_j − v_i and
@@ -631,7 +637,7 @@ class Network(nn.Module):
         h = MLP(hid, hid, c.mlp_layers, c.activation)(x_node)
         f = x_node[:, -3:]
         mask = topo.mask[..., None]
-        inv_k = 1.0 / max_degree(topo)
+        inv_k = (1.0 / max_degree(topo)).astype(mask.dtype)
         per_pass = 4 if c.global_pool else 3   # Dense layers per pass (the names nn.Dense would get)
         factored = isinstance(x_edge, EdgeInputs)
         width, cols = edge_columns(c.edge_velocity, c.edge_strain, rest=factored and topo.x0 is not None,

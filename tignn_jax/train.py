@@ -258,12 +258,9 @@ def train(data: D.Dataset, cfg: TrainConfig, run_dir: str | Path, train_split="t
         for b in bar:
             idx = perm[b * bs:(b + 1) * bs]
             r, k = idx // starts, idx % starts
-            w = None if w_train is None else w_train[r]
-            if unroll == 1:
-                batch = Batch(z_train[r, k], f_train[r, k], z_train[r, k + 1], w)
-            else:
-                ahead = k[:, None] + np.arange(unroll)[None, :]
-                batch = Batch(z_train[r, k], f_train[r[:, None], ahead], z_train[r[:, None], ahead + 1], w)
+            ahead = k[:, None] + np.arange(unroll)[None, :]   # [B, K] frames of the unrolled steps
+            batch = Batch(z_train[r, k], f_train[r[:, None], ahead], z_train[r[:, None], ahead + 1],
+                          None if w_train is None else w_train[r])
             batch = jax.device_put(batch, batch_sharding)
             state, metrics = train_step(state, batch)
             for name, val in metrics.items():
