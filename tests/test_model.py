@@ -597,3 +597,53 @@ def test_force_port_adds_a_positive_gain_times_the_force_to_the_velocities_only(
     assert np.all(gain > 0)
     np.testing.assert_allclose(gain, np.repeat(gain[:, :1], 3, axis=1), rtol=1e-3)   # one gain per node
     np.testing.assert_allclose(l_op, -jnp.swapaxes(l_op, 1, 2), atol=1e-6)
+
+
+def test_load_context_points_every_node_of_a_body_at_its_own_load(toy):
+    # Two bodies in one graph: body A has a point load at node 5, body B none. Every node of A reads A's total
+    # force and the vector from itself to node 5's rest position; every node of B reads zeros.
+    data, norm = toy["data"], toy["norm"]
+    n = len(data.q0)
+    topo = M.tile_topology(M.topology(data.edges[0], data.edges[1], n, data.q0), 2)
+    load = np.array([0.4, -1.0, 0.2], np.float32)
+    f = jnp.zeros((2 * n, 3)).at[5].set(load)
+    ctx = np.asarray(M.load_context(norm, f, topo))
+    assert ctx.shape == (2 * n, M.LOAD_CONTEXT_DIM)
+    np.testing.assert_allclose(ctx[:n, :3], np.broadcast_to(load / np.asarray(norm["f_std"]), (n, 3)), rtol=1e-6)
+    d = (data.q0[5] - data.q0) / np.asarray(norm["x0_std"])
+    np.testing.assert_allclose(ctx[:n, 3:6], d, rtol=1e-5, atol=1e-6)
+    np.testing.assert_allclose(ctx[:n, 6], np.linalg.norm(d, axis=1), rtol=1e-5, atol=1e-6)
+    np.testing.assert_array_equal(ctx[n:], 0.0)
+    # Two equal loads: the centre is their midpoint; the context does not depend on the state at all.
+    f2 = f.at[9].set(jnp.asarray(load))
+    mid = (data.q0[5] + data.q0[9]) / 2
+    np.testing.assert_allclose(np.asarray(M.load_context(norm, f2, topo))[:n, 3:6],
+                               (mid - data.q0) / np.asarray(norm["x0_std"]), rtol=1e-5, atol=1e-6)
+    with pytest.raises(ValueError, match="rest positions"):
+        M.load_context(norm, f, toy["topo"])
+
+
+def test_load_context_reaches_every_node_in_one_pass_and_keeps_the_structure(toy):
+    # A one-pass model cannot see a load beyond its reach; with the context every node's rate depends on it.
+    # L stays skew-symmetric, M PSD, and ∇E, ∇S match finite differences (the context is not a state function).
+    data, norm, z, nt = toy["data"], toy["norm"], toy["z"], toy["nt"]
+    topo = M.topology(data.edges[0], data.edges[1], len(data.q0), data.q0)
+    far = int(np.argmax(np.linalg.norm(data.q0 - data.q0[0], axis=1)))
+    push = jnp.zeros_like(toy["f"]).at[0].set(jnp.array([1.0, -2.0, 0.5]))
+    seen = {}
+    for context in (False, True):
+        config = CONFIG._replace(passes=1, load_context=context)
+        w = M.init_weights(jax.random.PRNGKey(3), config, norm, z, toy["f"], nt, topo)
+        rate = lambda f: M.rates(w, config, norm, z, f, nt, topo).dw[far]
+        seen[context] = float(jnp.max(jnp.abs(rate(toy["f"] + push) - rate(toy["f"]))))
+    assert seen[False] == 0.0 and seen[True] > 1e-6
+    config = CONFIG._replace(load_context=True)
+    f = toy["f"] + push
+    w = M.init_weights(jax.random.PRNGKey(4), config, norm, z, f, nt, topo)
+    big_l, big_m = M.operators(w, config, norm, z, f, nt, topo)
+    assert float(jnp.max(jnp.abs(big_l + jnp.swapaxes(big_l, 1, 2)))) <= 1e-6 * float(jnp.max(jnp.abs(big_l)))
+    assert np.linalg.eigvalsh(np.asarray(big_m, np.float64)).min() >= -1e-6 * float(jnp.max(jnp.abs(big_m)))
+    _assert_gradients_match_finite_differences(w, config, norm, z, f, nt, topo, directions=1, seed=2)
+    params = api.make_params(config, {k: np.asarray(v) for k, v in norm.items()}, w, data.q0, data.edges,
+                             data.node_type)
+    _assert_batched_bodies_step_separately(params, data)

@@ -59,7 +59,13 @@ class ModelConfig(NamedTuple):
     force also acts directly on the velocities, dz/dt = L∇E + M∇S + B f with B f = g_i f_i / f_std in node i's
     velocity rows and g_i = softplus(a decoder output) ≥ 0 a learned per-node gain (an inverse mass): the
     open-system (port) form of GENERIC, so a point load moves its node from the first step instead of only
-    through the network's reading of f."""
+    through the network's reading of f; load_context: every node also reads where its body is loaded and how
+    hard: the body's total force Σf / f_std and the vector from the node to the load centre (the |f|-weighted
+    mean of the loaded nodes' rest positions, over x0_std; zero while the body is unloaded) with its length.
+    These are functions of the forces and the rest mesh only, not of the state, so ∇E and ∇S keep their
+    per-node form. The far field of a body under a point load moves in a pattern set by where the load acts
+    (a nearly incompressible solid answers within a frame), which a few message passes cannot carry across it;
+    a fingertip's position is known to the application anyway."""
     hidden: int = 32
     mlp_layers: int = 2
     passes: int = 4
@@ -72,6 +78,10 @@ class ModelConfig(NamedTuple):
     kinematic_prior: bool = False
     edge_traction: bool = False
     force_port: bool = False
+    load_context: bool = False
+
+
+LOAD_CONTEXT_DIM = 7   # Σf (3), load centre − X (3), its length (1)
 
 
 class Rates(NamedTuple):
@@ -442,8 +452,23 @@ _L_INDEX = _embedding(strict=True, offset=0)
 _M_INDEX = _embedding(strict=False, offset=N_L)
 
 
+def load_context(norm, f, topo: Topology):
+    """[N, 7] per-node load context (see ModelConfig.load_context): each graph's Σf / f_std, then
+    (c − X_i) / x0_std and its length, c = Σ|f_j| X_j / Σ|f_j| the graph's load centre (zero when unloaded)."""
+    if topo.x0 is None:
+        raise ValueError("load_context needs the rest positions: build the Topology with q0")
+    member = jnp.ones((1, f.shape[0]), f.dtype) if topo.member is None else topo.member.astype(f.dtype)
+    w = jnp.sqrt(jnp.sum(f * f, axis=1, keepdims=True))                      # [N,1] |f_i|
+    total = member @ f                                                       # [G,3]
+    weight = member @ w                                                      # [G,1]
+    centre = (member @ (w * topo.x0)) / jnp.where(weight > 0, weight, 1.0)   # [G,3]
+    loaded = (member.T @ (weight > 0).astype(f.dtype)) > 0                   # [N,1]
+    d = jnp.where(loaded, (member.T @ centre - topo.x0) / norm["x0_std"], 0.0)
+    return jnp.concatenate([member.T @ total / norm["f_std"], d, jnp.sqrt(jnp.sum(d * d, 1, keepdims=True))], 1)
+
+
 def _features(norm, z, f, node_type, topo, edge_velocity=False, edge_strain=False, node_position=False,
-              with_edges=True, edge_traction=False):
+              with_edges=True, edge_traction=False, load_context_=False):
     """(x_node [N,F_n], x_edge [R,K,F_e]): the edge features assembled per slot from ``_edge_inputs`` (the
     model itself uses that factored form); x_edge is None without ``with_edges``."""
     q, v, sigma = z[:, :3], z[:, 3:6], z[:, 6:]
@@ -454,8 +479,10 @@ def _features(norm, z, f, node_type, topo, edge_velocity=False, edge_strain=Fals
         if topo.x0 is None:
             raise ValueError("this model needs the rest positions: build its Topology with q0")
         position = [(q - topo.x0) / norm["u_std"], (topo.x0 - norm["x0_mean"]) / norm["x0_std"]]
-    x_node = jnp.concatenate(   # the force stays last: the processor reads it as x_node[:, -3:]
-        [(v - mean[3:6]) / std[3:6], (sigma - mean[6:]) / std[6:], one_hot, *position, f / norm["f_std"]], axis=1)
+    context = [load_context(norm, f, topo)] if load_context_ else []
+    x_node = jnp.concatenate(   # the force inputs stay last: every pass reads them as x_node[:, -force_inputs:]
+        [(v - mean[3:6]) / std[3:6], (sigma - mean[6:]) / std[6:], one_hot, *position, *context,
+         f / norm["f_std"]], axis=1)
     if not with_edges:
         return x_node, None
     edges = _edge_inputs(norm, z, topo, edge_velocity, edge_strain, edge_traction)
@@ -542,7 +569,8 @@ def _edge_inputs(norm, z, topo, edge_velocity=False, edge_strain=False, edge_tra
 
 def _inputs(config, norm, z, f, node_type, topo):
     """(x_node, EdgeInputs): what the network reads, in the factored form the model uses."""
-    x_node, _ = _features(norm, z, f, node_type, topo, node_position=config.node_position, with_edges=False)
+    x_node, _ = _features(norm, z, f, node_type, topo, node_position=config.node_position, with_edges=False,
+                          load_context_=config.load_context)
     return x_node, _edge_inputs(norm, z, topo, config.edge_velocity, config.edge_strain, config.edge_traction)
 
 
@@ -635,7 +663,7 @@ class Network(nn.Module):
         c = self.config
         hid, act = c.hidden, ACTIVATIONS[c.activation]
         h = MLP(hid, hid, c.mlp_layers, c.activation)(x_node)
-        f = x_node[:, -3:]
+        f = x_node[:, -(3 + LOAD_CONTEXT_DIM * c.load_context):]   # the force (and its context) feed every pass
         mask = topo.mask[..., None]
         inv_k = (1.0 / max_degree(topo)).astype(mask.dtype)
         per_pass = 4 if c.global_pool else 3   # Dense layers per pass (the names nn.Dense would get)

@@ -55,6 +55,7 @@ class TrainConfig(NamedTuple):
     kinematic_prior: bool = False
     edge_traction: bool = False
     force_port: bool = False
+    load_context: bool = False
     lr: float = 3e-3
     lr_end: float = 2e-5
     weight_decay: float = 1e-6
