@@ -347,3 +347,25 @@ def test_guard_resets_bodies_whose_state_goes_bad():
     zs, t = sc.run(scene._replace(bodies=(bad,), guard=lambda zs: ~jnp.all(jnp.isfinite(zs[0]))))
     np.testing.assert_array_equal(np.asarray(zs[0]), body.z)
     assert t.guard_trips > 0 and t.summary()["guard_trips"] == t.guard_trips
+
+
+def test_loop_pauses_garbage_collection_and_restores_it():
+    # The loop runs with automatic collection off (young-generation collections between frames instead) and
+    # gives the same states as with it on; the caller's setting comes back, also after an error.
+    import gc
+
+    scene, _ = _demo_scene(frames=4)
+    seen = []
+    assert gc.isenabled()
+    zs, _ = sc.run(scene, write=lambda i, rgb: seen.append(gc.isenabled()))
+    assert seen == [False] * 4 and gc.isenabled()
+    zs_on, _ = sc.run(scene, gc_pause=False, write=lambda i, rgb: seen.append(gc.isenabled()))
+    assert seen[4:] == [True] * 4
+    np.testing.assert_array_equal(np.asarray(zs[0]), np.asarray(zs_on[0]))
+
+    def fail(i, rgb):
+        raise RuntimeError("writer failed")
+
+    with pytest.raises(RuntimeError, match="writer failed"):
+        sc.run(scene, write=fail)
+    assert gc.isenabled()
