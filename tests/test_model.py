@@ -647,3 +647,16 @@ def test_load_context_reaches_every_node_in_one_pass_and_keeps_the_structure(toy
     params = api.make_params(config, {k: np.asarray(v) for k, v in norm.items()}, w, data.q0, data.edges,
                              data.node_type)
     _assert_batched_bodies_step_separately(params, data)
+
+
+def test_load_context_has_finite_force_gradients(toy):
+    # The context holds norms of the forces and of the node-to-centre vectors, which vanish at unloaded nodes
+    # and at the loaded node itself: the step's sensitivity to the forces must still be finite there.
+    data, norm, z, nt = toy["data"], toy["norm"], toy["z"], toy["nt"]
+    topo = M.topology(data.edges[0], data.edges[1], len(data.q0), data.q0)
+    config = CONFIG._replace(load_context=True)
+    f = jnp.zeros_like(toy["f"]).at[3].set(jnp.array([0.0, -1.0, 0.0]))
+    w = M.init_weights(jax.random.PRNGKey(5), config, norm, z, f, nt, topo)
+    grad = jax.grad(lambda f_: jnp.sum(M.step_state(w, config, norm, z, f_, nt, topo) ** 2))
+    for load in (f, jnp.zeros_like(f)):
+        assert np.all(np.isfinite(np.asarray(grad(load))))

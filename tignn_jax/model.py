@@ -63,9 +63,10 @@ class ModelConfig(NamedTuple):
     hard: the body's total force Σf / f_std and the vector from the node to the load centre (the |f|-weighted
     mean of the loaded nodes' rest positions, over x0_std; zero while the body is unloaded) with its length.
     These are functions of the forces and the rest mesh only, not of the state, so ∇E and ∇S keep their
-    per-node form. The far field of a body under a point load moves in a pattern set by where the load acts
-    (a nearly incompressible solid answers within a frame), which a few message passes cannot carry across it;
-    a fingertip's position is known to the application anyway."""
+    per-node form. Meant for a body whose far field moves in a pattern set by where a point load acts, which a
+    few message passes cannot carry across it (a fingertip's position is known to the application anyway);
+    on the bunny it turned the far field's motion towards the load's direction but did not make it fast
+    enough (README, bunny session 8)."""
     hidden: int = 32
     mlp_layers: int = 2
     passes: int = 4
@@ -458,17 +459,23 @@ def load_context(norm, f, topo: Topology):
     if topo.x0 is None:
         raise ValueError("load_context needs the rest positions: build the Topology with q0")
     member = jnp.ones((1, f.shape[0]), f.dtype) if topo.member is None else topo.member.astype(f.dtype)
-    w = jnp.sqrt(jnp.sum(f * f, axis=1, keepdims=True))                      # [N,1] |f_i|
+    w = _safe_norm(f)                                                        # [N,1] |f_i|
     total = member @ f                                                       # [G,3]
     weight = member @ w                                                      # [G,1]
     centre = (member @ (w * topo.x0)) / jnp.where(weight > 0, weight, 1.0)   # [G,3]
     loaded = (member.T @ (weight > 0).astype(f.dtype)) > 0                   # [N,1]
     d = jnp.where(loaded, (member.T @ centre - topo.x0) / norm["x0_std"], 0.0)
-    return jnp.concatenate([member.T @ total / norm["f_std"], d, jnp.sqrt(jnp.sum(d * d, 1, keepdims=True))], 1)
+    return jnp.concatenate([member.T @ total / norm["f_std"], d, _safe_norm(d)], 1)
+
+
+def _safe_norm(x):
+    """Row norms [N,1] whose gradient is 0 (not NaN) at a zero row (an unloaded node, the load centre itself)."""
+    sq = jnp.sum(x * x, axis=1, keepdims=True)
+    return jnp.where(sq > 0, jnp.sqrt(jnp.where(sq > 0, sq, 1.0)), 0.0)
 
 
 def _features(norm, z, f, node_type, topo, edge_velocity=False, edge_strain=False, node_position=False,
-              with_edges=True, edge_traction=False, load_context_=False):
+              with_edges=True, edge_traction=False, context=False):
     """(x_node [N,F_n], x_edge [R,K,F_e]): the edge features assembled per slot from ``_edge_inputs`` (the
     model itself uses that factored form); x_edge is None without ``with_edges``."""
     q, v, sigma = z[:, :3], z[:, 3:6], z[:, 6:]
@@ -479,7 +486,7 @@ def _features(norm, z, f, node_type, topo, edge_velocity=False, edge_strain=Fals
         if topo.x0 is None:
             raise ValueError("this model needs the rest positions: build its Topology with q0")
         position = [(q - topo.x0) / norm["u_std"], (topo.x0 - norm["x0_mean"]) / norm["x0_std"]]
-    context = [load_context(norm, f, topo)] if load_context_ else []
+    context = [load_context(norm, f, topo)] if context else []
     x_node = jnp.concatenate(   # the force inputs stay last: every pass reads them as x_node[:, -force_inputs:]
         [(v - mean[3:6]) / std[3:6], (sigma - mean[6:]) / std[6:], one_hot, *position, *context,
          f / norm["f_std"]], axis=1)
@@ -570,7 +577,7 @@ def _edge_inputs(norm, z, topo, edge_velocity=False, edge_strain=False, edge_tra
 def _inputs(config, norm, z, f, node_type, topo):
     """(x_node, EdgeInputs): what the network reads, in the factored form the model uses."""
     x_node, _ = _features(norm, z, f, node_type, topo, node_position=config.node_position, with_edges=False,
-                          load_context_=config.load_context)
+                          context=config.load_context)
     return x_node, _edge_inputs(norm, z, topo, config.edge_velocity, config.edge_strain, config.edge_traction)
 
 
