@@ -45,6 +45,12 @@ def test_L_is_skew_symmetric_and_M_symmetric_positive_semidefinite(toy):
     assert np.all(np.abs(np.diagonal(np.asarray(big_l), axis1=1, axis2=2)) == 0)
 
 
+def _assert_skew_and_psd(big_l, big_m):
+    """Per-node L skew-symmetric and M positive semi-definite, relative to their largest entries."""
+    assert float(jnp.max(jnp.abs(big_l + jnp.swapaxes(big_l, 1, 2)))) <= 1e-6 * float(jnp.max(jnp.abs(big_l)))
+    assert np.linalg.eigvalsh(np.asarray(big_m, np.float64)).min() >= -1e-6 * float(jnp.max(jnp.abs(big_m)))
+
+
 def _assert_gradients_match_finite_differences(weights, config, norm, z, f, nt, topo, directions=3, seed=0):
     """∇E, ∇S of ``rates`` against central differences of ``energy_entropy`` along random directions (float64)."""
     with jax.enable_x64(True):
@@ -115,9 +121,7 @@ def test_exact_degeneracy_projection_meets_generic_to_float_precision(toy):
     assert float(jnp.max(jnp.abs(rt.deg_l))) <= 1e-5 * size_l
     assert float(jnp.max(jnp.abs(rt.deg_m))) <= 1e-5 * size_m
     assert float(jnp.max(jnp.abs(jnp.einsum("nij,nj->ni", big_l, rt.grad_s)))) <= 1e-5 * size_l
-    assert float(jnp.max(jnp.abs(big_l + jnp.swapaxes(big_l, 1, 2)))) <= 1e-6 * float(jnp.max(jnp.abs(big_l)))
-    eig = np.linalg.eigvalsh(np.asarray(big_m, np.float64))
-    assert eig.min() >= -1e-6 * float(jnp.max(jnp.abs(big_m)))
+    _assert_skew_and_psd(big_l, big_m)
     free = np.asarray(toy["nt"]) == 0
     dw = np.asarray(jnp.einsum("nij,nj->ni", big_l, rt.grad_e) + jnp.einsum("nij,nj->ni", big_m, rt.grad_s))
     np.testing.assert_allclose(np.asarray(rt.dw)[free], dw[free], rtol=1e-4, atol=1e-5 * np.abs(dw).max())
@@ -439,8 +443,7 @@ def test_global_pool_keeps_generic_structure_and_exact_gradients(pooled):
     t = pooled
     args = (t["weights"], t["config"], t["norm"], t["z"], t["f"], t["nt"], t["topo"])
     big_l, big_m = M.operators(*args)
-    assert float(jnp.max(jnp.abs(big_l + jnp.swapaxes(big_l, 1, 2)))) <= 1e-6 * float(jnp.max(jnp.abs(big_l)))
-    assert np.linalg.eigvalsh(np.asarray(big_m, np.float64)).min() >= -1e-6 * float(jnp.max(jnp.abs(big_m)))
+    _assert_skew_and_psd(big_l, big_m)
     _assert_gradients_match_finite_differences(*args, directions=1, seed=1)
 
 
@@ -641,8 +644,7 @@ def test_load_context_reaches_every_node_in_one_pass_and_keeps_the_structure(toy
     f = toy["f"] + push
     w = M.init_weights(jax.random.PRNGKey(4), config, norm, z, f, nt, topo)
     big_l, big_m = M.operators(w, config, norm, z, f, nt, topo)
-    assert float(jnp.max(jnp.abs(big_l + jnp.swapaxes(big_l, 1, 2)))) <= 1e-6 * float(jnp.max(jnp.abs(big_l)))
-    assert np.linalg.eigvalsh(np.asarray(big_m, np.float64)).min() >= -1e-6 * float(jnp.max(jnp.abs(big_m)))
+    _assert_skew_and_psd(big_l, big_m)
     _assert_gradients_match_finite_differences(w, config, norm, z, f, nt, topo, directions=1, seed=2)
     params = api.make_params(config, {k: np.asarray(v) for k, v in norm.items()}, w, data.q0, data.edges,
                              data.node_type)
