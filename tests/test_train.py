@@ -254,3 +254,27 @@ def test_unrolled_training_runs_resumes_and_checks_its_length(toy, tmp_path):
     assert all(np.isfinite(x["loss"]) for x in lines)
     with pytest.raises(ValueError, match="unroll must be between 1 and the 4 frames.*got 5"):
         T.train(toy, TINY._replace(unroll=5), tmp_path / "bad", **QUIET)
+
+
+def test_v_weight_is_a_weighted_mean_of_the_feature_mses(toy):
+    # loss = the mean of the squared errors with the v entries counted w times (q and v over the free nodes, σ
+    # over all) + degeneracy; w = 1 is the plain loss; the reported MSEs do not change with w.
+    cfg = TINY._replace(noise=0.0)
+    topo = M.topology(toy.edges[0], toy.edges[1], len(toy.q0))
+    node_type = jnp.asarray(toy.node_type, jnp.int32)
+    norm = {k: jnp.asarray(v) for k, v in D.normalization(toy, D.split_rows(toy, "train")).items()}
+    z, f = jnp.asarray(toy.z[:2]), jnp.asarray(toy.f[:2])
+    weights = M.init_weights(jax.random.PRNGKey(1), cfg.model, norm, z[0, 0], f[0, 0], node_type, topo)
+    batch, key = T.Batch(z[:, 0], f[:, 0], z[:, 1]), jax.random.PRNGKey(0)
+    plain, m1 = _jit_loss(weights, batch, key, norm, cfg, node_type, topo)
+    same, _ = _jit_loss(weights, batch, key, norm, cfg._replace(v_weight=1.0), node_type, topo)
+    heavy, m4 = _jit_loss(weights, batch, key, norm, cfg._replace(v_weight=4.0), node_type, topo)
+    assert float(same) == float(plain)
+    for k in ("mse", "mse_q", "mse_v", "mse_sigma", "degeneracy"):
+        assert float(m4[k]) == pytest.approx(float(m1[k]), rel=1e-6)
+    # q and v rows are masked at the clamped nodes alike, so the per-feature denominators of q and v are equal
+    n_free, n = int(np.sum(toy.node_type == 0)), len(toy.node_type)
+    num = n_free * 3 * (float(m1["mse_q"]) + 4 * float(m1["mse_v"])) + n * 6 * float(m1["mse_sigma"])
+    expected = num / (n_free * 3 * (1 + 4) + n * 6) + float(cfg.deg_weight * m1["degeneracy"])
+    assert float(heavy) == pytest.approx(expected, rel=1e-5)
+    assert float(heavy) != pytest.approx(float(plain), rel=1e-3)

@@ -42,7 +42,9 @@ class TrainConfig(NamedTuple):
     by cosine to ``lr_end`` at the end of ``epochs``; ``noise`` is the input-noise std as a fraction of the
     per-feature increment std; ``eval_every``/``ckpt_every`` are in epochs. ``unroll`` = K > 1 trains on K
     consecutive steps from each sampled state: step j+1 starts from the model's own prediction of step j (held
-    constant in the gradient, the "pushforward" trick), so the loss sees the states a rollout visits."""
+    constant in the gradient, the "pushforward" trick), so the loss sees the states a rollout visits.
+    ``v_weight``: the velocity features' weight in the loss (the per-feature MSEs are averaged with weights
+    1, v_weight, 1 for q, v, σ); the reported MSEs stay unweighted."""
     hidden: int = 24
     mlp_layers: int = 2
     passes: int = 3
@@ -66,6 +68,7 @@ class TrainConfig(NamedTuple):
     deg_weight: float = 1.0
     case_weight: float = 0.0
     unroll: int = 1
+    v_weight: float = 1.0
     seed: int = 0
     eval_every: int = 2
     ckpt_every: int = 2
@@ -146,7 +149,11 @@ def loss_fn(weights, batch: Batch, key, norm, cfg: TrainConfig, node_type, topo)
     per_feature = sq_sum / (denom * n_steps)
     data_loss = jnp.sum(sq_sum) / (jnp.sum(denom) * n_steps)
     deg = deg_sum / n_steps
-    loss = data_loss + cfg.deg_weight * deg
+    if cfg.v_weight == 1.0:
+        loss = data_loss + cfg.deg_weight * deg
+    else:   # the velocity features count v_weight times in the loss (the reported MSEs stay unweighted)
+        fw = jnp.ones(M.STATE_DIM, sq_sum.dtype).at[3:6].set(cfg.v_weight)
+        loss = jnp.sum(sq_sum * fw) / (jnp.sum(denom * fw) * n_steps) + cfg.deg_weight * deg
     metrics = {"loss": loss, "mse": data_loss, "degeneracy": deg, "mse_q": per_feature[:3].mean(),
                "mse_v": per_feature[3:6].mean(), "mse_sigma": per_feature[6:].mean()}
     return loss, metrics
