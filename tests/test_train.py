@@ -270,6 +270,7 @@ def test_v_weight_is_a_weighted_mean_of_the_feature_mses(toy):
     same, _ = _jit_loss(weights, batch, key, norm, cfg._replace(v_weight=1.0), node_type, topo)
     heavy, m4 = _jit_loss(weights, batch, key, norm, cfg._replace(v_weight=4.0), node_type, topo)
     assert float(same) == float(plain)
+    assert float(plain) == pytest.approx(float(m1["mse"]) + cfg.deg_weight * float(m1["degeneracy"]), rel=1e-6)
     for k in ("mse", "mse_q", "mse_v", "mse_sigma", "degeneracy"):
         assert float(m4[k]) == pytest.approx(float(m1[k]), rel=1e-6)
     # q and v rows are masked at the clamped nodes alike, so the per-feature denominators of q and v are equal

@@ -43,8 +43,8 @@ class TrainConfig(NamedTuple):
     per-feature increment std; ``eval_every``/``ckpt_every`` are in epochs. ``unroll`` = K > 1 trains on K
     consecutive steps from each sampled state: step j+1 starts from the model's own prediction of step j (held
     constant in the gradient, the "pushforward" trick), so the loss sees the states a rollout visits.
-    ``v_weight``: the velocity features' weight in the loss (the per-feature MSEs are averaged with weights
-    1, v_weight, 1 for q, v, σ); the reported MSEs stay unweighted."""
+    ``v_weight``: the squared errors of the velocity features count v_weight times in the loss's mean; the
+    reported MSEs stay unweighted."""
     hidden: int = 24
     mlp_layers: int = 2
     passes: int = 3
@@ -149,11 +149,8 @@ def loss_fn(weights, batch: Batch, key, norm, cfg: TrainConfig, node_type, topo)
     per_feature = sq_sum / (denom * n_steps)
     data_loss = jnp.sum(sq_sum) / (jnp.sum(denom) * n_steps)
     deg = deg_sum / n_steps
-    if cfg.v_weight == 1.0:
-        loss = data_loss + cfg.deg_weight * deg
-    else:   # the velocity features count v_weight times in the loss (the reported MSEs stay unweighted)
-        fw = jnp.ones(M.STATE_DIM, sq_sum.dtype).at[3:6].set(cfg.v_weight)
-        loss = jnp.sum(sq_sum * fw) / (jnp.sum(denom * fw) * n_steps) + cfg.deg_weight * deg
+    fw = jnp.ones(M.STATE_DIM, sq_sum.dtype).at[3:6].set(cfg.v_weight)   # v counts v_weight times (1: data_loss)
+    loss = jnp.sum(sq_sum * fw) / (jnp.sum(denom * fw) * n_steps) + cfg.deg_weight * deg
     metrics = {"loss": loss, "mse": data_loss, "degeneracy": deg, "mse_q": per_feature[:3].mean(),
                "mse_v": per_feature[3:6].mean(), "mse_sigma": per_feature[6:].mean()}
     return loss, metrics
