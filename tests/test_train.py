@@ -226,14 +226,20 @@ def test_warm_start_keeps_the_parent_normalisation_and_may_switch_weight_free_op
     np.testing.assert_array_equal(_flat(parent), _flat(child))
 
 
-def test_unrolled_loss_is_the_mean_of_its_steps_from_the_model_own_states(toy):
-    # unroll K: step 1 starts from the data, step 2 from the model's own prediction, each scored against the truth.
-    cfg = TINY._replace(noise=0.0)
+def _loss_inputs(toy, cfg):
+    """(topo, node_type, norm, z [2,T+1,N,12], f [2,T,N,3], untrained weights) for calling the loss directly."""
     topo = M.topology(toy.edges[0], toy.edges[1], len(toy.q0))
     node_type = jnp.asarray(toy.node_type, jnp.int32)
     norm = {k: jnp.asarray(v) for k, v in D.normalization(toy, D.split_rows(toy, "train")).items()}
     z, f = jnp.asarray(toy.z[:2]), jnp.asarray(toy.f[:2])
     weights = M.init_weights(jax.random.PRNGKey(1), cfg.model, norm, z[0, 0], f[0, 0], node_type, topo)
+    return topo, node_type, norm, z, f, weights
+
+
+def test_unrolled_loss_is_the_mean_of_its_steps_from_the_model_own_states(toy):
+    # unroll K: step 1 starts from the data, step 2 from the model's own prediction, each scored against the truth.
+    cfg = TINY._replace(noise=0.0)
+    topo, node_type, norm, z, f, weights = _loss_inputs(toy, cfg)
     key = jax.random.PRNGKey(0)
     one = lambda z0, f0, z1: float(_jit_loss(weights, T.Batch(z0, f0, z1), key, norm, cfg, node_type, topo)[0])
     two, _ = _jit_loss(weights, T.Batch(z[:, 0], f[:, 0:2], z[:, 1:3]), key, norm, cfg, node_type, topo)
@@ -260,11 +266,7 @@ def test_v_weight_is_a_weighted_mean_of_the_feature_mses(toy):
     # loss = the mean of the squared errors with the v entries counted w times (q and v over the free nodes, σ
     # over all) + degeneracy; w = 1 is the plain loss; the reported MSEs do not change with w.
     cfg = TINY._replace(noise=0.0)
-    topo = M.topology(toy.edges[0], toy.edges[1], len(toy.q0))
-    node_type = jnp.asarray(toy.node_type, jnp.int32)
-    norm = {k: jnp.asarray(v) for k, v in D.normalization(toy, D.split_rows(toy, "train")).items()}
-    z, f = jnp.asarray(toy.z[:2]), jnp.asarray(toy.f[:2])
-    weights = M.init_weights(jax.random.PRNGKey(1), cfg.model, norm, z[0, 0], f[0, 0], node_type, topo)
+    topo, node_type, norm, z, f, weights = _loss_inputs(toy, cfg)
     batch, key = T.Batch(z[:, 0], f[:, 0], z[:, 1]), jax.random.PRNGKey(0)
     plain, m1 = _jit_loss(weights, batch, key, norm, cfg, node_type, topo)
     same, _ = _jit_loss(weights, batch, key, norm, cfg._replace(v_weight=1.0), node_type, topo)
