@@ -31,6 +31,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     g.add_argument("--damping", type=float, default=None, metavar="ALPHA",
                    help="mass-proportional damping coefficient [1/time] instead of the scene's (beam: 18.17, "
                         "identified against the reference data; bunny: 2.0)")
+    g.add_argument("--integrator", choices=("explicit", "implicit"), default="explicit",
+                   help="explicit central differences (default) or implicit backward Euler with the frame step "
+                        "(fem.implicit: damps what a frame cannot resolve; elastic scenes without contact)")
     g.add_argument("--worker", default="0/1", metavar="K/N",
                    help="run only cases c with c mod N = K, to share the work among N processes; the last to "
                         "finish writes --out (default: %(default)s)")
@@ -98,13 +101,16 @@ def run_generate(args) -> int:
         if not (np.isfinite(args.damping) and args.damping >= 0):
             raise SystemExit(f"--damping must be a finite number >= 0, got {args.damping}")
         scene = scene._replace(damping=args.damping)
+    if args.integrator == "implicit" and (scene.material.n_prony or "contact" in setup_kwargs):
+        raise SystemExit(f"--integrator implicit supports elastic scenes without contact; {args.scene} has "
+                         f"{'contact' if 'contact' in setup_kwargs else 'Prony terms'}")
     problem = setup_scene(scene, **setup_kwargs)
     print(f"{scene.name}: {len(forces)} cases, {len(scene.points)} nodes, {problem.config.n_frames} frames x "
           f"{problem.config.n_sub} sub-steps")
     out = run_cases(scene, problem, forces, args.out, batch_size=args.batch, progress=not args.no_progress,
                     xdmf=args.xdmf, metadata=meta, sim_ids=sim_ids,
                     velocity=args.velocity or ("gradient" if args.scene == "beam-reference" else "solver"),
-                    worker=worker)
+                    worker=worker, integrator=args.integrator)
     print(f"wrote {out}" if out is not None else f"worker {args.worker} done; the last worker writes {args.out}")
     return 0
 

@@ -30,11 +30,13 @@ from .solver import Loads, check, simulate_batch
 
 def run_cases(scene, problem, forces, out, *, batch_size: int = 8, progress: bool = True, xdmf: bool = False,
               metadata: dict | None = None, sim_ids=None, velocity: str = "gradient",
-              worker: tuple[int, int] = (0, 1)) -> Path | None:
+              worker: tuple[int, int] = (0, 1), integrator: str = "explicit") -> Path | None:
     """Simulate every case of ``forces`` [C, T, N, 3] and write the data set to ``out`` (.npz).
 
     Cases are run in batches of ``batch_size`` (vmapped; the last batch is padded, so one compilation serves
-    all); finished cases are kept in ``<out>.parts/`` and skipped on a rerun. ``worker = (k, n)`` runs only
+    all); finished cases are kept in ``<out>.parts/`` and skipped on a rerun. ``integrator='implicit'`` runs
+    `fem.implicit` (backward Euler with the frame step; its preconditioner is computed once and kept in the parts
+    folder) and keeps each case's Newton residuals. ``worker = (k, n)`` runs only
     the cases c with c mod n = k, so n processes can share the work (one core each); the worker that finds
     every part present at its end writes ``out`` and returns its path, the others return None.
     """
@@ -45,6 +47,8 @@ def run_cases(scene, problem, forces, out, *, batch_size: int = 8, progress: boo
         raise ValueError(f"batch_size must be positive, got {batch_size}")
     if velocity not in ("gradient", "solver"):
         raise ValueError(f"velocity must be 'gradient' or 'solver', got {velocity!r}")
+    if integrator not in ("explicit", "implicit"):
+        raise ValueError(f"integrator must be 'explicit' or 'implicit', got {integrator!r}")
     k, n_workers = worker
     if not (n_workers >= 1 and 0 <= k < n_workers):
         raise ValueError(f"worker must be (k, n) with 0 <= k < n, got {worker}")
@@ -56,10 +60,17 @@ def run_cases(scene, problem, forces, out, *, batch_size: int = 8, progress: boo
     todo = [c for c in range(k, n_cases, n_workers) if not _part(parts, c).exists()]
     bar = _progress(total=n_cases, initial=n_cases - len(todo), enabled=progress, desc=f"{scene.name} cases")
     t_start = time.perf_counter()
+    run = _implicit_runner(scene, problem, parts) if (integrator == "implicit" and todo) else None
     for start in range(0, len(todo), batch_size):
         idx = todo[start:start + batch_size]
         padded = idx + [idx[-1]] * (batch_size - len(idx))
-        res = simulate_batch(problem, scene.material, Loads(nodal=jnp.asarray(forces[padded])))
+        loads = Loads(nodal=jnp.asarray(forces[padded]))
+        extra = {}
+        if run is None:
+            res = simulate_batch(problem, scene.material, loads)
+        else:
+            res, diag = run(loads)
+            extra = {"newton_residual": np.asarray(diag.residual), "newton_iterations": np.asarray(diag.newton_iterations)}
         jax.block_until_ready(res.q)
         check(res, "warn")
         for j, c in enumerate(idx):
@@ -67,7 +78,7 @@ def run_cases(scene, problem, forces, out, *, batch_size: int = 8, progress: boo
             sig = np.asarray(res.sigma[j], np.float32)
             v_fd = np.gradient(q.astype(np.float64), scene.frame_dt, axis=0, edge_order=2).astype(np.float32)
             np.savez(_part(parts, c), z=np.concatenate([q, v_fd, sig], -1), v_solver=v,
-                     inverted=np.asarray(res.inverted[j]))
+                     inverted=np.asarray(res.inverted[j]), **{k: a[j] for k, a in extra.items()})
             if xdmf:
                 from .mesh import write_series
 
@@ -83,6 +94,22 @@ def run_cases(scene, problem, forces, out, *, batch_size: int = 8, progress: boo
     return assemble(scene, problem, forces, parts, out, metadata=meta, sim_ids=sim_ids, velocity=velocity)
 
 
+def _implicit_runner(scene, problem, parts: Path):
+    """``loads -> (Result, Diagnostics)`` of `fem.implicit` for the batch; the preconditioner is cached in the
+    parts folder (it takes minutes to compute on the bunny and depends only on the problem)."""
+    from . import implicit
+
+    cache = parts / "implicit_preconditioner.npy"
+    if cache.exists():
+        pinv = jnp.asarray(np.load(cache))
+    else:
+        pinv = implicit.preconditioner(problem, scene.material)
+        tmp = parts / f"implicit_preconditioner.{os.getpid()}.tmp.npy"
+        np.save(tmp, np.asarray(pinv))
+        os.replace(tmp, cache)
+    return lambda loads: implicit.simulate_implicit_batch(problem, scene.material, loads, pinv)
+
+
 def _part(parts: Path, c: int) -> Path:
     """The file of finished case ``c`` in the parts folder."""
     return parts / f"case_{c:05d}.npz"
@@ -92,6 +119,11 @@ def assemble(scene, problem, forces, parts: Path, out: Path, *, metadata: dict, 
              velocity: str = "gradient") -> Path:
     cases = [np.load(_part(parts, c)) for c in range(len(forces))]
     z = np.stack([c["z"] for c in cases])
+    newton = {}
+    if all("newton_residual" in c for c in cases):
+        newton = {k: np.stack([c[k] for c in cases]) for k in ("newton_residual", "newton_iterations")}
+        metadata = dict(metadata, integrator="implicit (fem.implicit, backward Euler, one step per frame)",
+                        n_sub=1, newton_residual_max=float(newton["newton_residual"].max()))
     v_solver = np.stack([c["v_solver"] for c in cases])
     if velocity == "solver":
         z[..., 3:6] = v_solver
@@ -114,7 +146,7 @@ def assemble(scene, problem, forces, parts: Path, out: Path, *, metadata: dict, 
         node_type=scene.node_type.astype(np.int8), z=z,
         f=np.asarray(forces, np.float32), dt=np.float64(scene.frame_dt), cells=scene.cells.astype(np.int32),
         cell_type=np.array(scene.cell_type), metadata=np.array(json.dumps(meta)),
-        v_solver=v_solver, sim_id=np.asarray(sim_ids, np.int32),
+        v_solver=v_solver, sim_id=np.asarray(sim_ids, np.int32), **newton,
         **{f"split_{k}": v for k, v in default_splits(sim_ids).items()})
     os.replace(tmp, out)   # atomic: a reader never sees a half-written file
     return out
