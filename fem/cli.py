@@ -34,6 +34,10 @@ def register(sub: argparse._SubParsersAction) -> None:
     g.add_argument("--integrator", choices=("explicit", "implicit"), default="explicit",
                    help="explicit central differences (default) or implicit backward Euler with the frame step "
                         "(fem.implicit: damps what a frame cannot resolve; elastic scenes without contact)")
+    g.add_argument("--density", type=float, default=None, metavar="RHO",
+                   help="mass density instead of the scene's (beam: 7.135e-3, identified; bunny: 1e-5, chosen so "
+                        "the first mode shows within the run; a much lighter bunny, e.g. 1e-7 with --integrator "
+                        "implicit, responds quasi-statically)")
     g.add_argument("--worker", default="0/1", metavar="K/N",
                    help="run only cases c with c mod N = K, to share the work among N processes; the last to "
                         "finish writes --out (default: %(default)s)")
@@ -101,12 +105,23 @@ def run_generate(args) -> int:
         if not (np.isfinite(args.damping) and args.damping >= 0):
             raise SystemExit(f"--damping must be a finite number >= 0, got {args.damping}")
         scene = scene._replace(damping=args.damping)
+    if args.density is not None:
+        from .material import mooney_rivlin
+
+        m = scene.material   # rebuilt through mooney_rivlin, which validates (a bad value raises naming it)
+        try:
+            mat = mooney_rivlin(m.c10, m.c01, m.d1, density=args.density, g=np.asarray(m.g), tau=np.asarray(m.tau))
+        except ValueError as e:
+            raise SystemExit(f"--density: {e}")
+        scene = scene._replace(material=mat)
+        meta["density"] = args.density
     if args.integrator == "implicit" and (scene.material.n_prony or "contact" in setup_kwargs):
         raise SystemExit(f"--integrator implicit supports elastic scenes without contact; {args.scene} has "
                          f"{'contact' if 'contact' in setup_kwargs else 'Prony terms'}")
     problem = setup_scene(scene, **setup_kwargs)
-    print(f"{scene.name}: {len(forces)} cases, {len(scene.points)} nodes, {problem.config.n_frames} frames x "
-          f"{problem.config.n_sub} sub-steps")
+    steps = ("1 backward-Euler step" if args.integrator == "implicit"
+             else f"{problem.config.n_sub} sub-steps")
+    print(f"{scene.name}: {len(forces)} cases, {len(scene.points)} nodes, {problem.config.n_frames} frames x {steps}")
     out = run_cases(scene, problem, forces, args.out, batch_size=args.batch, progress=not args.no_progress,
                     xdmf=args.xdmf, metadata=meta, sim_ids=sim_ids,
                     velocity=args.velocity or ("gradient" if args.scene == "beam-reference" else "solver"),
