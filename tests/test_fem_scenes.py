@@ -214,3 +214,14 @@ def test_generate_rejects_a_bad_damping_before_running(tmp_path):
         with pytest.raises(SystemExit, match="--damping must be a finite number >= 0"):
             cli.main(["generate", "beam-reference", "--out", str(tmp_path / "x.npz"), "--damping", bad])
     assert not (tmp_path / "x.npz").exists()
+
+
+def test_generate_rejects_a_bad_density_and_implicit_with_contact_before_running(tmp_path):
+    from tignn_jax import cli
+
+    for bad in ("-1", "nan", "0"):
+        with pytest.raises(SystemExit, match="density"):
+            cli.main(["generate", "beam-reference", "--out", str(tmp_path / "x.npz"), "--density", bad])
+    with pytest.raises(SystemExit, match="implicit supports elastic scenes without contact; two-beams has contact"):
+        cli.main(["generate", "two-beams", "--out", str(tmp_path / "x.npz"), "--integrator", "implicit"])
+    assert not (tmp_path / "x.npz").exists()
