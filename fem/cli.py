@@ -115,10 +115,14 @@ def run_generate(args) -> int:
             raise SystemExit(f"--density: {e}")
         scene = scene._replace(material=mat)
         meta["density"] = args.density
-    if args.integrator == "implicit" and (scene.material.n_prony or "contact" in setup_kwargs):
-        raise SystemExit(f"--integrator implicit supports elastic scenes without contact; {args.scene} has "
-                         f"{'contact' if 'contact' in setup_kwargs else 'Prony terms'}")
     problem = setup_scene(scene, **setup_kwargs)
+    if args.integrator == "implicit":
+        from .implicit import check_scope
+
+        try:
+            check_scope(problem, scene.material)
+        except ValueError as e:
+            raise SystemExit(f"--integrator implicit on {args.scene}: {e}")
     steps = ("1 backward-Euler step" if args.integrator == "implicit"
              else f"{problem.config.n_sub} sub-steps")
     print(f"{scene.name}: {len(forces)} cases, {len(scene.points)} nodes, {problem.config.n_frames} frames x {steps}")

@@ -99,6 +99,7 @@ def _implicit_runner(scene, problem, parts: Path):
     parts folder (it takes minutes to compute on the bunny and depends only on the problem)."""
     from . import implicit
 
+    implicit.check_scope(problem, scene.material)   # before minutes of preconditioner
     cache = parts / "implicit_preconditioner.npy"
     if cache.exists():
         pinv = jnp.asarray(np.load(cache))

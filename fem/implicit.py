@@ -48,20 +48,23 @@ class Diagnostics(NamedTuple):
     newton_iterations: jnp.ndarray
 
 
-def _check_scope(problem: sv.Problem, material: Material, loads: sv.Loads):
-    cfg = problem.config
+def check_scope(problem: sv.Problem, material: Material, loads: sv.Loads | None = None):
+    """Raise `ValueError` naming what implicit dynamics does not support: Prony terms, contact, pressure loads."""
     if material.n_prony:
         raise ValueError(f"implicit dynamics supports elastic materials only, got {material.n_prony} Prony terms")
-    if cfg.contact_capacity:
+    if problem.config.contact_capacity:
         raise ValueError("implicit dynamics does not support contact (contact_capacity > 0)")
-    if loads.pressure is not None:
+    if loads is not None and loads.pressure is not None:
         raise ValueError("implicit dynamics supports nodal loads only, got loads.pressure")
 
 
-def _force_fn(problem: sv.Problem, material: Material):
-    arr, cfg = problem.arrays, problem.config
-    hg = sv._hourglass_stiffness(arr.geo, material) if cfg.cell_type == "hexahedron" else None
-    return lambda u: sv._internal(arr, material, hg, u, (), cfg, 1.0)[0]
+def _hourglass(arr: sv.Arrays, m: Material, cfg: sv.Config):
+    return sv._hourglass_stiffness(arr.geo, m) if cfg.cell_type == "hexahedron" else None
+
+
+def _force_fn(arr: sv.Arrays, m: Material, cfg: sv.Config, hg):
+    """u ↦ f_int(u) of the elastic material at displacements u (no viscous history)."""
+    return lambda u: sv._internal(arr, m, hg, u, (), cfg, 1.0)[0]
 
 
 def rest_operator(problem: sv.Problem, material: Material, h: float | None = None, chunk: int = 256) -> np.ndarray:
@@ -71,7 +74,7 @@ def rest_operator(problem: sv.Problem, material: Material, h: float | None = Non
     arr, cfg = problem.arrays, problem.config
     h = cfg.frame_dt if h is None else h
     n = arr.points.shape[0]
-    force = _force_fn(problem, material)
+    force = _force_fn(arr, material, cfg, _hourglass(arr, material, cfg))
     u0 = jnp.zeros((n, 3), arr.points.dtype)
     cols = jax.jit(jax.vmap(lambda d: jax.jvp(force, (u0,), (d.reshape(n, 3),))[1].reshape(-1)))
     eye = np.eye(3 * n, dtype=np.asarray(u0).dtype)
@@ -88,7 +91,8 @@ def rest_operator(problem: sv.Problem, material: Material, h: float | None = Non
 
 
 def preconditioner(problem: sv.Problem, material: Material, n_sub: int = 1) -> jnp.ndarray:
-    """The inverse of `rest_operator` at h = frame_dt / n_sub, as a device array [3N, 3N] (float32, or float64 with x64 enabled)."""
+    """The inverse of `rest_operator` at h = frame_dt / n_sub, as a device array [3N, 3N] (float32, or float64
+    with x64 enabled)."""
     A = rest_operator(problem, material, problem.config.frame_dt / n_sub)
     return jnp.asarray(np.linalg.inv(A))
 
@@ -98,7 +102,7 @@ def simulate_implicit(problem: sv.Problem, material: Material, loads: sv.Loads, 
     """Backward-Euler run: (`fem.Result`, `Diagnostics`). Same loads and outputs as `fem.simulate`
     (``loads.nodal[k]`` is the load reached at the end of frame k, ramped within the frame for
     load_interp='linear', held for 'step'). ``precond`` from `preconditioner` (built here if None)."""
-    _check_scope(problem, material, loads)
+    check_scope(problem, material, loads)
     sv._validate_loads(problem, loads)
     if precond is None:
         precond = preconditioner(problem, material, n_sub)
@@ -109,7 +113,7 @@ def simulate_implicit_batch(problem: sv.Problem, material: Material, loads: sv.L
                             n_sub: int = 1, tol: float = 1e-3, max_newton: int = 12, cg_tol: float = 1e-4,
                             max_cg: int = 60):
     """`simulate_implicit` over a leading case axis of every non-None entry of ``loads`` (`jax.vmap`)."""
-    _check_scope(problem, material, loads)
+    check_scope(problem, material, loads)
     sv._validate_loads(problem, loads, batched=True)
     if precond is None:
         precond = preconditioner(problem, material, n_sub)
@@ -124,8 +128,8 @@ def _run_impl(arr: sv.Arrays, m: Material, loads: sv.Loads, pinv, cfg: sv.Config
     h = cfg.frame_dt / n_sub
     n = arr.points.shape[0]
     dtype = pinv.dtype
-    hg = sv._hourglass_stiffness(arr.geo, m) if cfg.cell_type == "hexahedron" else None
-    force = lambda u: sv._internal(arr, m, hg, u, (), cfg, 1.0)[0]
+    hg = _hourglass(arr, m, cfg)
+    force = _force_fn(arr, m, cfg, hg)
     mass = sv.lumped_mass(sv.Problem(arr, cfg), m).astype(dtype)[:, None]
     free = arr.free.astype(dtype)
     c = (1.0 + arr.damping_alpha * h) / h ** 2

@@ -222,6 +222,6 @@ def test_generate_rejects_a_bad_density_and_implicit_with_contact_before_running
     for bad in ("-1", "nan", "0"):
         with pytest.raises(SystemExit, match="density"):
             cli.main(["generate", "beam-reference", "--out", str(tmp_path / "x.npz"), "--density", bad])
-    with pytest.raises(SystemExit, match="implicit supports elastic scenes without contact; two-beams has contact"):
+    with pytest.raises(SystemExit, match="--integrator implicit on two-beams: implicit dynamics does not support contact"):
         cli.main(["generate", "two-beams", "--out", str(tmp_path / "x.npz"), "--integrator", "implicit"])
     assert not (tmp_path / "x.npz").exists()
