@@ -55,7 +55,7 @@ def substep_runner(problem, material, n_steps, variant="trailing"):
     Input: initial displacements u = x − X, [N, 3, B] for "trailing", [B, N, 3] otherwise.
     """
     arr, cfg = problem.arrays, problem.config
-    hg = solver._hourglass_stiffness(arr.geo, material) if cfg.cell_type == "hexahedron" else None
+    hg = solver._hourglass_for(arr, material, cfg)
     mass = fem.lumped_mass(problem, material)[:, None]
     inv_m = arr.free / mass
     h = cfg.frame_dt / cfg.n_sub

@@ -1,7 +1,8 @@
 """Implicit dynamics (backward Euler) for elastic scenes: output frames without sub-frame ringing.
 
 The explicit solver (`fem.solver`) resolves every wave the mesh carries: on the bunny (K/μ ≈ 78) one output
-frame of 0.05 spans about 30 dilatational-wave sub-steps, and the frames sample a pressure field that rings at
+frame of 0.05 spans 334 sub-steps (the stable step of its smallest element; ~58 wave transits of a median one), and
+the frames sample a pressure field that rings at
 frequencies far above the frame rate. A network that steps from frame to frame cannot predict such a field
 from the last frame alone. Implicit integration with the frame step itself, as a user of Abaqus/Standard's
 dynamic procedure would generate such data, solves for each frame directly and damps what the frame step
@@ -14,8 +15,8 @@ Backward Euler per step h = frame_dt / n_sub (total-Lagrangian, lumped mass M, R
 
 Newton's method with the exact tangent A(u) = (1 + αh) M / h² + K(u), applied matrix-free through `jax.jvp`
 of the internal force and solved by preconditioned conjugate gradients; the preconditioner is the dense inverse
-of the same operator at the reference state, (1 + αh) M / h² + K₀ (computed once per problem, in float64, by
-`rest_operator`). The iteration stops when ‖R‖ ≤ tol · (‖f_ext‖ + ‖M vₙ / h‖ + ‖f_int(uₙ)‖ + max_k ‖f_ext(t_k)‖); the final
+of the same operator at the reference state, (1 + αh) M / h² + K₀ (computed once per problem by `rest_operator`:
+K₀'s columns in the problem's precision, assembled and inverted in float64). The iteration stops when ‖R‖ ≤ tol · (‖f_ext‖ + ‖M vₙ / h‖ + ‖f_int(uₙ)‖ + max_k ‖f_ext(t_k)‖); the final
 relative residual and the Newton iteration count of every frame are returned, so unconverged frames are
 reported, not hidden. In float32 the residual of the bunny (forces of order 1) stalls near 3e-4 of that scale
 (rounding of the internal force), so the default tolerance is 1e-3.
@@ -58,10 +59,6 @@ def check_scope(problem: sv.Problem, material: Material, loads: sv.Loads | None 
         raise ValueError("implicit dynamics supports nodal loads only, got loads.pressure")
 
 
-def _hourglass(arr: sv.Arrays, m: Material, cfg: sv.Config):
-    return sv._hourglass_stiffness(arr.geo, m) if cfg.cell_type == "hexahedron" else None
-
-
 def _force_fn(arr: sv.Arrays, m: Material, cfg: sv.Config, hg):
     """u ↦ f_int(u) of the elastic material at displacements u (no viscous history)."""
     return lambda u: sv._internal(arr, m, hg, u, (), cfg, 1.0)[0]
@@ -69,12 +66,12 @@ def _force_fn(arr: sv.Arrays, m: Material, cfg: sv.Config, hg):
 
 def rest_operator(problem: sv.Problem, material: Material, h: float | None = None, chunk: int = 256) -> np.ndarray:
     """Dense (1 + αh) M/h² + K₀ on the free degrees of freedom, identity on the clamped ones: [3N, 3N] float64
-    (node-major: row 3a + i is node a, component i). K₀ = ∂f_int/∂u at u = 0 by `jax.jvp`, ``chunk`` columns
-    at a time. h defaults to the problem's frame step over n_sub = 1."""
+    (node-major: row 3a + i is node a, component i). K₀ = ∂f_int/∂u at u = 0 by `jax.jvp` in the problem's
+    precision, ``chunk`` columns at a time. h defaults to the problem's frame step over n_sub = 1."""
     arr, cfg = problem.arrays, problem.config
     h = cfg.frame_dt if h is None else h
     n = arr.points.shape[0]
-    force = _force_fn(arr, material, cfg, _hourglass(arr, material, cfg))
+    force = _force_fn(arr, material, cfg, sv._hourglass_for(arr, material, cfg))
     u0 = jnp.zeros((n, 3), arr.points.dtype)
     cols = jax.jit(jax.vmap(lambda d: jax.jvp(force, (u0,), (d.reshape(n, 3),))[1].reshape(-1)))
     eye = np.eye(3 * n, dtype=np.asarray(u0).dtype)
@@ -128,7 +125,7 @@ def _run_impl(arr: sv.Arrays, m: Material, loads: sv.Loads, pinv, cfg: sv.Config
     h = cfg.frame_dt / n_sub
     n = arr.points.shape[0]
     dtype = pinv.dtype
-    hg = _hourglass(arr, m, cfg)
+    hg = sv._hourglass_for(arr, m, cfg)
     force = _force_fn(arr, m, cfg, hg)
     mass = sv.lumped_mass(sv.Problem(arr, cfg), m).astype(dtype)[:, None]
     free = arr.free.astype(dtype)

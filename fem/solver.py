@@ -300,7 +300,7 @@ def check(res: Result, on_inversion: str = "raise") -> None:
 def internal_energy(problem: Problem, material: Material, x) -> jnp.ndarray:
     """Instantaneous elastic energy Π_int(x) (no viscous history); its gradient is the internal force."""
     arr, cfg = problem.arrays, problem.config
-    hg = _hourglass_stiffness(arr.geo, material) if cfg.cell_type == "hexahedron" else None
+    hg = _hourglass_for(arr, material, cfg)
     return _stored_energy(arr, material, x - arr.points, (), hg, cfg, elastic=True)
 
 
@@ -309,7 +309,7 @@ def internal_force(problem: Problem, material: Material, x) -> jnp.ndarray:
     viscous history: the Prony series at t = 0, g_R = 1)."""
     arr, cfg = problem.arrays, problem.config._replace(n_prony=0)
     elastic = material._replace(g=jnp.zeros(0), tau=jnp.zeros(0))   # instantaneous response
-    hg = _hourglass_stiffness(arr.geo, elastic) if cfg.cell_type == "hexahedron" else None
+    hg = _hourglass_for(arr, elastic, cfg)
     f, *_ = _internal(arr, elastic, hg, x - arr.points, (), cfg, 1.0)
     return f
 
@@ -409,6 +409,11 @@ def _polar_rotation(F, iterations: int = 2):
     for _ in range(iterations):
         R = 0.5 * (R + transpose3(inv3(R)))
     return R
+
+
+def _hourglass_for(arr: Arrays, m: Material, cfg: Config):
+    """`_hourglass_stiffness` for a hex8 problem, None for tet4 (which has no hourglass modes)."""
+    return _hourglass_stiffness(arr.geo, m) if cfg.cell_type == "hexahedron" else None
 
 
 def _hourglass_stiffness(geo, m: Material):
@@ -747,7 +752,7 @@ def _simulate_impl(arr: Arrays, m: Material, loads: Loads, cfg: Config, batched:
     h = cfg.frame_dt / cfg.n_sub
     n_per = arr.cells.shape[1]
     mass = m.density * _gather_sum(arr.incidence, jnp.tile(arr.geo.volume / n_per, n_per))
-    hg = _hourglass_stiffness(arr.geo, m) if cfg.cell_type == "hexahedron" else None
+    hg = _hourglass_for(arr, m, cfg)
     alpha = arr.damping_alpha
     bshape, bx = (), lambda a: a             # case axes; adds them to per-node data
     if batched:

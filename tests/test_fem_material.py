@@ -179,7 +179,7 @@ def test_held_step_strain_relaxes_deviatoric_stress_as_g_R(cell_type):
     x = jnp.asarray(np.asarray(arr.points) @ F.T)
     u = x - arr.points   # the element routines take displacements
     h, n_steps, every = 2e-4, 10000, 500  # t up to 2 s = 4 τ_2
-    hg = solver._hourglass_stiffness(arr.geo, m) if cfg.cell_type == "hexahedron" else None
+    hg = solver._hourglass_for(arr, m, cfg)
 
     def advance(visco, _):
         _, visco, *_ = solver._internal(arr, m, hg, u, visco, cfg, h)
