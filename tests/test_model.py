@@ -662,3 +662,108 @@ def test_load_context_has_finite_force_gradients(toy):
     grad = jax.grad(lambda f_: jnp.sum(M.step_state(w, config, norm, z, f_, nt, topo) ** 2))
     for load in (f, jnp.zeros_like(f)):
         assert np.all(np.isfinite(np.asarray(grad(load))))
+
+
+def test_coarse_clusters_cover_the_mesh_in_connected_pieces_and_seed_every_component():
+    # Every node in exactly one cluster, each cluster connected through mesh edges; two disjoint copies of a
+    # mesh (no edge between them) each get clusters of their own even when placed on top of each other.
+    data = D.synthetic_beam(nx=6, ny=2, nz=2, cases=1, frames=1)
+    s, r = data.edges
+    n = len(data.q0)
+    cluster = M.coarse_clusters(s, r, data.q0, 5)
+    assert cluster.shape == (n,) and set(cluster.tolist()) == set(range(5))
+    for c in range(5):
+        nodes = set(np.flatnonzero(cluster == c).tolist())
+        seen, todo = set(), [min(nodes)]
+        while todo:
+            a = todo.pop()
+            if a in seen:
+                continue
+            seen.add(a)
+            todo += [int(b) for b in s[r == a] if int(b) in nodes]
+        assert seen == nodes, f"cluster {c} is not connected"
+    np.testing.assert_array_equal(M.coarse_clusters(s, r, data.q0, 5), cluster)   # deterministic
+    two = M.coarse_clusters(np.concatenate([s, s + n]), np.concatenate([r, r + n]), np.concatenate([data.q0] * 2), 2)
+    assert len(set(two[:n].tolist())) == 1 and len(set(two[n:].tolist())) == 1 and two[0] != two[n]
+    cg = M.coarse_graph(s, r, data.q0, 5)
+    np.testing.assert_allclose(np.asarray(cg.pool @ cg.assign), np.eye(5), atol=1e-6)   # means of indicators
+    adj = np.asarray(cg.adj)
+    assert np.all(adj == adj.T) and np.all(np.diag(adj) == 0) and adj.sum() > 0
+    with pytest.raises(ValueError, match="coarse_nodes"):
+        M.coarse_clusters(s, r, data.q0, n + 1)
+
+
+@pytest.fixture(scope="module")
+def coarse(toy):
+    """The toy model with a coarse level of 4 clusters (2 coarse passes per pass)."""
+    data = toy["data"]
+    config = CONFIG._replace(coarse_nodes=4)
+    topo = M.model_topology(config, data.edges[0], data.edges[1], len(data.q0), data.q0)
+    weights = M.init_weights(jax.random.PRNGKey(6), config, toy["norm"], toy["z"], toy["f"], toy["nt"], topo)
+    params = api.make_params(config, {k: np.asarray(v) for k, v in toy["norm"].items()}, weights, data.q0,
+                             data.edges, data.node_type)
+    return dict(toy, config=config, weights=weights, params=params, topo=topo)
+
+
+def test_coarse_level_carries_a_load_beyond_the_fine_reach(coarse):
+    # One fine pass sees a load only one hop (and the ∇ reverse pass) away; with the coarse level the farthest
+    # node's rate depends on a load at node 0 (the clusters pass it on).
+    t = coarse
+    data = t["data"]
+    far = int(np.argmax(np.linalg.norm(data.q0 - data.q0[0], axis=1)))
+    push = jnp.zeros_like(t["f"]).at[0].set(jnp.array([1.0, -2.0, 0.5]))
+    seen = {}
+    for name, config in {"coarse": t["config"]._replace(passes=1), "plain": CONFIG._replace(passes=1)}.items():
+        w = M.init_weights(jax.random.PRNGKey(3), config, t["norm"], t["z"], t["f"], t["nt"], t["topo"])
+        rate = lambda f: M.rates(w, config, t["norm"], t["z"], f, t["nt"], t["topo"]).dw[far]
+        seen[name] = float(jnp.max(jnp.abs(rate(t["f"] + push) - rate(t["f"]))))
+    assert seen["plain"] == 0.0 and seen["coarse"] > 1e-6
+
+
+def test_coarse_level_keeps_generic_structure_exact_gradients_and_translation_invariance(coarse):
+    # L skew, M PSD, ∇E and ∇S equal finite differences, and (without node_position) the energy depends on
+    # positions only through differences: the internal force −∇_q E sums to zero over the body.
+    t = coarse
+    args = (t["weights"], t["config"], t["norm"], t["z"], t["f"], t["nt"], t["topo"])
+    big_l, big_m = M.operators(*args)
+    _assert_skew_and_psd(big_l, big_m)
+    _assert_gradients_match_finite_differences(*args, directions=1, seed=3)
+    g_e = M.rates(*args).grad_e
+    assert float(jnp.max(jnp.abs(jnp.sum(g_e[:, :3], axis=0)))) <= 1e-4 * float(jnp.sum(jnp.abs(g_e[:, :3])))
+
+
+def test_coarse_level_steps_each_body_of_a_batch_separately_and_saves(coarse, tmp_path):
+    t = coarse
+    _assert_batched_bodies_step_separately(t["params"], t["data"])
+    path = api.save_model(t["params"], tmp_path / "model.npz")
+    loaded = api.load_model(path)
+    graph = G.from_data(t["data"], 0, 2)
+    np.testing.assert_array_equal(np.asarray(api.step(loaded, graph, t["f"]).nodes["z"]),
+                                  np.asarray(api.step(t["params"], graph, t["f"]).nodes["z"]))
+    plain = M.topology(t["data"].edges[0], t["data"].edges[1], len(t["data"].q0), t["data"].q0)
+    with pytest.raises(ValueError, match="coarse_nodes=4"):   # a Topology built without the clusters
+        M.step_state(t["weights"], t["config"], t["norm"], t["z"], t["f"], t["nt"], plain)
+
+
+def test_coarse_mixing_couples_clusters_that_share_no_edge(coarse):
+    # With no coarse message passing a cluster's latent reaches only its own nodes; the mixing layer couples
+    # every cluster of a body to every other, and keeps the structure and the per-body separation.
+    t = coarse
+    data = t["data"]
+    far = int(np.argmax(np.linalg.norm(data.q0 - data.q0[0], axis=1)))
+    push = jnp.zeros_like(t["f"]).at[0].set(jnp.array([1.0, -2.0, 0.5]))
+    seen = {}
+    for mixing in (False, True):
+        config = t["config"]._replace(passes=1, coarse_passes=0, coarse_mixing=mixing)
+        w = M.init_weights(jax.random.PRNGKey(3), config, t["norm"], t["z"], t["f"], t["nt"], t["topo"])
+        rate = lambda f: M.rates(w, config, t["norm"], t["z"], f, t["nt"], t["topo"]).dw[far]
+        seen[mixing] = float(jnp.max(jnp.abs(rate(t["f"] + push) - rate(t["f"]))))
+    assert seen[False] == 0.0 and seen[True] > 1e-9   # exactly zero without the path; small at initialisation
+    config = t["config"]._replace(coarse_mixing=True)
+    w = M.init_weights(jax.random.PRNGKey(7), config, t["norm"], t["z"], t["f"], t["nt"], t["topo"])
+    args = (w, config, t["norm"], t["z"], t["f"], t["nt"], t["topo"])
+    _assert_skew_and_psd(*M.operators(*args))
+    _assert_gradients_match_finite_differences(*args, directions=1, seed=4)
+    params = api.make_params(config, {k: np.asarray(v) for k, v in t["norm"].items()}, w, data.q0, data.edges,
+                             data.node_type)
+    _assert_batched_bodies_step_separately(params, data)

@@ -143,7 +143,7 @@ def make_params(config: M.ModelConfig, norm: dict, weights, q0, edges, node_type
         "weights": weights,
         "mesh": {"senders": np.asarray(edges[0], np.int32), "receivers": np.asarray(edges[1], np.int32),
                  "node_type": np.asarray(node_type, np.int32), "q0": np.asarray(q0, np.float32)},
-        "topo": M.topology(edges[0], edges[1], len(node_type), q0),
+        "topo": M.model_topology(config, edges[0], edges[1], len(node_type), q0),
     }
 
 

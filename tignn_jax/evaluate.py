@@ -48,7 +48,7 @@ def rollout_cases(params: dict, data: D.Dataset, rows) -> np.ndarray:
     """Predicted states [len(rows), T+1, N, 12] from each case's first state and forces."""
     config = M.ModelConfig(**params["config"])
     nt = jnp.asarray(data.node_type, jnp.int32)
-    topo = M.topology(data.edges[0], data.edges[1], len(data.node_type), data.q0)
+    topo = M.model_topology(config, data.edges[0], data.edges[1], len(data.node_type), data.q0)
     return np.asarray(_rollout_many(params["weights"], config, params["norm"], jnp.asarray(data.z[rows, 0]),
                                     jnp.asarray(data.f[rows]), nt, topo))
 
@@ -85,7 +85,7 @@ def structure_along_rollouts(params: dict, data: D.Dataset, rows, pred) -> dict:
     dissipated part ∇Sᵀ M ∇S is ≥ 0 by construction, and dS/dt·Δt = ∇Sᵀ dw is ≥ 0 when L∇S = 0."""
     config = M.ModelConfig(**params["config"])
     nt = jnp.asarray(data.node_type, jnp.int32)
-    topo = M.topology(data.edges[0], data.edges[1], len(data.node_type), data.q0)
+    topo = M.model_topology(config, data.edges[0], data.edges[1], len(data.node_type), data.q0)
     res = np.asarray(_structure_many(params["weights"], config, params["norm"], jnp.asarray(pred[:, :-1]),
                                      jnp.asarray(data.f[rows]), nt, topo))
     names = ("deg_l_rel", "deg_m_rel", "entropy_rate", "dissipation")

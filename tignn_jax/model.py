@@ -66,7 +66,19 @@ class ModelConfig(NamedTuple):
     per-node form. Meant for a body whose far field moves in a pattern set by where a point load acts, which a
     few message passes cannot carry across it (a fingertip's position is known to the application anyway);
     on the bunny it turned the far field's motion towards the load's direction but did not make it fast
-    enough (README, bunny session 8)."""
+    enough (README, bunny session 8); coarse_nodes = C > 0: a second, coarse level of message passing (see
+    ``coarse_graph``): the mesh is cut into C connected clusters of nodes, and in every pass the latents are
+    averaged per cluster, passed ``coarse_passes`` times between neighbouring clusters (edge features: the
+    difference of the clusters' mean displacements and their rest centres' offset) and handed back to every
+    node of the cluster. A pass then carries information ~``coarse_passes`` cluster diameters instead of one
+    edge: what a backward-Euler frame of a nearly incompressible body needs (its pressure answers a point
+    load everywhere within the frame). The cluster means are linear in the state, so ∇E keeps its form (a
+    coarse term's force is spread over its cluster's nodes); coarse_mixing: the coarse level also mixes all
+    of a body's clusters at once (a learned dense map of the body's C·hidden cluster latents, then the
+    activation, added to each cluster's latent) before its message passing: a mesh-specific global coupling
+    (the model is bound to its mesh anyway) for bodies whose response to a load is a few global modes (on the
+    implicit bunny data a ridge-regressed linear map from 8 clusters' mean u, v, f predicts 85 % of the variance
+    of the velocity increment at held-out load positions)."""
     hidden: int = 32
     mlp_layers: int = 2
     passes: int = 4
@@ -80,6 +92,9 @@ class ModelConfig(NamedTuple):
     edge_traction: bool = False
     force_port: bool = False
     load_context: bool = False
+    coarse_nodes: int = 0
+    coarse_passes: int = 2
+    coarse_mixing: bool = False
 
 
 LOAD_CONTEXT_DIM = 7   # Σf (3), load centre − X (3), its length (1)
@@ -139,7 +154,8 @@ def energy_entropy(weights, config: ModelConfig, norm: dict, z, f, node_type, to
 
 def init_weights(key, config: ModelConfig, norm: dict, z, f, node_type, topo):
     """Flax parameters of the network for graphs like the example (z [N,12], f [N,3])."""
-    return Network(config).init(key, *_inputs(config, norm, z, f, node_type, topo), topo)["params"]
+    return Network(config).init(key, *_inputs(config, norm, z, f, node_type, topo), topo,
+                                _coarse_inputs(config, norm, z, topo))["params"]
 
 
 def state_scale(norm: dict):
@@ -164,7 +180,8 @@ class Topology(NamedTuple):
     zero row in padding; X = 0 when every node has one row, R = N); x0 [N,3] float32: rest positions (None
     without a rest mesh); member [G,N] float32: which of G disjoint graphs each node belongs to (None: one
     graph; set by ``tile_topology``, read by global pooling); degree_max [] float32: the largest number of
-    incoming edges of a node (the same for every layout of the graph; the network's message scale)."""
+    incoming edges of a node (the same for every layout of the graph; the network's message scale);
+    coarse: the ``CoarseGraph`` of the mesh's clusters (None unless built with ``coarse`` > 0)."""
     nbr: jax.Array
     mask: jax.Array
     rev: jax.Array
@@ -174,14 +191,95 @@ class Topology(NamedTuple):
     x0: jax.Array | None = None
     member: jax.Array | None = None
     degree_max: jax.Array | None = None
+    coarse: "CoarseGraph | None" = None
 
 
-def topology(senders, receivers, n_nodes: int, q0=None, slots: int | None = None) -> Topology:
+class CoarseGraph(NamedTuple):
+    """Clusters of a mesh's nodes for coarse message passing (dense: C is small).
+
+    assign [N,C] float32: 1 where node n belongs to cluster c (each node to one); pool [C,N] float32: the
+    cluster means (assignᵀ over the cluster sizes); adj [C,C] float32: 1 where two different clusters are joined
+    by a mesh edge; dx0 [C,C,3] float32: rest centre of cluster j minus that of cluster i at [i, j] (zero
+    where not adjacent); degree_max [] float32: the most neighbours of a cluster (the coarse message scale)."""
+    assign: jax.Array
+    pool: jax.Array
+    adj: jax.Array
+    dx0: jax.Array
+    degree_max: jax.Array
+
+
+def coarse_clusters(senders, receivers, q0, n_clusters: int) -> np.ndarray:
+    """Cluster of every node [N] int: ``n_clusters`` seeds by farthest-point sampling in the distance along
+    the mesh's edges (an unreached component counts as infinitely far, so every component gets a seed),
+    each node joined to its nearest seed along the mesh. Deterministic (the first seed is node 0), and the
+    clusters follow the mesh (two ears that touch in space but not in the mesh stay apart)."""
+    from scipy.sparse import csr_matrix
+    from scipy.sparse.csgraph import dijkstra
+
+    q0 = np.asarray(q0, np.float64)
+    n = len(q0)
+    if not 1 <= int(n_clusters) <= n:
+        raise ValueError(f"coarse_nodes must be between 1 and the {n} nodes of the mesh, got {n_clusters}")
+    senders, receivers = np.asarray(senders, np.int64), np.asarray(receivers, np.int64)
+    length = np.linalg.norm(q0[senders] - q0[receivers], axis=1) + 1e-12
+    graph = csr_matrix((length, (senders, receivers)), shape=(n, n))
+    dist = np.full(n, np.inf)
+    nearest = np.zeros(n, np.int64)
+    seed = 0
+    for c in range(int(n_clusters)):
+        d = dijkstra(graph, directed=False, indices=seed)
+        closer = d < dist
+        nearest[closer], dist[closer] = c, d[closer]
+        far = np.where(np.isinf(dist), np.inf, dist)
+        seed = int(np.argmax(far))
+    return nearest
+
+
+def coarse_graph(senders, receivers, q0, n_clusters: int) -> CoarseGraph:
+    """The ``CoarseGraph`` of ``coarse_clusters`` (numpy, outside jit)."""
+    cluster = coarse_clusters(senders, receivers, q0, n_clusters)
+    n, c = len(cluster), int(n_clusters)
+    assign = np.zeros((n, c), np.float32)
+    assign[np.arange(n), cluster] = 1.0
+    size = assign.sum(0)
+    if np.any(size == 0):
+        raise ValueError(f"coarse_nodes {n_clusters}: {int(np.sum(size == 0))} clusters are empty")
+    pool = assign.T / size[:, None]
+    adj = np.zeros((c, c), np.float32)
+    a, b = cluster[np.asarray(senders)], cluster[np.asarray(receivers)]
+    adj[a[a != b], b[a != b]] = 1.0
+    adj = np.maximum(adj, adj.T)
+    centre = pool.astype(np.float64) @ np.asarray(q0, np.float64)
+    dx0 = (centre[None, :, :] - centre[:, None, :]) * adj[..., None]
+    return CoarseGraph(jnp.asarray(assign), jnp.asarray(pool, jnp.float32), jnp.asarray(adj),
+                       jnp.asarray(dx0, jnp.float32), jnp.asarray(max(float(adj.sum(1).max()), 1.0), jnp.float32))
+
+
+def tile_coarse(cg: CoarseGraph, copies: int) -> CoarseGraph:
+    """The CoarseGraph of ``copies`` disjoint copies (block-diagonal)."""
+    eye = np.eye(copies, dtype=np.float32)
+    dx0 = np.asarray(cg.dx0)
+    c = dx0.shape[0]
+    tiled = np.zeros((copies * c, copies * c, 3), np.float32)
+    for k in range(copies):
+        tiled[k * c:(k + 1) * c, k * c:(k + 1) * c] = dx0
+    return CoarseGraph(*(jnp.asarray(np.kron(eye, np.asarray(a))) for a in (cg.assign, cg.pool, cg.adj)),
+                       jnp.asarray(tiled), cg.degree_max)
+
+
+def model_topology(config: ModelConfig, senders, receivers, n_nodes: int, q0=None) -> Topology:
+    """``topology`` with what ``config`` needs (the coarse clusters of ``config.coarse_nodes``)."""
+    return topology(senders, receivers, n_nodes, q0, coarse=int(config.coarse_nodes))
+
+
+def topology(senders, receivers, n_nodes: int, q0=None, slots: int | None = None, coarse: int = 0) -> Topology:
     """Row/slot layout of a graph whose edges come in both directions (each mesh edge twice), numpy → Topology.
 
     ``slots`` (K) defaults to the maximum degree or a power of two below it, whichever minimises the slot
     work (the maximum degree on a structured hex mesh, 4 on the bunny's tet mesh). With the rest positions
-    ``q0`` [N,3] the rest edge vectors are stored too (needed by ``edge_strain``). Raises ValueError when an edge lacks its reverse or appears twice."""
+    ``q0`` [N,3] the rest edge vectors are stored too (needed by ``edge_strain``); ``coarse`` > 0 (needs q0)
+    adds the ``coarse_graph`` of that many clusters. Raises ValueError when an edge lacks its reverse or
+    appears twice."""
     senders, receivers = np.asarray(senders, np.int64), np.asarray(receivers, np.int64)
     order = np.lexsort((senders, receivers))
     s, r = senders[order], receivers[order]
@@ -231,9 +329,14 @@ def topology(senders, receivers, n_nodes: int, q0=None, slots: int | None = None
             raise ValueError(f"q0 has shape {q0.shape}, expected ({n_nodes}, 3)")
         dx0 = jnp.asarray((q0[nbr] - q0[row_node][:, None, :]) * mask[..., None], jnp.float32)
         x0 = jnp.asarray(q0, jnp.float32)
+    cg = None
+    if coarse:
+        if q0 is None:
+            raise ValueError("coarse clusters need the rest positions q0")
+        cg = coarse_graph(senders, receivers, q0, int(coarse))
     return Topology(jnp.asarray(nbr, jnp.int32), jnp.asarray(mask), jnp.asarray(rev, jnp.int32), dx0,
                     jnp.asarray(row_node, jnp.int32), jnp.asarray(node_rows, jnp.int32), x0,
-                    degree_max=jnp.asarray(k_max, jnp.float32))
+                    degree_max=jnp.asarray(k_max, jnp.float32), coarse=cg)
 
 
 def tile_topology(topo: Topology, copies: int) -> Topology:
@@ -273,7 +376,8 @@ def tile_topology(topo: Topology, copies: int) -> Topology:
     member = np.kron(np.eye(copies, dtype=np.float32), np.ones((1, n), np.float32))
     return Topology(jnp.asarray(nbr_t, jnp.int32), jnp.asarray(stack(mask)), jnp.asarray(rev_t, jnp.int32), dx0,
                     jnp.asarray(row_node_t, jnp.int32), jnp.asarray(node_rows_t, jnp.int32), x0,
-                    jnp.asarray(member), topo.degree_max)
+                    jnp.asarray(member), topo.degree_max,
+                    None if topo.coarse is None else tile_coarse(topo.coarse, copies))
 
 
 def max_degree(topo: Topology):
@@ -581,10 +685,24 @@ def _inputs(config, norm, z, f, node_type, topo):
     return x_node, _edge_inputs(norm, z, topo, config.edge_velocity, config.edge_strain, config.edge_traction)
 
 
+def _coarse_inputs(config, norm, z, topo):
+    """[C,3] the clusters' mean displacements over u_std (None without ``coarse_nodes``)."""
+    if not config.coarse_nodes:
+        return None
+    if topo.coarse is None or topo.x0 is None:
+        raise ValueError(f"this model has coarse_nodes={config.coarse_nodes}: build its Topology with "
+                         "model_topology (rest positions and clusters)")
+    if topo.coarse.pool.shape[0] % config.coarse_nodes:
+        raise ValueError(f"the Topology has {topo.coarse.pool.shape[0]} clusters, not a multiple of the "
+                         f"model's coarse_nodes={config.coarse_nodes}")
+    return topo.coarse.pool @ ((z[:, :3] - topo.x0) / norm["u_std"])
+
+
 def _network_out(weights, config, norm, z, f, node_type, topo, split=False):
     """[N, 2 + 66 + 78 (+ 1 port gain with ``force_port``)] decoder outputs, or with ``split`` the pair
     ([N,2] E_i, S_i; the rest)."""
-    es, heads = Network(config).apply({"params": weights}, *_inputs(config, norm, z, f, node_type, topo), topo)
+    es, heads = Network(config).apply({"params": weights}, *_inputs(config, norm, z, f, node_type, topo), topo,
+                                      _coarse_inputs(config, norm, z, topo))
     return (es, heads) if split else jnp.concatenate([es, heads], axis=1)
 
 
@@ -647,6 +765,39 @@ class DenseParams(nn.Module):
         return kernel, self.param("bias", nn.initializers.zeros_init(), (self.features,))
 
 
+class CoarsePass(nn.Module):
+    """The coarse level of one pass: cluster means of a projection of the latents h [N,H], ``passes`` residual
+    message-passing steps between adjacent clusters (dense [C,C], C small; edge features: the difference of
+    the clusters' mean displacements u_c [C,3] and of their rest centres, the same one-hidden-layer edge MLP
+    form as the fine level), and each node's cluster latent back [N,H]. With ``mixing`` = C (a body's clusters)
+    the cluster latents of each body are first mixed by one dense layer over all C·H of them."""
+    hidden: int
+    passes: int
+    mlp_layers: int
+    activation: str
+    mixing: int = 0
+
+    @nn.compact
+    def __call__(self, h, u_c, cg: CoarseGraph):
+        hid, act = self.hidden, ACTIVATIONS[self.activation]
+        hc = cg.pool @ nn.Dense(hid, name="down")(h)
+        if self.mixing:
+            bodies = hc.shape[0] // self.mixing
+            mixed = nn.Dense(self.mixing * hid, name="mix")(hc.reshape(bodies, self.mixing * hid))
+            hc = hc + act(mixed.reshape(hc.shape))
+        du = (u_c[None, :, :] - u_c[:, None, :]) * cg.adj[..., None]            # [C,C,3] receiver i, sender j
+        scale = jnp.sqrt(jnp.sum(cg.dx0 ** 2, axis=-1).sum() / jnp.maximum(cg.adj.sum(), 1.0))
+        e = jnp.concatenate([du, cg.dx0 / scale], axis=-1)
+        inv_k = 1.0 / cg.degree_max
+        for k in range(self.passes):
+            a = (nn.Dense(hid, name=f"edge_{k}")(e) + nn.Dense(hid, use_bias=False, name=f"send_{k}")(hc)[None]
+                 + nn.Dense(hid, use_bias=False, name=f"recv_{k}")(hc)[:, None])
+            msg = jnp.sum(act(a) * cg.adj[..., None], axis=1) * inv_k
+            hc = hc + MLP(hid, hid, self.mlp_layers, self.activation, name=f"node_{k}")(
+                jnp.concatenate([hc, msg], axis=1))
+        return cg.assign @ nn.Dense(hid, name="up")(hc)
+
+
 class Network(nn.Module):
     """Encode-process-decode. Returns ([N, 2] E_i, S_i; [N, 66 + 78] l_i entries, m_i entries, then the port
     gain's column with ``force_port``).
@@ -666,7 +817,7 @@ class Network(nn.Module):
     config: ModelConfig
 
     @nn.compact
-    def __call__(self, x_node, x_edge, topo):
+    def __call__(self, x_node, x_edge, topo, x_coarse=None):
         c = self.config
         hid, act = c.hidden, ACTIVATIONS[c.activation]
         h = MLP(hid, hid, c.mlp_layers, c.activation)(x_node)
@@ -694,5 +845,9 @@ class Network(nn.Module):
             parts = [h, msg, f]
             if c.global_pool:
                 parts.append(graph_pool(nn.Dense(hid, name=f"Dense_{p * per_pass + 3}")(h), topo))
+            if c.coarse_nodes:
+                parts.append(CoarsePass(hid, c.coarse_passes, c.mlp_layers, c.activation,
+                                        c.coarse_nodes if c.coarse_mixing else 0, name=f"coarse_{p}")(
+                    h, x_coarse, topo.coarse))
             h = h + MLP(hid, hid, c.mlp_layers, c.activation)(jnp.concatenate(parts, axis=1))
         return MLP(hid, 2 + N_L + N_M + int(c.force_port), c.mlp_layers, c.activation, out_scale=0.1, split=2)(h)

@@ -58,6 +58,9 @@ class TrainConfig(NamedTuple):
     edge_traction: bool = False
     force_port: bool = False
     load_context: bool = False
+    coarse_nodes: int = 0
+    coarse_passes: int = 2
+    coarse_mixing: bool = False
     lr: float = 3e-3
     lr_end: float = 2e-5
     weight_decay: float = 1e-6
@@ -210,7 +213,7 @@ def train(data: D.Dataset, cfg: TrainConfig, run_dir: str | Path, train_split="t
         norm_np.update(parent["norm"])
     norm = {k: jnp.asarray(v) for k, v in norm_np.items()}
     node_type = jnp.asarray(data.node_type, jnp.int32)
-    topo = M.topology(data.edges[0], data.edges[1], len(data.node_type), data.q0)
+    topo = M.model_topology(cfg.model, data.edges[0], data.edges[1], len(data.node_type), data.q0)
     frames = data.f.shape[1]
     unroll = int(cfg.unroll)
     if not 1 <= unroll <= frames:
