@@ -105,7 +105,8 @@ def assembled_step(weights, config, norm, node_type, topo):
     def network_out(weights_, config_, norm_, z, f, nt, topo_, split=False):
         x_node, x_edge = M._features(norm_, z, f, nt, topo_, config_.edge_velocity, config_.edge_strain,
                                      config_.node_position, edge_traction=config_.edge_traction)
-        es, heads = M.Network(config_).apply({"params": weights_}, x_node, x_edge, topo_)
+        es, heads = M.Network(config_).apply({"params": weights_}, x_node, x_edge, topo_,
+                                             M._coarse_inputs(config_, norm_, z, topo_))
         return (es, heads) if split else jnp.concatenate([es, heads], axis=1)
 
     @contextlib.contextmanager

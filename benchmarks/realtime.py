@@ -9,12 +9,14 @@ simulation time per frame is forces + step. Budgets (issue 5): simulation p50 �
 
 Speed-ups are measured in the same run, as ratios of the step time of each scene's model on its mesh:
   * straightforward: edge list (one row per edge), edge MLP on the concatenated [x_ij, h_j, h_i], scatter-add
-    aggregation, two reverse passes for ∇E and ∇S, L and M assembled with 0/1 matmuls;
+    aggregation, two reverse passes for ∇E and ∇S, L and M assembled with 0/1 matmuls (the plain features,
+    no edge strain, no coarse level: for a model with more features it is the cheaper reference);
   * max-degree slots: the shipped gather-only layout but with one row of K = max degree slots per node;
   * assembled edge features: the shipped layout, but the edge features assembled per slot (from the factored
     ``model.EdgeInputs``, by a gather and a column add) and multiplied by the first edge layer there;
   * shipped: rows of K slots near the mean degree (`model.topology`), fused first edge layer, one reverse pass,
     features linear in q and v multiplied at node level (``model.EdgeInputs``).
+The three slot variants carry the model's coarse level (``coarse_nodes``) when it has one.
 A scene whose model is not shipped runs with the labelled stand-in dynamics and is reported as not valid.
 Writes benchmarks/results/realtime.{json,md}.
 
@@ -87,8 +89,9 @@ def step_variants(name: str, repeats: int) -> dict:
     z = jnp.asarray(np.concatenate([q0 + 0.01 * rng.normal(size=q0.shape), 0.01 * rng.normal(size=(len(q0), 9))],
                                    axis=1), jnp.float32)
     f = jnp.asarray(0.01 * rng.normal(size=(len(q0), 3)), jnp.float32)
-    rows = M.topology(s, r, len(q0), q0)
-    slots = M.topology(s, r, len(q0), q0, slots=int(np.bincount(r).max()))
+    coarse = M.tile_topology(params["topo"], copies).coarse   # a coarse level's clusters, per body (or None)
+    rows = M.topology(s, r, len(q0), q0)._replace(coarse=coarse)
+    slots = M.topology(s, r, len(q0), q0, slots=int(np.bincount(r).max()))._replace(coarse=coarse)
     x_node, x_edge = edge_list_features(norm, z, f, nt, jnp.asarray(s), jnp.asarray(r))
     plain_cfg = cfg._replace(edge_strain=False)
     w_edge = EdgeListNetwork(plain_cfg).init(jax.random.PRNGKey(0), x_node, x_edge, s, r)["params"]
