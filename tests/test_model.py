@@ -767,3 +767,44 @@ def test_coarse_mixing_couples_clusters_that_share_no_edge(coarse):
     params = api.make_params(config, {k: np.asarray(v) for k, v in t["norm"].items()}, w, data.q0, data.edges,
                              data.node_type)
     _assert_batched_bodies_step_separately(params, data)
+
+
+def test_rest_equilibrium_keeps_the_unloaded_body_at_rest_and_the_structure(toy):
+    # The same weights with and without the shift: without it an untrained network drifts from rest under zero
+    # force; with it the rest state is a fixed point (∇E = ∇S = 0 there) while a load still moves the body.
+    # L skew, M PSD, and ∇E, ∇S equal finite differences of the shifted E, S.
+    data, norm, nt = toy["data"], toy["norm"], toy["nt"]
+    topo = M.topology(data.edges[0], data.edges[1], len(data.q0), data.q0)
+    config = CONFIG._replace(rest_equilibrium=True)
+    rest = jnp.concatenate([jnp.asarray(data.q0, jnp.float32), jnp.zeros((len(data.q0), 9))], axis=1)
+    zero = jnp.zeros((len(data.q0), 3))
+    w = M.init_weights(jax.random.PRNGKey(8), config, norm, rest, zero, nt, topo)
+    drift = {}
+    for flag in (False, True):
+        c = config._replace(rest_equilibrium=flag)
+        z = rest
+        for _ in range(5):
+            z = M.step_state(w, c, norm, z, zero, nt, topo)
+        drift[flag] = float(jnp.max(jnp.abs(z - rest)))
+    assert drift[False] > 1e-4 and drift[True] <= 1e-6 * float(jnp.max(jnp.abs(rest)))
+    load = zero.at[-1].set(jnp.array([0.0, 0.0, -10.0]) * norm["f_std"])   # ten training force scales
+    pushed = M.step_state(w, config, norm, rest, load, nt, topo)
+    assert float(jnp.max(jnp.abs(pushed - rest))) > 100 * max(drift[True], 1e-9)
+    args = (w, config, norm, toy["z"], toy["f"], nt, topo)
+    _assert_skew_and_psd(*M.operators(*args))
+    _assert_gradients_match_finite_differences(*args, directions=1, seed=5)
+
+
+def test_rest_equilibrium_precomputed_rest_gradients_give_the_same_steps(toy):
+    # stepper and rollout compute the rest gradients once (model.with_rest); the validated step recomputes them.
+    data = toy["data"]
+    config = CONFIG._replace(rest_equilibrium=True)
+    params = api.make_params(config, {k: np.asarray(v) for k, v in toy["norm"].items()}, toy["weights"], data.q0,
+                             data.edges, data.node_type)
+    graph = G.from_data(data, 0, 1)
+    forces = jnp.asarray(data.f[0, 1:3])
+    stepped = api.step(params, api.step(params, graph, forces[0]), forces[1]).nodes["z"]
+    np.testing.assert_allclose(np.asarray(api.rollout(params, graph, forces)[-1]), np.asarray(stepped), atol=1e-5)
+    fn = api.stepper(params)
+    np.testing.assert_allclose(np.asarray(fn(fn(graph.nodes["z"], forces[0]), forces[1])), np.asarray(stepped),
+                               atol=1e-5)

@@ -58,6 +58,7 @@ def stepper(params: dict, copies: int = 1):
     topo = M.tile_topology(params["topo"], int(copies))
     node_type = jnp.tile(jnp.asarray(params["mesh"]["node_type"], jnp.int32), int(copies))
     n = int(node_type.shape[0])
+    norm = M.with_rest(weights, config, norm, node_type, topo)   # computed once, not per call
 
     @jax.jit
     def fn(z, forces):
@@ -178,6 +179,8 @@ def load_model(path: str | Path) -> dict:
 @partial(jax.jit, static_argnames="config")
 def rollout_states(weights, config, norm, z0, forces_seq, node_type, topo):
     """Unvalidated jit-compiled rollout: z0 [N,12], forces_seq [T,N,3] → [T+1,N,12]."""
+    norm = M.with_rest(weights, config, norm, node_type, topo)   # once per rollout
+
     def body(z, f):
         z_next = M.step_state(weights, config, norm, z, f, node_type, topo)
         return z_next, z_next

@@ -105,7 +105,9 @@ def _structure_many(weights, config, norm, states, forces, node_type, topo):
         return jnp.stack([jnp.linalg.norm(rt.deg_l) / size, jnp.linalg.norm(rt.deg_m) / size,
                           rt.entropy_rate, dissipation])
 
-    return jax.vmap(jax.vmap(one))(states, forces)
+    # cases one after another (lax.map), frames vectorised: the per-node 12x12 operators and the second-order
+    # passes of every state at once need ~0.5 GB per bunny case (71 cases: 35 GB, out of memory)
+    return jax.lax.map(lambda sf: jax.vmap(one)(*sf), (states, forces))
 
 
 def evaluate(params: dict, data: D.Dataset, splits=("train", "val", "test"), structure: bool = True) -> dict:

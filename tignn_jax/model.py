@@ -78,7 +78,12 @@ class ModelConfig(NamedTuple):
     activation, added to each cluster's latent) before its message passing: a mesh-specific global coupling
     (the model is bound to its mesh anyway) for bodies whose response to a load is a few global modes (on the
     implicit bunny data a ridge-regressed linear map from 8 clusters' mean u, v, f predicts 85 % of the variance
-    of the velocity increment at held-out load positions)."""
+    of the velocity increment at held-out load positions); rest_equilibrium: the unloaded body at rest is an
+    equilibrium by construction: E and S are replaced by E − g_E·w and S − g_S·w, with g_E, g_S the gradients
+    at the rest state (q = X, v = σ = 0) under zero force, so ∇E = ∇S = 0 there and the step leaves it in place
+    (the port term vanishes with the force). Still a GENERIC model (the shifted E, S are potentials; L, M are
+    unchanged); no new weights. The rest gradients depend on the weights only: ``with_rest`` computes them once
+    for inference (otherwise every call recomputes them, one more forward and reverse pass)."""
     hidden: int = 32
     mlp_layers: int = 2
     passes: int = 4
@@ -95,6 +100,7 @@ class ModelConfig(NamedTuple):
     coarse_nodes: int = 0
     coarse_passes: int = 2
     coarse_mixing: bool = False
+    rest_equilibrium: bool = False
 
 
 LOAD_CONTEXT_DIM = 7   # Σf (3), load centre − X (3), its length (1)
@@ -146,10 +152,37 @@ def operators(weights, config: ModelConfig, norm: dict, z, f, node_type, topo):
 def energy_entropy(weights, config: ModelConfig, norm: dict, z, f, node_type, topo):
     """Total E and S [2] of the graph at state z (the potentials whose gradients drive the dynamics)."""
     out = _network_out(weights, config, norm, z, f, node_type, topo)
-    e = out[:, 0].sum()
+    e, s_ = out[:, 0].sum(), out[:, 1].sum()
     if config.kinematic_prior:
         e = e + 0.5 * jnp.sum((z[:, 3:6] / state_scale(norm)[3:6]) ** 2)
-    return jnp.stack([e, out[:, 1].sum()])
+    if config.rest_equilibrium:
+        rest, w = _rest(weights, config, norm, node_type, topo), z / state_scale(norm)
+        e, s_ = e - jnp.sum(rest[0] * w), s_ - jnp.sum(rest[1] * w)
+    return jnp.stack([e, s_])
+
+
+def rest_gradients(weights, config: ModelConfig, norm: dict, node_type, topo):
+    """[2,N,12]: ∇_w E and ∇_w S of the unshifted network at the rest state (q = X, v = σ = 0) with zero force."""
+    if topo.x0 is None:
+        raise ValueError("rest_equilibrium needs the rest positions: build the Topology with q0")
+    n, dtype = topo.x0.shape[0], jnp.result_type(norm["z_mean"])   # the precision the model runs in
+    z = jnp.concatenate([topo.x0.astype(dtype), jnp.zeros((n, STATE_DIM - 3), dtype)], axis=1)
+    g_e, g_s, _, _ = _potentials_and_grads(weights, config._replace(rest_equilibrium=False), norm, z,
+                                           jnp.zeros((n, 3), z.dtype), node_type, topo)
+    return jnp.stack([g_e, g_s])
+
+
+def with_rest(weights, config: ModelConfig, norm: dict, node_type, topo) -> dict:
+    """``norm`` with the rest gradients of a ``rest_equilibrium`` model added (key "rest_grads"), so that steps
+    on this topology do not recompute them; ``norm`` unchanged for other models."""
+    if not config.rest_equilibrium:
+        return norm
+    return {**norm, "rest_grads": rest_gradients(weights, config, norm, node_type, topo)}
+
+
+def _rest(weights, config, norm, node_type, topo):
+    rest = norm.get("rest_grads")
+    return rest_gradients(weights, config, norm, node_type, topo) if rest is None else rest
 
 
 def init_weights(key, config: ModelConfig, norm: dict, z, f, node_type, topo):
@@ -475,10 +508,13 @@ def _potentials_and_grads(weights, config, norm, z, f, node_type, topo):
     (_, pullback, heads) = jax.vjp(potentials, z, has_aux=True)
     (grads,) = jax.vmap(pullback)(jnp.eye(2, dtype=z.dtype))
     scale = state_scale(norm)
-    g_e = grads[0] * scale
+    g_e, g_s = grads[0] * scale, grads[1] * scale
     if config.kinematic_prior:   # ∇_w of ½|w_v|²: w_v in the velocity columns
         g_e = g_e + jnp.pad(z[:, 3:6] / scale[3:6], ((0, 0), (3, 6)))
-    return g_e, grads[1] * scale, _matrices(heads), heads[:, N_L + N_M:]
+    if config.rest_equilibrium:
+        rest = _rest(weights, config, norm, node_type, topo)
+        g_e, g_s = g_e - rest[0], g_s - rest[1]
+    return g_e, g_s, _matrices(heads), heads[:, N_L + N_M:]
 
 
 def force_term(port, f, norm):

@@ -61,6 +61,7 @@ class TrainConfig(NamedTuple):
     coarse_nodes: int = 0
     coarse_passes: int = 2
     coarse_mixing: bool = False
+    rest_equilibrium: bool = False
     lr: float = 3e-3
     lr_end: float = 2e-5
     weight_decay: float = 1e-6
@@ -132,6 +133,7 @@ def loss_fn(weights, batch: Batch, key, norm, cfg: TrainConfig, node_type, topo)
     ``batch.f`` has a step axis: each step's error is measured against the true next state from the model's
     own current state, and the losses are averaged over the steps)."""
     c, s = norm["dz_std"], M.state_scale(norm)
+    norm = M.with_rest(weights, cfg.model, norm, node_type, topo)   # once per batch, not per sample
     keep = ~((node_type != 0)[:, None] & (jnp.arange(M.STATE_DIM) < 6)[None, :])
     keep = keep.astype(batch.z.dtype)
     f_seq, z_seq = (batch.f, batch.z_next) if batch.f.ndim == 4 else (batch.f[:, None], batch.z_next[:, None])
@@ -302,7 +304,7 @@ def train(data: D.Dataset, cfg: TrainConfig, run_dir: str | Path, train_split="t
 
 
 # model options that change how the weights are used but not their shapes: a warm start may switch them
-WEIGHT_FREE = ("exact_degeneracy", "kinematic_prior")
+WEIGHT_FREE = ("exact_degeneracy", "kinematic_prior", "rest_equilibrium")
 
 
 def _parent(init_from, cfg: TrainConfig) -> dict:
