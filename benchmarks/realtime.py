@@ -117,6 +117,11 @@ def step_variants(name: str, repeats: int) -> dict:
             "model": DEFAULT_MODELS[name], "hidden": cfg.hidden, "passes": cfg.passes}
 
 
+# the bunny runs of session 10: traction, port and load-context features, 16 clusters with dense mixing, rest shift
+SESSION10_BUNNY = dict(edge_traction=True, force_port=True, load_context=True, coarse_nodes=16, coarse_passes=1,
+                       coarse_mixing=True, rest_equilibrium=True)
+
+
 def untrained_step(name: str, repeats: int, sizes=((16, 3), (24, 3))) -> dict:
     """Step time of untrained models of the given sizes on a scene's mesh, for scenes without a shipped model
     (the cost a trained model of that size would have; its weights do not change the time), with the features
@@ -147,6 +152,12 @@ def untrained_step(name: str, repeats: int, sizes=((16, 3), (24, 3))) -> dict:
         w = M.init_weights(jax.random.PRNGKey(0), cfg, norm, z, f, nt, topo)
         fns[f"{hid}x{passes}"] = jax.jit(lambda z, f, w=w, cfg=cfg: M.step_state(w, cfg, norm, z, f, nt, topo))
         fns[f"{hid}x{passes} assembled"] = assembled_step(w, cfg, norm, nt, topo)
+    if name == "bunny":   # the architecture of the session-10 bunny runs (README): 16x3 + coarse level
+        cfg = base._replace(hidden=16, passes=3, **SESSION10_BUNNY)
+        topo_c = M.model_topology(cfg, s, r, n, q0)
+        w = M.init_weights(jax.random.PRNGKey(0), cfg, norm, z, f, nt, topo_c)
+        norm_c = M.with_rest(w, cfg, norm, nt, topo_c)
+        fns["16x3 coarse (session 10)"] = jax.jit(lambda z, f: M.step_state(w, cfg, norm_c, z, f, nt, topo_c))
     for fn in fns.values():
         jax.block_until_ready(fn(z, f))
     times = {k: [] for k in fns}
