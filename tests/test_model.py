@@ -412,6 +412,16 @@ def test_shipped_beam_model_beats_the_published_test_errors():
         assert errs[name]["mean"] < published, (name, errs[name]["mean"], published)
 
 
+def _far_response(config, norm, z, f, nt, topo, q0, seed=3) -> float:
+    """How much the rate of the node farthest from node 0 changes when node 0 is pushed (an untrained model of
+    ``config``): zero when the push cannot reach it."""
+    far = int(np.argmax(np.linalg.norm(q0 - q0[0], axis=1)))
+    push = jnp.zeros_like(f).at[0].set(jnp.array([1.0, -2.0, 0.5]))
+    w = M.init_weights(jax.random.PRNGKey(seed), config, norm, z, f, nt, topo)
+    rate = lambda f_: M.rates(w, config, norm, z, f_, nt, topo).dw[far]
+    return float(jnp.max(jnp.abs(rate(f + push) - rate(f))))
+
+
 @pytest.fixture(scope="module")
 def pooled(toy):
     """The toy model with global pooling (one virtual node per body)."""
@@ -426,15 +436,9 @@ def pooled(toy):
 def test_global_pool_reaches_every_node_in_one_pass(pooled):
     # Without pooling a force reaches only nodes within `passes` hops; with it, every node's rate depends on it.
     t = pooled
-    data = t["data"]
-    far = int(np.argmax(np.linalg.norm(data.q0 - data.q0[0], axis=1)))   # the farthest node from node 0
     one_pass = {"pool": t["config"]._replace(passes=1), "plain": CONFIG._replace(passes=1)}
-    seen = {}
-    for name, config in one_pass.items():
-        w = M.init_weights(jax.random.PRNGKey(3), config, t["norm"], t["z"], t["f"], t["nt"], t["topo"])
-        rate = lambda f: M.rates(w, config, t["norm"], t["z"], f, t["nt"], t["topo"]).dw[far]
-        push = jnp.zeros_like(t["f"]).at[0].set(jnp.array([1.0, -2.0, 0.5]))
-        seen[name] = float(jnp.max(jnp.abs(rate(t["f"] + push) - rate(t["f"]))))
+    seen = {name: _far_response(config, t["norm"], t["z"], t["f"], t["nt"], t["topo"], t["data"].q0)
+            for name, config in one_pass.items()}
     assert seen["plain"] == 0.0          # node 0 is more than one pass (plus the ∇ reverse pass) away
     assert seen["pool"] > 1e-6
 
@@ -631,17 +635,11 @@ def test_load_context_reaches_every_node_in_one_pass_and_keeps_the_structure(toy
     # L stays skew-symmetric, M PSD, and ∇E, ∇S match finite differences (the context is not a state function).
     data, norm, z, nt = toy["data"], toy["norm"], toy["z"], toy["nt"]
     topo = M.topology(data.edges[0], data.edges[1], len(data.q0), data.q0)
-    far = int(np.argmax(np.linalg.norm(data.q0 - data.q0[0], axis=1)))
-    push = jnp.zeros_like(toy["f"]).at[0].set(jnp.array([1.0, -2.0, 0.5]))
-    seen = {}
-    for context in (False, True):
-        config = CONFIG._replace(passes=1, load_context=context)
-        w = M.init_weights(jax.random.PRNGKey(3), config, norm, z, toy["f"], nt, topo)
-        rate = lambda f: M.rates(w, config, norm, z, f, nt, topo).dw[far]
-        seen[context] = float(jnp.max(jnp.abs(rate(toy["f"] + push) - rate(toy["f"]))))
+    seen = {context: _far_response(CONFIG._replace(passes=1, load_context=context), norm, z, toy["f"], nt, topo,
+                                   data.q0) for context in (False, True)}
     assert seen[False] == 0.0 and seen[True] > 1e-6
     config = CONFIG._replace(load_context=True)
-    f = toy["f"] + push
+    f = toy["f"].at[0].add(jnp.array([1.0, -2.0, 0.5]))
     w = M.init_weights(jax.random.PRNGKey(4), config, norm, z, f, nt, topo)
     big_l, big_m = M.operators(w, config, norm, z, f, nt, topo)
     _assert_skew_and_psd(big_l, big_m)
@@ -709,14 +707,8 @@ def test_coarse_level_carries_a_load_beyond_the_fine_reach(coarse):
     # One fine pass sees a load only one hop (and the ∇ reverse pass) away; with the coarse level the farthest
     # node's rate depends on a load at node 0 (the clusters pass it on).
     t = coarse
-    data = t["data"]
-    far = int(np.argmax(np.linalg.norm(data.q0 - data.q0[0], axis=1)))
-    push = jnp.zeros_like(t["f"]).at[0].set(jnp.array([1.0, -2.0, 0.5]))
-    seen = {}
-    for name, config in {"coarse": t["config"]._replace(passes=1), "plain": CONFIG._replace(passes=1)}.items():
-        w = M.init_weights(jax.random.PRNGKey(3), config, t["norm"], t["z"], t["f"], t["nt"], t["topo"])
-        rate = lambda f: M.rates(w, config, t["norm"], t["z"], f, t["nt"], t["topo"]).dw[far]
-        seen[name] = float(jnp.max(jnp.abs(rate(t["f"] + push) - rate(t["f"]))))
+    seen = {name: _far_response(config, t["norm"], t["z"], t["f"], t["nt"], t["topo"], t["data"].q0)
+            for name, config in {"coarse": t["config"]._replace(passes=1), "plain": CONFIG._replace(passes=1)}.items()}
     assert seen["plain"] == 0.0 and seen["coarse"] > 1e-6
 
 
@@ -750,14 +742,8 @@ def test_coarse_mixing_couples_clusters_that_share_no_edge(coarse):
     # every cluster of a body to every other, and keeps the structure and the per-body separation.
     t = coarse
     data = t["data"]
-    far = int(np.argmax(np.linalg.norm(data.q0 - data.q0[0], axis=1)))
-    push = jnp.zeros_like(t["f"]).at[0].set(jnp.array([1.0, -2.0, 0.5]))
-    seen = {}
-    for mixing in (False, True):
-        config = t["config"]._replace(passes=1, coarse_passes=0, coarse_mixing=mixing)
-        w = M.init_weights(jax.random.PRNGKey(3), config, t["norm"], t["z"], t["f"], t["nt"], t["topo"])
-        rate = lambda f: M.rates(w, config, t["norm"], t["z"], f, t["nt"], t["topo"]).dw[far]
-        seen[mixing] = float(jnp.max(jnp.abs(rate(t["f"] + push) - rate(t["f"]))))
+    seen = {mixing: _far_response(t["config"]._replace(passes=1, coarse_passes=0, coarse_mixing=mixing), t["norm"],
+                                  t["z"], t["f"], t["nt"], t["topo"], data.q0) for mixing in (False, True)}
     assert seen[False] == 0.0 and seen[True] > 1e-9   # exactly zero without the path; small at initialisation
     config = t["config"]._replace(coarse_mixing=True)
     w = M.init_weights(jax.random.PRNGKey(7), config, t["norm"], t["z"], t["f"], t["nt"], t["topo"])
