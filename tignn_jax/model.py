@@ -263,8 +263,7 @@ def coarse_clusters(senders, receivers, q0, n_clusters: int) -> np.ndarray:
         d = dijkstra(graph, directed=False, indices=seed)
         closer = d < dist
         nearest[closer], dist[closer] = c, d[closer]
-        far = np.where(np.isinf(dist), np.inf, dist)
-        seed = int(np.argmax(far))
+        seed = int(np.argmax(dist))   # the farthest node (an unreached component is at +inf)
     return nearest
 
 
@@ -722,7 +721,8 @@ def _inputs(config, norm, z, f, node_type, topo):
 
 
 def _coarse_inputs(config, norm, z, topo):
-    """[C,3] the clusters' mean displacements over u_std (None without ``coarse_nodes``)."""
+    """[C,C,6] the coarse edge features, once per network call (None without ``coarse_nodes``): the difference
+    of two adjacent clusters' mean displacements over u_std and their rest centres' offset over its RMS."""
     if not config.coarse_nodes:
         return None
     if topo.coarse is None or topo.x0 is None:
@@ -731,7 +731,11 @@ def _coarse_inputs(config, norm, z, topo):
     if topo.coarse.pool.shape[0] % config.coarse_nodes:
         raise ValueError(f"the Topology has {topo.coarse.pool.shape[0]} clusters, not a multiple of the "
                          f"model's coarse_nodes={config.coarse_nodes}")
-    return topo.coarse.pool @ ((z[:, :3] - topo.x0) / norm["u_std"])
+    u_c = topo.coarse.pool @ ((z[:, :3] - topo.x0) / norm["u_std"])
+    cg = topo.coarse
+    du = (u_c[None, :, :] - u_c[:, None, :]) * cg.adj[..., None]            # [C,C,3] receiver i, sender j
+    scale = jnp.sqrt(jnp.sum(cg.dx0 ** 2, axis=-1).sum() / jnp.maximum(cg.adj.sum(), 1.0))
+    return jnp.concatenate([du, cg.dx0 / scale], axis=-1)
 
 
 def _network_out(weights, config, norm, z, f, node_type, topo, split=False):
@@ -805,8 +809,9 @@ class CoarsePass(nn.Module):
     """The coarse level of one pass: cluster means of a projection of the latents h [N,H], ``passes`` residual
     message-passing steps between adjacent clusters (dense [C,C], C small; edge features: the difference of
     the clusters' mean displacements u_c [C,3] and of their rest centres, the same one-hidden-layer edge MLP
-    form as the fine level), and each node's cluster latent back [N,H]. With ``mixing`` = C (a body's clusters)
-    the cluster latents of each body are first mixed by one dense layer over all C·H of them."""
+    form as the fine level; given as e [C,C,6] by ``_coarse_inputs``), and each node's cluster latent back
+    [N,H]. With ``mixing`` = C (a body's clusters) the cluster latents of each body are first mixed by one dense
+    layer over all C·H of them."""
     hidden: int
     passes: int
     mlp_layers: int
@@ -814,16 +819,13 @@ class CoarsePass(nn.Module):
     mixing: int = 0
 
     @nn.compact
-    def __call__(self, h, u_c, cg: CoarseGraph):
+    def __call__(self, h, e, cg: CoarseGraph):
         hid, act = self.hidden, ACTIVATIONS[self.activation]
         hc = cg.pool @ nn.Dense(hid, name="down")(h)
         if self.mixing:
             bodies = hc.shape[0] // self.mixing
             mixed = nn.Dense(self.mixing * hid, name="mix")(hc.reshape(bodies, self.mixing * hid))
             hc = hc + act(mixed.reshape(hc.shape))
-        du = (u_c[None, :, :] - u_c[:, None, :]) * cg.adj[..., None]            # [C,C,3] receiver i, sender j
-        scale = jnp.sqrt(jnp.sum(cg.dx0 ** 2, axis=-1).sum() / jnp.maximum(cg.adj.sum(), 1.0))
-        e = jnp.concatenate([du, cg.dx0 / scale], axis=-1)
         inv_k = 1.0 / cg.degree_max
         for k in range(self.passes):
             a = (nn.Dense(hid, name=f"edge_{k}")(e) + nn.Dense(hid, use_bias=False, name=f"send_{k}")(hc)[None]
