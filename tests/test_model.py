@@ -70,6 +70,13 @@ def _assert_gradients_match_finite_differences(weights, config, norm, z, f, nt, 
             np.testing.assert_allclose(np.asarray(analytic), np.asarray(fd), rtol=1e-6, atol=1e-9)
 
 
+def _assert_generic_structure(args, seed):
+    """At the state in ``args`` (the arguments of ``model.rates``): L skew-symmetric, M PSD, and ∇E, ∇S equal to
+    central differences along one random direction."""
+    _assert_skew_and_psd(*M.operators(*args))
+    _assert_gradients_match_finite_differences(*args, directions=1, seed=seed)
+
+
 def test_energy_gradient_matches_finite_differences(toy):
     # dz/dt uses ∇E, ∇S from autodiff; check them along random directions by central differences in float64.
     _assert_gradients_match_finite_differences(*_args(toy))
@@ -445,10 +452,7 @@ def test_global_pool_reaches_every_node_in_one_pass(pooled):
 
 def test_global_pool_keeps_generic_structure_and_exact_gradients(pooled):
     t = pooled
-    args = (t["weights"], t["config"], t["norm"], t["z"], t["f"], t["nt"], t["topo"])
-    big_l, big_m = M.operators(*args)
-    _assert_skew_and_psd(big_l, big_m)
-    _assert_gradients_match_finite_differences(*args, directions=1, seed=1)
+    _assert_generic_structure((t["weights"], t["config"], t["norm"], t["z"], t["f"], t["nt"], t["topo"]), seed=1)
 
 
 def test_global_pool_pools_each_body_of_a_batch_separately(pooled):
@@ -641,9 +645,7 @@ def test_load_context_reaches_every_node_in_one_pass_and_keeps_the_structure(toy
     config = CONFIG._replace(load_context=True)
     f = toy["f"].at[0].add(jnp.array([1.0, -2.0, 0.5]))
     w = M.init_weights(jax.random.PRNGKey(4), config, norm, z, f, nt, topo)
-    big_l, big_m = M.operators(w, config, norm, z, f, nt, topo)
-    _assert_skew_and_psd(big_l, big_m)
-    _assert_gradients_match_finite_differences(w, config, norm, z, f, nt, topo, directions=1, seed=2)
+    _assert_generic_structure((w, config, norm, z, f, nt, topo), seed=2)
     params = api.make_params(config, {k: np.asarray(v) for k, v in norm.items()}, w, data.q0, data.edges,
                              data.node_type)
     _assert_batched_bodies_step_separately(params, data)
@@ -717,9 +719,7 @@ def test_coarse_level_keeps_generic_structure_exact_gradients_and_translation_in
     # positions only through differences: the internal force −∇_q E sums to zero over the body.
     t = coarse
     args = (t["weights"], t["config"], t["norm"], t["z"], t["f"], t["nt"], t["topo"])
-    big_l, big_m = M.operators(*args)
-    _assert_skew_and_psd(big_l, big_m)
-    _assert_gradients_match_finite_differences(*args, directions=1, seed=3)
+    _assert_generic_structure(args, seed=3)
     g_e = M.rates(*args).grad_e
     assert float(jnp.max(jnp.abs(jnp.sum(g_e[:, :3], axis=0)))) <= 1e-4 * float(jnp.sum(jnp.abs(g_e[:, :3])))
 
@@ -748,8 +748,7 @@ def test_coarse_mixing_couples_clusters_that_share_no_edge(coarse):
     config = t["config"]._replace(coarse_mixing=True)
     w = M.init_weights(jax.random.PRNGKey(7), config, t["norm"], t["z"], t["f"], t["nt"], t["topo"])
     args = (w, config, t["norm"], t["z"], t["f"], t["nt"], t["topo"])
-    _assert_skew_and_psd(*M.operators(*args))
-    _assert_gradients_match_finite_differences(*args, directions=1, seed=4)
+    _assert_generic_structure(args, seed=4)
     params = api.make_params(config, {k: np.asarray(v) for k, v in t["norm"].items()}, w, data.q0, data.edges,
                              data.node_type)
     _assert_batched_bodies_step_separately(params, data)
@@ -777,8 +776,7 @@ def test_rest_equilibrium_keeps_the_unloaded_body_at_rest_and_the_structure(toy)
     pushed = M.step_state(w, config, norm, rest, load, nt, topo)
     assert float(jnp.max(jnp.abs(pushed - rest))) > 100 * max(drift[True], 1e-9)
     args = (w, config, norm, toy["z"], toy["f"], nt, topo)
-    _assert_skew_and_psd(*M.operators(*args))
-    _assert_gradients_match_finite_differences(*args, directions=1, seed=5)
+    _assert_generic_structure(args, seed=5)
 
 
 def test_rest_equilibrium_precomputed_rest_gradients_give_the_same_steps(toy):
