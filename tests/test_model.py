@@ -792,3 +792,24 @@ def test_rest_equilibrium_precomputed_rest_gradients_give_the_same_steps(toy):
     fn = api.stepper(params)
     np.testing.assert_allclose(np.asarray(fn(fn(graph.nodes["z"], forces[0]), forces[1])), np.asarray(stepped),
                                atol=1e-5)
+
+
+def test_force_port_with_the_datas_port_gain_starts_at_the_physical_size(toy):
+    # With norm["port_gain"] (velocity per unit force per frame, ≈ Δt / nodal mass) the port adds
+    # g_i · port_gain · f in physical velocity with the learned factor g_i = softplus(·)/softplus(0) ≈ 1 at
+    # initialisation: the bunny needs ~160× the old f/f_std scale, which training could not reach.
+    config = CONFIG._replace(force_port=True)
+    z, nt, topo = toy["z"], toy["nt"], toy["topo"]
+    norm = dict(toy["norm"], port_gain=jnp.array([37.0]))
+    f = jnp.asarray(toy["f"]) + 0.3 * jax.random.normal(jax.random.PRNGKey(13), toy["f"].shape)
+    weights = M.init_weights(jax.random.PRNGKey(14), config, norm, z, f, nt, topo)
+    rt = M.rates(weights, config, norm, z, f, nt, topo)
+    l_op, m_op = M.operators(weights, config, norm, z, f, nt, topo)
+    port = rt.dw - (jnp.einsum("nij,nj->ni", l_op, rt.grad_e) + jnp.einsum("nij,nj->ni", m_op, rt.grad_s))
+    free = np.asarray(nt) == 0
+    dv = np.asarray(port[:, 3:6] * M.state_scale(norm)[3:6])[free]   # physical velocity added in one step
+    factor = dv / (37.0 * np.asarray(f)[free])
+    assert np.all((factor > 0.7) & (factor < 1.4)), factor.min()
+    np.testing.assert_allclose(factor, np.repeat(factor[:, :1], 3, axis=1), rtol=1e-3)
+    big = float(np.abs(np.asarray(port)).max())
+    np.testing.assert_allclose(np.asarray(port)[:, :3], 0.0, atol=1e-6 * big)   # float32 round-off of dw only

@@ -281,3 +281,17 @@ def test_v_weight_is_a_weighted_mean_of_the_feature_mses(toy):
     expected = num / (n_free * 3 * (1 + 4) + n * 6) + float(cfg.deg_weight * m1["degeneracy"])
     assert float(heavy) == pytest.approx(expected, rel=1e-5)
     assert float(heavy) != pytest.approx(float(plain), rel=1e-3)
+
+
+def test_port_gain_is_the_first_frame_velocity_per_unit_force_of_cases_starting_at_rest():
+    data = D.synthetic_beam(nx=6, ny=2, nz=2, cases=2, frames=3)
+    z, f = data.z.copy(), np.zeros_like(data.f)
+    f[:, :, 5] = [0.0, 3.0, 4.0]
+    z[:, 0, :, 3:6] = 0.0                     # both cases start at rest ...
+    z[:, 1, 5, 3:6] = 2.5 * f[:, 0, 5]        # ... and the loaded node gains 2.5 × f in the first frame
+    z[:, 1, :5, 3:6] = 0.0
+    z[:, 1, 6:, 3:6] = 0.0
+    norm = D.normalization(data._replace(z=z, f=f), np.arange(2))
+    np.testing.assert_allclose(norm["port_gain"], [2.5], rtol=1e-6)
+    z[:, 0, 0, 3] = 1.0                       # no case at rest: no gain, the model keeps the f / f_std scale
+    assert "port_gain" not in D.normalization(data._replace(z=z, f=f), np.arange(2))

@@ -175,7 +175,9 @@ def normalization(data: Dataset, rows: np.ndarray) -> dict:
     out-of-distribution bound of ``api.force_check``); dq_std [3] and dqn_mean, dqn_std [1]: edge vector
     q_j - q_i and its length over all frames; dv_std [3]: edge velocity difference v_j - v_i; du_std [3]: edge displacement
     difference (q_j - q_i) - (X_j - X_i); u_std [3]: node displacement q - X; x0_mean [3], x0_std [3]: rest
-    positions (mean and isotropic scale); dt [1]: the frame time step. Vectors (q, v, their increments, f,
+    positions (mean and isotropic scale); dt [1]: the frame time step; port_gain [1] (only where some case starts
+    at rest under a load): the velocity a unit force adds in the first frame at the loaded nodes, the
+    least-squares ratio Σ Δv·f / Σ f·f (≈ Δt / nodal mass; the scale of ``ModelConfig.force_port``). Vectors (q, v, their increments, f,
     dq) get one isotropic scale (RMS over components), so a direction unseen in training is not blown up;
     stress components get their own std, floored at 1e-2 of the largest; every scale is positive.
     """
@@ -208,7 +210,21 @@ def normalization(data: Dataset, rows: np.ndarray) -> dict:
         dqn_std=np.array([max(dqn.std(), 1e-3 * dqn_mean, 1e-12)]),
         dt=np.array([data.dt]),
     )
+    gain = _rest_start_gain(z, f)
+    if gain is not None:
+        stats["port_gain"] = np.array([gain])
     return {k: np.asarray(v, np.float32) for k, v in stats.items()}
+
+
+def _rest_start_gain(z, f) -> float | None:
+    """Σ Δv·f / Σ f·f over the loaded nodes of the first frame of the cases that start at rest (v = 0) under a
+    nonzero load; None where there are none or the ratio is not positive."""
+    at_rest = np.all(z[:, 0, :, 3:6] == 0, axis=(1, 2)) & np.any(f[:, 0] != 0, axis=(1, 2))
+    if not at_rest.any():
+        return None
+    dv, f0 = z[at_rest, 1, :, 3:6] - z[at_rest, 0, :, 3:6], f[at_rest, 0]
+    ratio = float(np.sum(dv * f0) / np.sum(f0 * f0))
+    return ratio if np.isfinite(ratio) and ratio > 0 else None
 
 
 def _nonzero_rows(x) -> np.ndarray:

@@ -517,7 +517,14 @@ def _potentials_and_grads(weights, config, norm, z, f, node_type, topo):
 
 
 def force_term(port, f, norm):
-    """B f [N,12]: the port gain softplus(port[:, 0]) times f / f_std in the velocity rows, zero elsewhere."""
+    """B f [N,12] in the velocity rows, zero elsewhere. With the data's ``port_gain`` (the velocity a unit force
+    adds per frame from rest, ≈ Δt / nodal mass; see `data.normalization`) it is
+    softplus(port[:, 0]) / softplus(0) · port_gain · f / s_v: the learned per-node factor starts at 1 and the
+    term starts at the physical size. Without it (older models), softplus(port[:, 0]) · f / f_std, whose scale
+    can be orders of magnitude short: the bunny's first-frame Δv needs a gain of ~160 in those units."""
+    if "port_gain" in norm:
+        gain = jax.nn.softplus(port[:, :1]) / np.log(2.0) * (norm["port_gain"] / state_scale(norm)[3:6])
+        return jnp.pad(gain * f, ((0, 0), (3, 6)))
     gain = jax.nn.softplus(port[:, :1])
     return jnp.pad(gain * f / norm["f_std"], ((0, 0), (3, 6)))
 
