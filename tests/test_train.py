@@ -295,3 +295,24 @@ def test_port_gain_is_the_first_frame_velocity_per_unit_force_of_cases_starting_
     np.testing.assert_allclose(norm["port_gain"], [2.5], rtol=1e-6)
     z[:, 0, 0, 3] = 1.0                       # no case at rest: no gain, the model keeps the f / f_std scale
     assert "port_gain" not in D.normalization(data._replace(z=z, f=f), np.arange(2))
+
+
+def test_evaluation_reuses_the_models_topology_on_its_own_mesh_only(toy):
+    # A coarse model's Topology includes the clustering; evaluation takes the model's own when the data are on
+    # the model's mesh, and builds one from the data's mesh otherwise. The rollouts are the same either way.
+    from tignn_jax import evaluate as EV
+
+    config = M.ModelConfig(hidden=8, passes=1, coarse_nodes=3)
+    norm = D.normalization(toy, D.split_rows(toy, "train"))
+    topo = M.model_topology(config, toy.edges[0], toy.edges[1], len(toy.q0), toy.q0)
+    nt = jnp.asarray(toy.node_type, jnp.int32)
+    weights = M.init_weights(jax.random.PRNGKey(0), config, norm, jnp.asarray(toy.z[0, 0]), jnp.asarray(toy.f[0, 0]),
+                             nt, topo)
+    params = api.make_params(config, norm, weights, toy.q0, toy.edges, toy.node_type)
+    assert EV._topology(params, config, toy) is params["topo"]
+    moved = toy._replace(q0=toy.q0 + 0.5)
+    assert EV._topology(params, config, moved) is not params["topo"]
+    rows = D.split_rows(toy, "test")
+    rebuilt = EV._rollout_many(weights, config, params["norm"], jnp.asarray(toy.z[rows, 0]), jnp.asarray(toy.f[rows]),
+                               nt, topo)
+    np.testing.assert_allclose(EV.rollout_cases(params, toy, rows), np.asarray(rebuilt), rtol=1e-6, atol=1e-6)
