@@ -3,7 +3,9 @@
 Every pair (with the work / without it) is timed in the same run, interleaved, median over repeats after
 compilation, on this CPU:
   FEM (fem/)
-    * no Prony terms → no internal variables: structural (not timed: see fem_skips);
+    * no Prony terms → no internal variables or viscous update: the beam with and without its Prony series,
+      timed in a child process with a time limit (in an earlier session repeated in-process runs with Prony terms
+      stopped in a runtime deadlock; a deadlock is reported as such, not waited on);
     * no object–object contact → no candidate search or penalty forces: the two beams, 20 frames;
   learned simulator (tignn_jax/)
     * inference computes ∇E and ∇S only: not the E, S values, degeneracy residuals L∇S, M∇E or the entropy
@@ -54,11 +56,7 @@ def fem_skips(repeats: int, frames: int) -> list:
     import fem
     from fem import scenes
 
-    out = []
-    # The Prony pair is not timed: on this jax/XLA (0.10.2, CPU) repeated runs of the beam with Prony terms
-    # stop in a runtime deadlock (all threads waiting, no CPU; reproduced on the code of the previous
-    # session, see notes). The skip itself is structural: without Prony terms the solver's state has no
-    # internal-variable arrays (Config.n_prony = 0) and the viscous update is not traced.
+    out = [prony_skip(repeats, frames)]
     two = scenes.two_beams_scene()
     f2 = scenes.two_beams_forces(two)[0][:frames]
     two = two._replace(n_frames=frames)
@@ -74,6 +72,45 @@ def fem_skips(repeats: int, frames: int) -> list:
                 "detail": f"sub-steps per frame: {runs['with_nsub']} with contact (its stable step), "
                           f"{runs['without_nsub']} without; the saving includes both"})
     return out
+
+
+PRONY_LIMIT_S = 900
+
+
+def prony_pair(repeats: int, frames: int) -> dict:
+    """Median seconds of `fem.simulate` of the beam (reference load case 3) with and without its Prony terms,
+    interleaved; the same mesh, loads, density and stable sub-step (the Prony terms do not change it)."""
+    import fem
+    from fem import scenes
+
+    runs, n_sub = {}, {}
+    for name, prony in (("with", True), ("without", False)):
+        sc = scenes.beam_scene(prony=prony)._replace(n_frames=frames)
+        loads = fem.Loads(nodal=jnp.asarray(scenes.beam_reference_forces(sc, [3])[0]))
+        prob = scenes.setup_scene(sc)
+        runs[name] = lambda p=prob, m=sc.material, ld=loads: fem.simulate(p, m, ld, on_inversion="ignore").q
+        n_sub[name] = prob.config.n_sub
+    return {**interleaved(runs, repeats), "n_sub": n_sub}
+
+
+def prony_skip(repeats: int, frames: int) -> dict:
+    """The Prony pair in a child process (single-threaded XLA), so a runtime deadlock cannot hang the run."""
+    import os
+    import subprocess
+
+    env = dict(os.environ, XLA_FLAGS="--xla_cpu_multi_thread_eigen=false intra_op_parallelism_threads=1")
+    row = {"skip": f"no Prony terms → no internal variables or viscous update (FEM, one beam, {frames} frames)"}
+    try:
+        done = subprocess.run([sys.executable, __file__, "--prony-child", "--repeats", str(repeats),
+                               "--fem-frames", str(frames)], capture_output=True, text=True, env=env,
+                              timeout=PRONY_LIMIT_S, check=True)
+        t = json.loads(done.stdout.strip().splitlines()[-1])
+    except subprocess.TimeoutExpired:
+        return {**row, "with_ms": float("nan"), "without_ms": float("nan"),
+                "detail": f"not measured: the child process did not finish within {PRONY_LIMIT_S} s (deadlock)"}
+    return {**row, "with_ms": 1e3 * t["with"], "without_ms": 1e3 * t["without"],
+            "detail": f"sub-steps per frame {t['n_sub']['with']} with, {t['n_sub']['without']} without (the same "
+                      "stable step); single-threaded XLA in a child process"}
 
 
 def model_skips(repeats: int) -> list:
@@ -151,7 +188,14 @@ def main(argv=None) -> int:
     ap.add_argument("--repeats", type=int, default=7)
     ap.add_argument("--frames", type=int, default=120, help="frames of the loop measurements")
     ap.add_argument("--fem-frames", type=int, default=5, help="frames of the FEM measurements")
+    ap.add_argument("--prony-child", action="store_true", help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
+    if args.repeats < 1 or args.frames < 1 or args.fem_frames < 1:
+        raise SystemExit(f"--repeats, --frames and --fem-frames must be positive, got {args.repeats}, "
+                         f"{args.frames}, {args.fem_frames}")
+    if args.prony_child:
+        print(json.dumps(prony_pair(args.repeats, args.fem_frames)))
+        return 0
     machine = describe()
     rows = model_skips(args.repeats) + loop_skips(args.frames) + fem_skips(args.repeats, args.fem_frames)
     for r in rows:
