@@ -177,9 +177,10 @@ def normalization(data: Dataset, rows: np.ndarray) -> dict:
     difference (q_j - q_i) - (X_j - X_i); u_std [3]: node displacement q - X; x0_mean [3], x0_std [3]: rest
     positions (mean and isotropic scale); dt [1]: the frame time step; port_gain [1] (only where some case starts
     at rest under a load): the velocity a unit force adds in the first frame at the loaded nodes, the
-    least-squares ratio Σ Δv·f / Σ f·f (≈ Δt / nodal mass; the scale of ``ModelConfig.force_port``). Vectors (q, v, their increments, f,
-    dq) get one isotropic scale (RMS over components), so a direction unseen in training is not blown up;
-    stress components get their own std, floored at 1e-2 of the largest; every scale is positive.
+    least-squares ratio Σ Δv·f / Σ f·f (≈ Δt / nodal mass; the scale of ``ModelConfig.force_port``).
+    Vectors (q, v, their increments, f, dq) get one isotropic scale (RMS over components), so a direction
+    unseen in training is not blown up; stress components get their own std, floored at 1e-2 of the largest;
+    every scale is positive.
     """
     z, f = data.z[rows].astype(np.float64), data.f[rows].astype(np.float64)
     s, r = data.edges

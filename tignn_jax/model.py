@@ -59,7 +59,8 @@ class ModelConfig(NamedTuple):
     force also acts directly on the velocities, dz/dt = L∇E + M∇S + B f with B f = g_i f_i / f_std in node i's
     velocity rows and g_i = softplus(a decoder output) ≥ 0 a learned per-node gain (an inverse mass): the
     open-system (port) form of GENERIC, so a point load moves its node from the first step instead of only
-    through the network's reading of f; load_context: every node also reads where its body is loaded and how
+    through the network's reading of f (where the statistics hold ``port_gain``, g_i is measured in units of
+    it and starts at 1: see ``force_term``); load_context: every node also reads where its body is loaded and how
     hard: the body's total force Σf / f_std and the vector from the node to the load centre (the |f|-weighted
     mean of the loaded nodes' rest positions, over x0_std; zero while the body is unloaded) with its length.
     These are functions of the forces and the rest mesh only, not of the state, so ∇E and ∇S keep their
