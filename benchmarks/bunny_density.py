@@ -62,19 +62,24 @@ def simulate(density: float, cases: int, seed: int) -> dict:
     return out
 
 
-def hops_from(edges, n, source) -> np.ndarray:
+def adjacency(edges, n):
+    """The mesh graph as a scipy CSR matrix of ones [n, n] (edges [2, E], both directions)."""
     from scipy.sparse import coo_matrix
+
+    return coo_matrix((np.ones(edges.shape[1]), (edges[0], edges[1])), shape=(n, n)).tocsr()
+
+
+def hops_from(adj, sources) -> np.ndarray:
+    """Graph distances in edges [len(sources), n] from each source node."""
     from scipy.sparse.csgraph import shortest_path
 
-    adj = coo_matrix((np.ones(edges.shape[1]), (edges[0], edges[1])), shape=(n, n)).tocsr()
-    return shortest_path(adj, unweighted=True, indices=source)
+    return shortest_path(adj, unweighted=True, indices=sources)
 
 
-def ring_means(edges, n):
+def ring_means(adj):
     """Row-normalised adjacency (one-ring mean) as a scipy sparse matrix."""
-    from scipy.sparse import coo_matrix, diags
+    from scipy.sparse import diags
 
-    adj = coo_matrix((np.ones(edges.shape[1]), (edges[0], edges[1])), shape=(n, n)).tocsr()
     return diags(1.0 / np.maximum(adj.sum(1).A1, 1.0)) @ adj
 
 
@@ -90,7 +95,7 @@ def probe_features(a, u, v, f):
 def local_probe(d, fit_cases, held_cases) -> dict:
     z, f = d["z"].astype(np.float64), d["f"].astype(np.float64)
     n = len(d["q0"])
-    a = ring_means(d["edges"], n)
+    a = ring_means(adjacency(d["edges"], n))
     free = d["node_type"] == 0
 
     def design(cases):
@@ -121,8 +126,9 @@ def measure(d) -> dict:
     c_s, c_p = np.sqrt(mu / m.density), np.sqrt((bulk + 4.0 * mu / 3.0) / m.density)
     dt = 0.05
     rows = []
+    hops = hops_from(adjacency(e, n), np.asarray(d["load_nodes"], int))   # one search for all cases
     for c in range(len(z)):
-        hop = hops_from(e, n, int(d["load_nodes"][c]))
+        hop = hops[c]
         u = z[c, :, :, :3] - z[c, :1, :, :3]
         dv = np.diff(z[c, :, :, 3:6], axis=0)
         eu, edv = np.sum(u[-1] ** 2, -1), np.sum(dv ** 2, -1).sum(0)
