@@ -8,6 +8,12 @@ the inward normal, with one of four time profiles (all reach the peak within the
 * ``release``: up to the peak, held, then back to zero (the solid recovers);
 * ``move``: the peak force slides from one patch to a neighbouring patch half-way through the run.
 
+With ``smooth=True`` every change of the force is C¹ in time (a fingertip does not jump): the rises and falls
+follow the smooth step 3s² − 2s³ (zero slope at both ends; a release falls over ``FALL_FRAMES``) and ``move`` cross-fades the two patches over
+``FADE_FRAMES`` frames. A piecewise-linear history changes the loading rate within one frame, and the solid's
+velocity, which follows the loading rate, jumps with it: content at the frame rate's Nyquist limit that a
+frame-to-frame model cannot represent (README, learned model `beam`).
+
 Peak totals are drawn uniformly in [0.1, 1] × the reference maximum (6 nodes × 100 000 = 600 000 for the beam).
 """
 from __future__ import annotations
@@ -19,8 +25,14 @@ from .meshes import surface_nodes_and_normals
 PROFILES = ("ramp", "hold", "release", "move")
 
 
-def fingertip_forces(scene, n_cases: int, seed: int, *, peak_total: float = 600_000.0, cone_deg: float = 30.0):
-    """Forces [n_cases, T, N, 3] and a list of case descriptions (JSON-able dicts)."""
+FADE_FRAMES = 4   # smooth ``move``: frames over which the force passes from one patch to the next
+FALL_FRAMES = 6   # smooth ``release``: frames over which the force falls to zero (3 for the piecewise-linear one)
+
+
+def fingertip_forces(scene, n_cases: int, seed: int, *, peak_total: float = 600_000.0, cone_deg: float = 30.0,
+                     smooth: bool = False):
+    """Forces [n_cases, T, N, 3] and a list of case descriptions (JSON-able dicts). ``smooth``: C¹ profiles
+    (module docstring); the same seed draws the same patches, directions, peaks and profile times either way."""
     if n_cases < 1:
         raise ValueError(f"n_cases must be positive, got {n_cases}")
     if peak_total <= 0:
@@ -37,12 +49,16 @@ def fingertip_forces(scene, n_cases: int, seed: int, *, peak_total: float = 600_
         patch = _patch(scene.points, nodes, centre, size)
         direction = _cone_direction(rng, -normals[centre], np.radians(cone_deg))
         peak = rng.uniform(0.1, 1.0) * peak_total
-        amp = _amplitude(rng, profile, T)
+        amp = _amplitude(rng, profile, T, smooth)
         if profile == "move":
             other = _patch(scene.points, nodes, _neighbour(scene.points, nodes, centre, rng), size)
             half = T // 2
-            out[c, :half][:, nodes[patch]] = (amp[:half, None, None] * peak / size) * direction
-            out[c, half:][:, nodes[other]] = (amp[half:, None, None] * peak / size) * direction
+            if smooth:   # weight of the second patch: 0 before the fade, 1 after, a smooth step across it
+                w = smooth_step((np.arange(1, T + 1) - (half - FADE_FRAMES / 2)) / FADE_FRAMES)
+            else:
+                w = (np.arange(1, T + 1) > half).astype(float)
+            out[c][:, nodes[patch]] += ((1 - w) * amp)[:, None, None] * (peak / size) * direction
+            out[c][:, nodes[other]] += (w * amp)[:, None, None] * (peak / size) * direction
         else:
             out[c][:, nodes[patch]] = (amp[:, None, None] * peak / size) * direction
         described.append({"profile": profile, "nodes": nodes[patch].tolist(), "direction": direction.tolist(),
@@ -117,15 +133,23 @@ def _cone_direction(rng, axis, half_angle):
     return cos_t * axis + sin_t * (np.cos(phi) * e1 + np.sin(phi) * e2)
 
 
-def _amplitude(rng, profile, T):
+def smooth_step(s):
+    """3s² − 2s³ of s clipped to [0, 1]: 0 → 1 with zero slope at both ends."""
+    s = np.clip(s, 0.0, 1.0)
+    return s * s * (3.0 - 2.0 * s)
+
+
+def _amplitude(rng, profile, T, smooth=False):
     k = np.arange(1, T + 1, dtype=float)
+    shape = smooth_step if smooth else (lambda s: np.clip(s, 0.0, 1.0))
     if profile in ("ramp", "move"):
-        return k / T
+        return shape(k / T)
     t_peak = int(rng.integers(T // 4, 3 * T // 4))
-    a = np.minimum(k / t_peak, 1.0)
+    a = shape(k / t_peak)
     if profile == "release":
         t_off = int(rng.integers(t_peak + 1, T))
-        a = np.where(k > t_off, np.maximum(0.0, 1.0 - (k - t_off) / 3.0), a)
+        fall = FALL_FRAMES if smooth else 3.0
+        a = np.where(k > t_off, a * (1.0 - shape((k - t_off) / fall)), a)
     return a
 
 

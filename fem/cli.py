@@ -28,6 +28,10 @@ def register(sub: argparse._SubParsersAction) -> None:
                         "(the reference data's convention; default for beam-reference)")
     g.add_argument("--rise-frames", type=int, default=10,
                    help="bunny: frames over which the point load rises smoothly, 0 = a step (default: %(default)s)")
+    g.add_argument("--smooth-loads", action="store_true",
+                   help="interactions: C¹ force histories (smooth rises and falls, a cross-fade when the patch "
+                        "moves) instead of piecewise-linear ones, whose jumps in loading rate the frames cannot "
+                        "resolve (fem.cases.fingertip_forces)")
     g.add_argument("--damping", type=float, default=None, metavar="ALPHA",
                    help="mass-proportional damping coefficient [1/time] instead of the scene's (beam: 18.17, "
                         "identified against the reference data; bunny: 2.0)")
@@ -84,8 +88,10 @@ def run_generate(args) -> int:
     elif args.scene in ("beam-interactions", "bunny-interactions"):
         # Peak totals up to the reference maximum: 6 nodes x 100 000 on the beam, 6 unit point loads on the bunny.
         scene, peak = (beam_scene(), 600_000.0) if args.scene == "beam-interactions" else (bunny_scene(), 6.0)
-        forces, described = cs.fingertip_forces(scene, args.cases or 64, args.seed, peak_total=peak)
+        forces, described = cs.fingertip_forces(scene, args.cases or 64, args.seed, peak_total=peak,
+                                                smooth=args.smooth_loads)
         meta["cases"] = described
+        meta["smooth_loads"] = bool(args.smooth_loads)
     else:
         scene = bunny_scene()
         nodes = None

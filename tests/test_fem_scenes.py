@@ -51,6 +51,24 @@ def test_fingertip_cases_are_patches_pushing_inwards():
         assert cosang >= np.cos(np.radians(30)) - 1e-9
 
 
+def test_smooth_fingertip_cases_keep_the_draws_and_have_no_jumps_in_loading_rate():
+    """smooth=True draws the same patches, directions and peaks; its force histories have no kinks: the largest
+    change of the per-frame force increment is a fraction of the piecewise-linear histories' (whose ramp starts
+    from zero at full rate and whose release and move jump)."""
+    sc = scenes.beam_scene()
+    rough, described = cases.fingertip_forces(sc, 24, seed=3)
+    smooth, described_s = cases.fingertip_forces(sc, 24, seed=3, smooth=True)
+    assert described == described_s
+    assert np.array_equal(np.abs(rough).sum(axis=1) > 0, np.abs(smooth).sum(axis=1) > 0)   # same loaded nodes
+    for c, d in enumerate(described):
+        peak = np.abs(smooth[c]).max()
+        np.testing.assert_allclose(peak, np.abs(rough[c]).max(), rtol=1e-9)   # every profile reaches the peak
+        padded = lambda f: np.concatenate([np.zeros_like(f[:2]), f])     # the force is 0 before frame 1
+        kink = lambda f: np.abs(np.diff(padded(f), n=2, axis=0)).max() / peak
+        assert kink(smooth[c]) < 0.75 * kink(rough[c]) + 1e-12, (d["profile"], kink(smooth[c]), kink(rough[c]))
+        assert np.abs(np.diff(padded(smooth[c]), axis=0)).max() <= 0.6 * peak   # no jump (move: a cross-fade)
+
+
 def test_bunny_point_loads_are_unit_and_normal():
     """Each case is one unit force on one free surface node, along the inward normal, over all frames."""
     sc = scenes.bunny_scene()
