@@ -15,7 +15,9 @@ the learned energy and entropy along the rollout, the fraction of steps with S_{
 with entropy production ∇S·Δw ≥ 0 (the step's GENERIC rate: ≥ 0 by construction for an ``exact_degeneracy``
 model, up to the clamped rows and rounding), both over the steps before the first non-finite state, and the two
 guards: ``api.force_check`` (loads beyond the training range) and ``api.state_check`` (the first step at
-which the state leaves the training envelope, against the first non-finite step).
+which the state leaves the training envelope, against the first non-finite step), and how it leaves: the state
+component and node that deviate most at the flagged step, with that node's graph distance (in edges) from
+the nearest loaded node.
 FEM: the beam at 0.9 (default), 1.0 and 1.5 × its stable sub-step (fewer sub-steps than stable): the run
 must either stay bounded or report the inversion (element and time), never return silent NaN.
 Initial state: the rest positions with zero stress; the velocity follows the convention of the model's
@@ -24,6 +26,7 @@ difference of the trajectory, so it is taken from the FEM run) or "solver" (v(0)
 Writes benchmarks/results/stability.{json,md} and stability.png.
 
     python benchmarks/stability.py [--steps 1000] [--fem-steps 100] [--scenes beam,bunny] [--models beam=beam]
+    (several models of one scene: --models beam=beam-abaqus+beam)
 """
 from __future__ import annotations
 
@@ -43,6 +46,7 @@ from _machine import describe  # noqa: E402
 
 RESULTS = Path(__file__).resolve().parent / "results"
 SCENARIOS = ("release", "constant", "fingertip", "3x load", "noise")
+COLUMNS = ("q1", "q2", "q3", "v1", "v2", "v3", "σ11", "σ22", "σ33", "σ12", "σ13", "σ23")
 BUNNY_RISE = 10   # the bunny data's loads rise over 10 frames (tignn generate bunny --rise-frames 10)
 
 
@@ -108,6 +112,12 @@ def model_runs(name: str, model: str, steps: int, fem_steps: int) -> dict:
         return np.concatenate([np.asarray(production(jnp.asarray(zs[i:i + chunk]), fs[i:i + chunk]))
                                for i in range(0, len(zs), chunk)])
     out = {"model": model, "fem_wall_s": fem_s, "fem_steps": fem_steps, "runs": {}}
+    from scipy.sparse.csgraph import shortest_path
+    from scipy.sparse import coo_matrix
+    edges = np.stack([np.asarray(graph.senders), np.asarray(graph.receivers)])
+    n = len(q0)
+    hops = shortest_path(coo_matrix((np.ones(edges.shape[1]), (edges[0], edges[1])), shape=(n, n)).tocsr(),
+                         unweighted=True)   # [N, N] graph distances (756 or 1330 nodes: small)
     key = jax.random.PRNGKey(0)
     gradient_velocity = params.get("info", {}).get("velocity", "gradient") == "gradient"
     for s in SCENARIOS:
@@ -141,6 +151,7 @@ def model_runs(name: str, model: str, steps: int, fem_steps: int) -> dict:
         over = np.where(~(err[1:] <= 0.10))[0]   # NaN counts as over
         checks = [api.state_check(params, zk) for zk in zs]
         flagged = [k for k, c in enumerate(checks) if c["out_of_distribution"]]
+        leaves = _how_it_leaves(params, zs[flagged[0]], loads[s][:flagged[0]], hops) if flagged else None
         nonfinite = [k for k, c in enumerate(checks) if not c["finite"]]
         live = max(nonfinite[0] - 1, 0) if nonfinite else steps   # entropy statistics over the steps between finite states
         ds = np.diff(e_s[:live + 1, 1])
@@ -160,9 +171,23 @@ def model_runs(name: str, model: str, steps: int, fem_steps: int) -> dict:
             "guard": guard, "ms_per_step": 1e3 * wall / steps,
             "first_step_state_flagged": flagged[0] if flagged else None,
             "first_step_non_finite": nonfinite[0] if nonfinite else None,
+            "leaves_envelope_by": leaves,
             "series": {"u_max": u.tolist(), "v_max": v.tolist(), "u_error": err.tolist(),
                        "E": e_s[:, 0].tolist(), "S": e_s[:, 1].tolist()}}
     return out
+
+
+def _how_it_leaves(params, z, past_forces, hops) -> dict:
+    """The state component and node farthest outside the training envelope in ``z`` (in training standard
+    deviations of v and σ, as ``api.state_check`` measures it) and that node's distance in edges from the
+    nearest node loaded at any earlier step (None if nothing was loaded)."""
+    mean, std = (np.asarray(params["norm"][k], np.float64) for k in ("z_mean", "z_std"))
+    dev = np.abs((np.asarray(z, np.float64)[:, 3:] - mean[3:]) / std[3:])
+    dev = np.where(np.isfinite(dev), dev, np.inf)
+    node, col = np.unravel_index(int(np.argmax(dev)), dev.shape)
+    loaded = np.where(np.abs(np.asarray(past_forces)).sum(axis=(0, 2)) > 0)[0] if len(past_forces) else []
+    return {"component": COLUMNS[3 + col], "node": int(node), "deviation": float(dev[node, col]),
+            "hops_from_load": int(hops[node, loaded].min()) if len(loaded) else None}
 
 
 def fem_limit(factors=(0.9, 1.0, 1.5), frames: int = 20) -> list:
@@ -185,6 +210,13 @@ def fem_limit(factors=(0.9, 1.0, 1.5), frames: int = 20) -> list:
                      "reported": [str(w.message) for w in caught],
                      "max_u": float(np.nanmax(np.abs(q - scene.points)))})
     return rows
+
+
+def _leaves_text(run) -> str:
+    how = run.get("leaves_envelope_by")
+    if not how:
+        return "—"
+    return f"{how['component']} at node {how['node']}, {how['deviation']:.3g} std ({how['hops_from_load']})"
 
 
 def plot(result: dict, path: Path) -> None:
@@ -222,18 +254,20 @@ def main(argv=None) -> int:
     if args.steps < args.fem_steps or args.fem_steps < 20:
         raise SystemExit(f"need --steps ≥ --fem-steps ≥ 20, got {args.steps} and {args.fem_steps}")
     machine = describe()
-    chosen = dict(DEFAULT_MODELS)
+    chosen = {k: [v] for k, v in DEFAULT_MODELS.items()}
     for item in [m for m in args.models.split(",") if m]:
-        scene_name, _, model_name = item.partition("=")
-        if scene_name not in chosen or not model_name:
-            raise SystemExit(f"--models wants SCENE=MODEL with SCENE in {sorted(chosen)}, got {item!r}")
-        chosen[scene_name] = model_name
+        scene_name, _, model_names = item.partition("=")
+        if scene_name not in chosen or not model_names:
+            raise SystemExit(f"--models wants SCENE=MODEL[+MODEL...] with SCENE in {sorted(chosen)}, got {item!r}")
+        chosen[scene_name] = model_names.split("+")
     models = {}
     for name in [s for s in args.scenes.split(",") if s]:
-        try:
-            models[name] = model_runs(name, chosen[name], args.steps, args.fem_steps)
-        except ValueError as err:
-            print(f"{name}: skipped ({err})")
+        for model in chosen[name]:
+            label = name if len(chosen[name]) == 1 else f"{name} ({model})"
+            try:
+                models[label] = model_runs(name, model, args.steps, args.fem_steps)
+            except ValueError as err:
+                print(f"{label}: skipped ({err})")
     result = {"machine": machine, "steps": args.steps, "models": models, "fem_limit": fem_limit()}
     RESULTS.mkdir(parents=True, exist_ok=True)
     (RESULTS / "stability.json").write_text(json.dumps(result))
@@ -244,8 +278,8 @@ def main(argv=None) -> int:
              f"is 20); FEM reference over the first {args.fem_steps} steps.", "",
              "| scene | loading | NaN/Inf | max u model / FEM | max v model / FEM | u error at FEM horizon | "
              "first step u error > 10 % | S non-decreasing (steps) | entropy production ≥ 0 (min) | force guard | "
-             "first step state flagged / non-finite |",
-             "|---|---|---|---|---|---|---|---|---|---|---|"]
+             "first step state flagged / non-finite | leaves the envelope by (hops from the load) |",
+             "|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for name, r in models.items():
         for s, run in r["runs"].items():
             g = run["guard"]
@@ -257,7 +291,7 @@ def main(argv=None) -> int:
                 f"{100 * run['entropy_production_non_negative_fraction']:.0f} % "
                 f"({run['entropy_production_min_mean'][0]:.2g}) | "
                 f"{'FLAGGED' if g['out_of_distribution'] else 'ok'} ({g['max_force_ratio']:.2f}× train max) | "
-                f"{run['first_step_state_flagged']} / {run['first_step_non_finite']} |")
+                f"{run['first_step_state_flagged']} / {run['first_step_non_finite']} | {_leaves_text(run)} |")
     lines += ["", "FEM near its stability limit (beam, 20 frames; sub-step relative to the stable one):", "",
               "| h / h_stable | sub-steps per frame | NaN/Inf in output | inverted element | time | reported |",
               "|---|---|---|---|---|---|"]
