@@ -96,6 +96,68 @@ def point_load_forces(scene, n_cases: int = 100, seed: int = 0, load_nodes=None,
     return out, nodes[picked]
 
 
+def multi_point_load_forces(scene, n_cases: int, per_case: int, seed: int = 0, *, exclude_nodes=(),
+                            exclude_hops: int = 2, min_hops: int = 6, magnitude: float = 1.0, rise_frames: int = 10):
+    """Cases of ``per_case`` simultaneous unit point loads (normal to the surface, inwards, each rising like
+    ``point_load_forces``'s), on free surface nodes at least ``min_hops`` mesh edges apart: [C, T, N, 3] and
+    the loaded nodes [C, per_case]. Nodes within ``exclude_hops`` edges of any of ``exclude_nodes`` (held-out
+    load positions) are never loaded.
+
+    Training data for a body whose response to a point load is local (the implicit bunny at density 1e-3 keeps
+    94 % of the velocity increments within 3 edges of the load): each case shows the model ``per_case``
+    loaded nodes instead of one, at the same simulation cost, and what the model must learn about a loaded
+    node (how the mesh around it responds) varies from node to node."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import shortest_path
+
+    if per_case < 1 or n_cases < 1:
+        raise ValueError(f"n_cases and per_case must be positive, got {n_cases} and {per_case}")
+    if not 0 <= rise_frames <= scene.n_frames:
+        raise ValueError(f"rise_frames must be in 0..{scene.n_frames}, got {rise_frames}")
+    nodes, normals = _free_surface(scene)
+    n = len(scene.points)
+    edges = _mesh_edges(scene.cells)
+    adj = coo_matrix((np.ones(len(edges)), (edges[:, 0], edges[:, 1])), shape=(n, n)).tocsr()
+    exclude_nodes = np.asarray(exclude_nodes, int).ravel()
+    allowed = np.ones(len(nodes), bool)
+    if exclude_nodes.size:
+        bad = exclude_nodes[(exclude_nodes < 0) | (exclude_nodes >= n)]
+        if bad.size:
+            raise ValueError(f"exclude_nodes outside 0..{n - 1}: {bad[:10].tolist()}")
+        near = shortest_path(adj, unweighted=True, indices=exclude_nodes).min(axis=0)
+        allowed = near[nodes] > exclude_hops
+    candidates = np.where(allowed)[0]
+    hops = shortest_path(adj, unweighted=True, indices=nodes[candidates])[:, nodes[candidates]]
+    rng = np.random.default_rng(seed)
+    amp = smooth_rise(scene.n_frames, rise_frames)
+    out = np.zeros((n_cases, scene.n_frames, n, 3))
+    picked = np.zeros((n_cases, per_case), int)
+    for c in range(n_cases):
+        chosen = []
+        for k in rng.permutation(len(candidates)):
+            if all(hops[k, j] >= min_hops for j in chosen):
+                chosen.append(k)
+                if len(chosen) == per_case:
+                    break
+        if len(chosen) < per_case:
+            raise ValueError(f"cannot place {per_case} loads {min_hops} edges apart on the allowed surface "
+                             f"({len(candidates)} nodes); lower per_case or min_hops")
+        for k in chosen:
+            i = candidates[k]
+            out[c, :, nodes[i]] = amp[:, None] * (-magnitude * normals[i])
+        picked[c] = nodes[candidates[chosen]]
+    return out, picked
+
+
+def _mesh_edges(cells) -> np.ndarray:
+    """Both directions of every edge of the cells' complete graphs (tets: all 6 node pairs) [E, 2]."""
+    cells = np.asarray(cells)
+    a, b = np.triu_indices(cells.shape[1], k=1)
+    pairs = np.concatenate([cells[:, [i, j]] for i, j in zip(a, b)])
+    pairs = np.unique(np.sort(pairs, axis=1), axis=0)
+    return np.concatenate([pairs, pairs[:, ::-1]])
+
+
 def smooth_rise(n_frames: int, rise_frames: int) -> np.ndarray:
     """Load amplitude per frame k = 1..n_frames: 3s² − 2s³ with s = min(k / rise_frames, 1) (all ones if 0)."""
     if rise_frames == 0:

@@ -28,6 +28,11 @@ def register(sub: argparse._SubParsersAction) -> None:
                         "(the reference data's convention; default for beam-reference)")
     g.add_argument("--rise-frames", type=int, default=10,
                    help="bunny: frames over which the point load rises smoothly, 0 = a step (default: %(default)s)")
+    g.add_argument("--loads-per-case", type=int, default=1, metavar="K",
+                   help="bunny: K simultaneous point loads per case, at least 6 edges apart (default: 1)")
+    g.add_argument("--exclude-loads-of", default=None, metavar="DATA",
+                   help="bunny with --loads-per-case: never load a node within 2 edges of a load position of the "
+                        "val and test cases of this data set (its metadata's load_nodes), so they stay held out")
     g.add_argument("--smooth-loads", action="store_true",
                    help="interactions: C¹ force histories (smooth rises and falls, a cross-fade when the patch "
                         "moves) instead of piecewise-linear ones, whose jumps in loading rate the frames cannot "
@@ -101,8 +106,15 @@ def run_generate(args) -> int:
             except ValueError:
                 raise SystemExit(f"--load-nodes must be comma-separated integers, got {args.load_nodes!r}")
         try:
-            forces, picked = cs.point_load_forces(scene, args.cases or 100, args.seed, load_nodes=nodes,
-                                                  rise_frames=args.rise_frames)
+            if args.loads_per_case > 1:
+                held = _held_out_load_nodes(args.exclude_loads_of) if args.exclude_loads_of else []
+                forces, picked = cs.multi_point_load_forces(scene, args.cases or 100, args.loads_per_case,
+                                                            args.seed, exclude_nodes=held,
+                                                            rise_frames=args.rise_frames)
+                meta["excluded_load_nodes"] = list(map(int, held))
+            else:
+                forces, picked = cs.point_load_forces(scene, args.cases or 100, args.seed, load_nodes=nodes,
+                                                      rise_frames=args.rise_frames)
         except ValueError as e:
             raise SystemExit(str(e))
         meta["load_nodes"] = np.asarray(picked).tolist()
@@ -196,3 +208,19 @@ def _plot(path, scene, res, forces):
     fig.savefig(path, dpi=110)
     plt.close(fig)
     return path
+
+
+def _held_out_load_nodes(path) -> list:
+    """The load nodes of the val and test cases of a bunny data set (its metadata's load_nodes by sim id)."""
+    import json
+
+    import numpy as np
+
+    with np.load(path) as d:
+        meta = json.loads(str(d["metadata"]))
+        ids = np.concatenate([d[k] for k in ("split_val", "split_test") if k in d.files])
+        sims = list(d["sim_id"])
+    if "load_nodes" not in meta:
+        raise SystemExit(f"--exclude-loads-of {path}: its metadata has no load_nodes")
+    nodes = np.asarray(meta["load_nodes"])
+    return sorted({int(nodes[sims.index(i)]) for i in ids})

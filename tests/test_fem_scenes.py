@@ -243,3 +243,33 @@ def test_generate_rejects_a_bad_density_and_implicit_with_contact_before_running
     with pytest.raises(SystemExit, match="--integrator implicit on two-beams: implicit dynamics does not support contact"):
         cli.main(["generate", "two-beams", "--out", str(tmp_path / "x.npz"), "--integrator", "implicit"])
     assert not (tmp_path / "x.npz").exists()
+
+
+def test_multi_point_loads_are_apart_and_avoid_held_out_positions():
+    """K unit inward normal loads per case, on free surface nodes ≥ min_hops edges apart, none within
+    exclude_hops edges of an excluded node; the same seed gives the same cases; impossible requests raise."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import shortest_path
+
+    sc = scenes.bunny_scene()
+    held, _ = cases.point_load_forces(sc, 5, seed=2)
+    held_nodes = np.where(np.abs(held[:, -1]).sum(axis=(0, 2)) > 0)[0]
+    f, picked = cases.multi_point_load_forces(sc, 6, 4, seed=1, exclude_nodes=held_nodes, min_hops=8)
+    f2, picked2 = cases.multi_point_load_forces(sc, 6, 4, seed=1, exclude_nodes=held_nodes, min_hops=8)
+    np.testing.assert_array_equal(f, f2)
+    assert picked.shape == (6, 4)
+    e = cases._mesh_edges(sc.cells)
+    n = len(sc.points)
+    hops = shortest_path(coo_matrix((np.ones(len(e)), (e[:, 0], e[:, 1])), shape=(n, n)).tocsr(), unweighted=True)
+    nodes, normals = fem.meshes.surface_nodes_and_normals(sc.points, sc.cells)
+    normal_of = dict(zip(nodes.tolist(), normals))
+    for c in range(6):
+        loaded = np.where(np.linalg.norm(f[c, -1], axis=-1) > 0)[0]
+        assert sorted(loaded) == sorted(picked[c])
+        assert np.all(sc.node_type[loaded] == 0)
+        assert hops[np.ix_(loaded, loaded)][~np.eye(4, dtype=bool)].min() >= 8
+        assert hops[np.ix_(loaded, held_nodes)].min() > 2
+        for i in loaded:
+            np.testing.assert_allclose(f[c, -1, i], -normal_of[int(i)], atol=1e-12)
+    with pytest.raises(ValueError, match="cannot place"):
+        cases.multi_point_load_forces(sc, 1, 50, seed=0, min_hops=30)
