@@ -112,12 +112,9 @@ def model_runs(name: str, model: str, steps: int, fem_steps: int) -> dict:
         return np.concatenate([np.asarray(production(jnp.asarray(zs[i:i + chunk]), fs[i:i + chunk]))
                                for i in range(0, len(zs), chunk)])
     out = {"model": model, "fem_wall_s": fem_s, "fem_steps": fem_steps, "runs": {}}
-    from scipy.sparse.csgraph import shortest_path
-    from scipy.sparse import coo_matrix
-    edges = np.stack([np.asarray(graph.senders), np.asarray(graph.receivers)])
-    n = len(q0)
-    hops = shortest_path(coo_matrix((np.ones(edges.shape[1]), (edges[0], edges[1])), shape=(n, n)).tocsr(),
-                         unweighted=True)   # [N, N] graph distances (756 or 1330 nodes: small)
+    from fem.meshes import hop_distances
+    hops = hop_distances(np.stack([np.asarray(graph.senders), np.asarray(graph.receivers)]),
+                         len(q0))   # [N, N] graph distances (756 or 1330 nodes: small)
     key = jax.random.PRNGKey(0)
     gradient_velocity = params.get("info", {}).get("velocity", "gradient") == "gradient"
     for s in SCENARIOS:

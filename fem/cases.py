@@ -9,10 +9,10 @@ the inward normal, with one of four time profiles (all reach the peak within the
 * ``move``: the peak force slides from one patch to a neighbouring patch half-way through the run.
 
 With ``smooth=True`` every change of the force is C¹ in time (a fingertip does not jump): the rises and falls
-follow the smooth step 3s² − 2s³ (zero slope at both ends; a release falls over ``FALL_FRAMES``) and ``move`` cross-fades the two patches over
-``FADE_FRAMES`` frames. A piecewise-linear history changes the loading rate within one frame, and the solid's
-velocity, which follows the loading rate, jumps with it: content at the frame rate's Nyquist limit that a
-frame-to-frame model cannot represent (README, learned model `beam`).
+follow the smooth step 3s² − 2s³ (zero slope at both ends; a release falls over ``FALL_FRAMES``) and ``move``
+cross-fades the two patches over ``FADE_FRAMES`` frames. A piecewise-linear history changes the loading rate
+within one frame, and the solid's velocity, which follows the loading rate, jumps with it inside a frame
+(README, learned model `beam`).
 
 Peak totals are drawn uniformly in [0.1, 1] × the reference maximum (6 nodes × 100 000 = 600 000 for the beam).
 """
@@ -20,7 +20,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .meshes import surface_nodes_and_normals
+from .meshes import hop_distances, surface_nodes_and_normals
 
 PROFILES = ("ramp", "hold", "release", "move")
 
@@ -107,27 +107,22 @@ def multi_point_load_forces(scene, n_cases: int, per_case: int, seed: int = 0, *
     94 % of the velocity increments within 3 edges of the load): each case shows the model ``per_case``
     loaded nodes instead of one, at the same simulation cost, and what the model must learn about a loaded
     node (how the mesh around it responds) varies from node to node."""
-    from scipy.sparse import coo_matrix
-    from scipy.sparse.csgraph import shortest_path
-
     if per_case < 1 or n_cases < 1:
         raise ValueError(f"n_cases and per_case must be positive, got {n_cases} and {per_case}")
     if not 0 <= rise_frames <= scene.n_frames:
         raise ValueError(f"rise_frames must be in 0..{scene.n_frames}, got {rise_frames}")
     nodes, normals = _free_surface(scene)
     n = len(scene.points)
-    edges = _mesh_edges(scene.cells)
-    adj = coo_matrix((np.ones(len(edges)), (edges[:, 0], edges[:, 1])), shape=(n, n)).tocsr()
     exclude_nodes = np.asarray(exclude_nodes, int).ravel()
     allowed = np.ones(len(nodes), bool)
     if exclude_nodes.size:
         bad = exclude_nodes[(exclude_nodes < 0) | (exclude_nodes >= n)]
         if bad.size:
             raise ValueError(f"exclude_nodes outside 0..{n - 1}: {bad[:10].tolist()}")
-        near = shortest_path(adj, unweighted=True, indices=exclude_nodes).min(axis=0)
+        near = hop_distances(scene.edges, n, exclude_nodes).min(axis=0)
         allowed = near[nodes] > exclude_hops
     candidates = np.where(allowed)[0]
-    hops = shortest_path(adj, unweighted=True, indices=nodes[candidates])[:, nodes[candidates]]
+    hops = hop_distances(scene.edges, n, nodes[candidates])[:, nodes[candidates]]
     rng = np.random.default_rng(seed)
     amp = smooth_rise(scene.n_frames, rise_frames)
     out = np.zeros((n_cases, scene.n_frames, n, 3))
@@ -147,15 +142,6 @@ def multi_point_load_forces(scene, n_cases: int, per_case: int, seed: int = 0, *
             out[c, :, nodes[i]] = amp[:, None] * (-magnitude * normals[i])
         picked[c] = nodes[candidates[chosen]]
     return out, picked
-
-
-def _mesh_edges(cells) -> np.ndarray:
-    """Both directions of every edge of the cells' complete graphs (tets: all 6 node pairs) [E, 2]."""
-    cells = np.asarray(cells)
-    a, b = np.triu_indices(cells.shape[1], k=1)
-    pairs = np.concatenate([cells[:, [i, j]] for i, j in zip(a, b)])
-    pairs = np.unique(np.sort(pairs, axis=1), axis=0)
-    return np.concatenate([pairs, pairs[:, ::-1]])
 
 
 def smooth_rise(n_frames: int, rise_frames: int) -> np.ndarray:

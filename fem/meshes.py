@@ -171,6 +171,17 @@ def mesh_edges(cells):
     return both.T.astype(np.int32)
 
 
+def hop_distances(edges, n_nodes: int, sources=None) -> np.ndarray:
+    """Graph distances in edges between mesh nodes: [len(sources), n_nodes] from each source (all nodes when
+    ``sources`` is None; unreachable nodes at inf). ``edges`` [2, E]: directed edges, both directions present."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import shortest_path
+
+    edges = np.asarray(edges)
+    adj = coo_matrix((np.ones(edges.shape[1]), (edges[0], edges[1])), shape=(n_nodes, n_nodes)).tocsr()
+    return shortest_path(adj, unweighted=True, indices=sources)
+
+
 def cell_volumes(q0, cells):
     """[K] signed volumes of hex8 or tet4 ``cells`` (each hex split into 6 tets); positive means VTK order."""
     q0 = np.asarray(q0, np.float64)

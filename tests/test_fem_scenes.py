@@ -248,9 +248,6 @@ def test_generate_rejects_a_bad_density_and_implicit_with_contact_before_running
 def test_multi_point_loads_are_apart_and_avoid_held_out_positions():
     """K unit inward normal loads per case, on free surface nodes ≥ min_hops edges apart, none within
     exclude_hops edges of an excluded node; the same seed gives the same cases; impossible requests raise."""
-    from scipy.sparse import coo_matrix
-    from scipy.sparse.csgraph import shortest_path
-
     sc = scenes.bunny_scene()
     held, _ = cases.point_load_forces(sc, 5, seed=2)
     held_nodes = np.where(np.abs(held[:, -1]).sum(axis=(0, 2)) > 0)[0]
@@ -258,9 +255,7 @@ def test_multi_point_loads_are_apart_and_avoid_held_out_positions():
     f2, picked2 = cases.multi_point_load_forces(sc, 6, 4, seed=1, exclude_nodes=held_nodes, min_hops=8)
     np.testing.assert_array_equal(f, f2)
     assert picked.shape == (6, 4)
-    e = cases._mesh_edges(sc.cells)
-    n = len(sc.points)
-    hops = shortest_path(coo_matrix((np.ones(len(e)), (e[:, 0], e[:, 1])), shape=(n, n)).tocsr(), unweighted=True)
+    hops = fem.meshes.hop_distances(sc.edges, len(sc.points))
     nodes, normals = fem.meshes.surface_nodes_and_normals(sc.points, sc.cells)
     normal_of = dict(zip(nodes.tolist(), normals))
     for c in range(6):
