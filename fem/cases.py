@@ -67,16 +67,23 @@ def fingertip_forces(scene, n_cases: int, seed: int, *, peak_total: float = 600_
 
 
 def point_load_forces(scene, n_cases: int = 100, seed: int = 0, load_nodes=None, magnitude: float = 1.0,
-                      rise_frames: int = 0):
+                      rise_frames: int = 0, radius: float = 0.0):
     """Unit point loads normal to the surface (pushing inwards): [C, T, N, 3], and the loaded node ids [C].
 
     Load nodes are spread over the free surface by farthest-point sampling from a seeded start, or given.
     ``rise_frames = 0`` applies the full load from the first frame (a step, which rings the loaded node's local
     modes far above the frame rate); ``rise_frames = R > 0`` raises it by the C¹ smooth step
     a = 3s² − 2s³, s = min(k/R, 1) in frame k = 1..T, then holds it (a press that settles).
+
+    ``radius = 0`` puts the whole load on the one node (a point force: on linear tets its dent is set by the
+    elements around that node and grows without bound as the mesh is refined). ``radius > 0`` spreads the same
+    total force, along the load node's inward normal, over the free surface nodes within ``radius`` of it with
+    weights ∝ (1 − (d/radius)²)², a fingertip-sized press whose response converges with the mesh.
     """
     if not 0 <= rise_frames <= scene.n_frames:
         raise ValueError(f"rise_frames must be in 0..{scene.n_frames}, got {rise_frames}")
+    if not (np.isfinite(radius) and radius >= 0):
+        raise ValueError(f"radius must be a finite number >= 0, got {radius}")
     nodes, normals = _free_surface(scene)
     if load_nodes is None:
         if not 1 <= n_cases <= len(nodes):
@@ -92,7 +99,14 @@ def point_load_forces(scene, n_cases: int = 100, seed: int = 0, load_nodes=None,
     out = np.zeros((len(picked), scene.n_frames, len(scene.points), 3))
     amp = smooth_rise(scene.n_frames, rise_frames)
     for c, i in enumerate(picked):
-        out[c, :, nodes[i]] = amp[:, None] * (-magnitude * normals[i])
+        if radius > 0:
+            d = np.linalg.norm(scene.points[nodes] - scene.points[nodes[i]], axis=1)
+            near = np.where(d < radius)[0]
+            w = (1.0 - (d[near] / radius) ** 2) ** 2
+            w = w / w.sum()
+            out[c][:, nodes[near]] = (amp[:, None, None] * w[None, :, None]) * (-magnitude * normals[i])
+        else:
+            out[c, :, nodes[i]] = amp[:, None] * (-magnitude * normals[i])
     return out, nodes[picked]
 
 

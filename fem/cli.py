@@ -33,6 +33,10 @@ def register(sub: argparse._SubParsersAction) -> None:
     g.add_argument("--exclude-loads-of", default=None, metavar="DATA",
                    help="bunny with --loads-per-case: never load a node within 2 edges of a load position of the "
                         "val and test cases of this data set (its metadata's load_nodes), so they stay held out")
+    g.add_argument("--load-radius", type=float, default=None, metavar="R",
+                   help="bunny: spread each unit load over the free surface nodes within R of the load position "
+                        "(weights (1 - (d/R)^2)^2, the position's normal) instead of one node: a fingertip-sized "
+                        "press rather than a point force, whose dent is a property of the mesh (default: a point)")
     g.add_argument("--smooth-loads", action="store_true",
                    help="interactions: C¹ force histories (smooth rises and falls, a cross-fade when the patch "
                         "moves) instead of piecewise-linear ones, whose jumps in loading rate the frames cannot "
@@ -74,6 +78,12 @@ def run_generate(args) -> int:
             raise ValueError
     except ValueError:
         raise SystemExit(f"--worker must be K/N with 0 <= K < N, got {args.worker!r}")
+    if args.scene != "bunny":
+        for flag, value, unset in (("--load-nodes", args.load_nodes, None), ("--loads-per-case", args.loads_per_case, 1),
+                                   ("--exclude-loads-of", args.exclude_loads_of, None),
+                                   ("--load-radius", args.load_radius, None)):
+            if value != unset:
+                raise SystemExit(f"{flag} applies only to the bunny scene, not {args.scene}")
     meta = {"seed": args.seed, "command": f"tignn generate {args.scene}"}
     sim_ids = None
     setup_kwargs = {}
@@ -100,6 +110,16 @@ def run_generate(args) -> int:
     else:
         scene = bunny_scene()
         nodes = None
+        if args.loads_per_case < 1:
+            raise SystemExit(f"--loads-per-case must be >= 1, got {args.loads_per_case}")
+        if args.exclude_loads_of and args.loads_per_case == 1:
+            raise SystemExit("--exclude-loads-of applies only with --loads-per-case > 1 (single-load cases take "
+                             "their positions from --cases/--seed or --load-nodes)")
+        if args.load_nodes and args.loads_per_case > 1:
+            raise SystemExit("--load-nodes cannot be combined with --loads-per-case > 1 (multi-load cases place "
+                             "their loads themselves)")
+        if args.load_radius is not None and args.loads_per_case > 1:
+            raise SystemExit("--load-radius applies only to single-load cases (--loads-per-case 1)")
         if args.load_nodes:
             try:
                 nodes = [int(t) for t in args.load_nodes.split(",") if t.strip()]
@@ -114,7 +134,10 @@ def run_generate(args) -> int:
                 meta["excluded_load_nodes"] = list(map(int, held))
             else:
                 forces, picked = cs.point_load_forces(scene, args.cases or 100, args.seed, load_nodes=nodes,
-                                                      rise_frames=args.rise_frames)
+                                                      rise_frames=args.rise_frames,
+                                                      radius=args.load_radius or 0.0)
+                if args.load_radius:
+                    meta["load_radius"] = args.load_radius
         except ValueError as e:
             raise SystemExit(str(e))
         meta["load_nodes"] = np.asarray(picked).tolist()

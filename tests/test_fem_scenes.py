@@ -268,3 +268,42 @@ def test_multi_point_loads_are_apart_and_avoid_held_out_positions():
             np.testing.assert_allclose(f[c, -1, i], -normal_of[int(i)], atol=1e-12)
     with pytest.raises(ValueError, match="cannot place"):
         cases.multi_point_load_forces(sc, 1, 50, seed=0, min_hops=30)
+
+
+def test_patch_load_spreads_the_unit_force_over_the_surface_near_the_position():
+    """radius > 0: the same positions as the point loads, total force = the unit inward normal of the position,
+    on free surface nodes within the radius only, weights falling with distance; a bad radius raises."""
+    sc = scenes.bunny_scene()
+    point, nodes = cases.point_load_forces(sc, 4, seed=3, rise_frames=5)
+    patch, nodes2 = cases.point_load_forces(sc, 4, seed=3, rise_frames=5, radius=5.0)
+    np.testing.assert_array_equal(nodes, nodes2)
+    np.testing.assert_allclose(patch.sum(axis=2), point.sum(axis=2), atol=1e-12)
+    surf, _ = fem.meshes.surface_nodes_and_normals(sc.points, sc.cells)
+    for c, centre in enumerate(nodes):
+        mag = np.linalg.norm(patch[c, -1], axis=-1)
+        loaded = np.where(mag > 0)[0]
+        d = np.linalg.norm(sc.points[loaded] - sc.points[centre], axis=1)
+        assert len(loaded) > 1 and np.all(d < 5.0) and np.all(np.isin(loaded, surf))
+        assert np.all(sc.node_type[loaded] == 0)
+        assert mag[centre] == mag.max()
+        order = np.argsort(d)
+        assert np.all(np.diff(mag[loaded][order]) <= 1e-15)
+    for bad in (-1.0, float("nan")):
+        with pytest.raises(ValueError, match="radius must be a finite number"):
+            cases.point_load_forces(sc, 2, radius=bad)
+
+
+def test_generate_rejects_bunny_flags_that_would_be_ignored(tmp_path):
+    from tignn_jax import cli
+
+    out = str(tmp_path / "x.npz")
+    bad = [(["bunny", "--loads-per-case", "0"], "--loads-per-case must be >= 1, got 0"),
+           (["bunny", "--exclude-loads-of", "y.npz"], "--exclude-loads-of applies only with --loads-per-case > 1"),
+           (["bunny", "--load-nodes", "3,4", "--loads-per-case", "2"], "--load-nodes cannot be combined"),
+           (["bunny", "--load-radius", "5", "--loads-per-case", "2"], "--load-radius applies only to single-load"),
+           (["beam-reference", "--load-radius", "5"], "--load-radius applies only to the bunny scene"),
+           (["two-beams", "--loads-per-case", "3"], "--loads-per-case applies only to the bunny scene")]
+    for argv, message in bad:
+        with pytest.raises(SystemExit, match=message):
+            cli.main(["generate", *argv, "--out", out])
+    assert not (tmp_path / "x.npz").exists()
