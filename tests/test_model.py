@@ -842,3 +842,50 @@ def test_node_embedding_gives_each_mesh_node_its_own_learned_vector(toy, tmp_pat
     g = G.from_data(data, 0, 2)
     np.testing.assert_allclose(np.asarray(api.step(loaded, g, data.f[0, 2]).nodes["z"]),
                                np.asarray(api.step(params, g, data.f[0, 2]).nodes["z"]), atol=1e-6)
+
+
+def test_elastic_port_is_a_spring_potential_through_the_port(toy):
+    # elastic_port adds B(−∇_q U) in the velocity rows: the spring force equals minus the gradient of
+    # U = ½ Σ over undirected edges of k (ℓ − ℓ⁰)², computed here from the edge list (so k must be the same on both
+    # directions of an edge); it vanishes at the rest positions; the rate differs from the model without the
+    # spring term by exactly the port applied to that force; it needs force_port and the statistics' spring_k.
+    data, z, f, nt = toy["data"], toy["z"], toy["f"], toy["nt"]
+    topo = M.topology(data.edges[0], data.edges[1], len(data.q0), q0=data.q0)
+    k0 = 1e6   # the toy bar's strains are ~1e-6: a stiffness that makes the term count
+    norm = {**toy["norm"], "port_gain": jnp.asarray([0.3]), "spring_k": jnp.asarray([k0])}
+    config = CONFIG._replace(force_port=True, elastic_port=True)
+    w = M.init_weights(jax.random.PRNGKey(7), config, norm, z, f, nt, topo)
+    np.testing.assert_allclose(np.asarray(M.spring_stiffness(w, norm, topo))[np.asarray(topo.mask) > 0], k0,
+                               rtol=1e-6)   # ψ ≡ 0 at initialisation: k = k₀
+    w = {**w, "spring": jax.random.normal(jax.random.PRNGKey(8), w["spring"].shape) * 0.5}
+    k_slot = np.asarray(M.spring_stiffness(w, norm, topo))
+    nbr, mask, row = np.asarray(topo.nbr), np.asarray(topo.mask), np.asarray(topo.row_node)
+    k_edge = {(int(nbr[r_, s_]), int(row[r_])): k_slot[r_, s_] for r_, s_ in zip(*np.nonzero(mask))}
+    send, recv = data.edges
+    assert len(k_edge) == len(send)
+    k = np.array([k_edge[(int(a), int(b))] for a, b in zip(send, recv)])
+    np.testing.assert_allclose(k, [k_edge[(int(b), int(a))] for a, b in zip(send, recv)], rtol=1e-6)
+    rest = np.linalg.norm(data.q0[send] - data.q0[recv], axis=1)
+
+    def energy(q):
+        return 0.25 * jnp.sum(k * (jnp.linalg.norm(q[send] - q[recv], axis=1) - rest) ** 2)   # both directions
+
+    q = jnp.asarray(z[:, :3])
+    force = np.asarray(M.spring_force(w, norm, z, topo))
+    np.testing.assert_allclose(force, -np.asarray(jax.grad(energy)(q)), rtol=1e-4, atol=1e-6 * np.abs(force).max())
+    assert np.abs(force).max() > 0
+    z_rest = jnp.asarray(z).at[:, :3].set(jnp.asarray(data.q0, z.dtype))
+    assert np.abs(np.asarray(M.spring_force(w, norm, z_rest, topo))).max() < 1e-5 * np.abs(force).max()
+    plain = config._replace(elastic_port=False)
+    w_plain = {key: v for key, v in w.items() if key != "spring"}
+    port = M._network_out(w_plain, plain, norm, z, f, nt, topo)[:, -1:]
+    dw = np.asarray(M.rates(w, config, norm, z, f, nt, topo).dw)
+    diff = dw - np.asarray(M.rates(w_plain, plain, norm, z, f, nt, topo).dw)
+    expected = np.array(M.force_term(port, force, norm))
+    expected[np.asarray(nt) != 0, :6] = 0.0   # clamped nodes keep q and v
+    assert np.abs(expected).max() > 1e-3 * np.abs(dw).max()
+    np.testing.assert_allclose(diff, expected, rtol=1e-4, atol=1e-5 * np.abs(dw).max())   # float32 round-off
+    with pytest.raises(ValueError, match="elastic_port=True needs force_port=True"):
+        M.init_weights(jax.random.PRNGKey(7), config._replace(force_port=False), norm, z, f, nt, topo)
+    with pytest.raises(ValueError, match="spring_k"):
+        M.rates(w, config, {key: v for key, v in norm.items() if key != "spring_k"}, z, f, nt, topo)

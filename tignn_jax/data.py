@@ -177,7 +177,9 @@ def normalization(data: Dataset, rows: np.ndarray) -> dict:
     difference (q_j - q_i) - (X_j - X_i); u_std [3]: node displacement q - X; x0_mean [3], x0_std [3]: rest
     positions (mean and isotropic scale); dt [1]: the frame time step; port_gain [1] (only where some case starts
     at rest under a load): the velocity a unit force adds in the first frame at the loaded nodes, the
-    least-squares ratio Σ Δv·f / Σ f·f (≈ Δt / nodal mass; the scale of ``ModelConfig.force_port``).
+    least-squares ratio Σ Δv·f / Σ f·f (≈ Δt / nodal mass; the scale of ``ModelConfig.force_port``);
+    spring_k [1] (with port_gain, where positive): the least-squares stiffness of one spring on every mesh edge
+    that explains Δv / port_gain − f (the scale of ``ModelConfig.elastic_port``).
     Vectors (q, v, their increments, f, dq) get one isotropic scale (RMS over components), so a direction
     unseen in training is not blown up; stress components get their own std, floored at 1e-2 of the largest;
     every scale is positive.
@@ -214,6 +216,9 @@ def normalization(data: Dataset, rows: np.ndarray) -> dict:
     gain = _rest_start_gain(z, f)
     if gain is not None:
         stats["port_gain"] = np.array([gain])
+        k = _spring_constant(z, f, data.q0, data.edges, free, gain)
+        if k is not None:
+            stats["spring_k"] = np.array([k])
     return {k: np.asarray(v, np.float32) for k, v in stats.items()}
 
 
@@ -226,6 +231,28 @@ def _rest_start_gain(z, f) -> float | None:
     dv, f0 = z[at_rest, 1, :, 3:6] - z[at_rest, 0, :, 3:6], f[at_rest, 0]
     ratio = float(np.sum(dv * f0) / np.sum(f0 * f0))
     return ratio if np.isfinite(ratio) and ratio > 0 else None
+
+
+def _spring_constant(z, f, q0, edges, free, gain, max_samples: int = 200) -> float | None:
+    """k₀ of ``ModelConfig.elastic_port``: the least-squares spring constant of one stiffness on every mesh edge,
+    Δv / port_gain − f ≈ k₀ Σ_j (ℓ_ij − ℓ⁰_ij)(q_j − q_i)/ℓ_ij at the free nodes, over up to ``max_samples``
+    transitions evenly spread over the cases and frames; None where it is not positive."""
+    s, r = edges
+    cases, frames = np.meshgrid(np.arange(z.shape[0]), np.arange(z.shape[1] - 1), indexing="ij")
+    pick = np.linspace(0, cases.size - 1, min(max_samples, cases.size)).round().astype(int)
+    rest = np.linalg.norm(q0[s] - q0[r], axis=-1)
+    num = den = 0.0
+    for c, k in zip(cases.ravel()[pick], frames.ravel()[pick]):
+        q = z[c, k, :, :3]
+        d = q[s] - q[r]
+        length = np.linalg.norm(d, axis=-1)
+        unit = np.zeros_like(q)
+        np.add.at(unit, r, ((length - rest) / np.maximum(length, 1e-12))[:, None] * d)
+        y = (z[c, k + 1, :, 3:6] - z[c, k, :, 3:6]) / gain - f[c, k]
+        num += float(np.sum(y[free] * unit[free]))
+        den += float(np.sum(unit[free] ** 2))
+    k0 = num / den if den > 0 else float("nan")
+    return k0 if np.isfinite(k0) and k0 > 0 else None
 
 
 def _nonzero_rows(x) -> np.ndarray:

@@ -91,7 +91,17 @@ class ModelConfig(NamedTuple):
     function of the rest position cannot: on the implicit bunny data at density 1e-3 the loaded node moves
     as a damped oscillator Δv = a f + b u + c v (per case R² 0.996), but a, b, c vary 2–4× between
     neighbouring load positions, and one shared fit explains 17 %. A node's vector is trained whenever the
-    node moves in a training case (as a loaded node or as a neighbour of one)."""
+    node moves in a training case (as a loaded node or as a neighbour of one); elastic_port (needs force_port
+    and the statistics' ``spring_k``): the port also carries an internal force of the body's own, a network of
+    springs along the mesh edges, dz/dt = L∇E + M∇S + B (f − ∇_q U) with U = ½ Σ_edges k_e (ℓ_e − ℓ⁰_e)² and
+    the same per-node inverse mass B as the external force. The stiffness k_e = k₀ · softplus(ψ(x⁰_e)) / softplus(0)
+    is a small MLP ψ of the edge's rest geometry (its length and the absolute values of its rest vector over
+    the mean rest edge length: the same for both directions of an edge, so U is one potential), starting at
+    k₀, the data's least-squares spring constant (see `data.normalization`). It is a function of q and the rest
+    mesh only, so −∇_q U is a conservative force, and it enters the velocities at the physical size the port
+    gives a force. Meant for a body whose loaded nodes must recoil: on the bunny the networks got a point
+    load's push right but its recoil 4× short (README, sessions 11 and 13): a restoring force that must scale
+    with the same inverse mass as the push, which L∇E has no reason to learn."""
     hidden: int = 32
     mlp_layers: int = 2
     passes: int = 4
@@ -110,8 +120,10 @@ class ModelConfig(NamedTuple):
     coarse_mixing: bool = False
     rest_equilibrium: bool = False
     node_embedding: int = 0
+    elastic_port: bool = False
 
 
+SPRING_HIDDEN = 16     # width of elastic_port's stiffness MLP ψ
 LOAD_CONTEXT_DIM = 7   # Σf (3), load centre − X (3), its length (1)
 
 
@@ -498,6 +510,8 @@ def _generic(weights, config, norm, z, f, node_type, topo):
     apply_l, apply_m = _appliers(config, norm, g_e, g_s)
     dw = apply_l(l_mat, g_e) + apply_m(m_mat, g_s)
     if config.force_port:
+        if config.elastic_port:
+            f = f + spring_force(weights, norm, z, topo)
         dw = dw + force_term(port, f, norm)
     clamped = (node_type != 0)[:, None] & (jnp.arange(STATE_DIM) < 6)[None, :]
     dw = jnp.where(clamped, 0.0, dw)
@@ -536,6 +550,35 @@ def force_term(port, f, norm):
         return jnp.pad(gain * f, ((0, 0), (3, 6)))
     gain = jax.nn.softplus(port[:, :1])
     return jnp.pad(gain * f / norm["f_std"], ((0, 0), (3, 6)))
+
+
+def spring_stiffness(weights, norm, topo: Topology):
+    """k [R,K]: elastic_port's stiffness of every edge slot, k₀ · softplus(ψ(x⁰)) / softplus(0) (0 in padding).
+    x⁰ = (|X_j − X_i|, |X_j − X_i|ₓ, |·|ᵧ, |·|_z) / mean rest edge length: symmetric in i, j."""
+    if "spring_k" not in norm:
+        raise ValueError("elastic_port needs the statistics' spring_k (data.normalization of data whose cases "
+                         "start at rest under a load)")
+    if topo.dx0 is None:
+        raise ValueError("elastic_port needs the rest edge vectors: build the Topology with q0")
+    w = weights["spring"]
+    rest = _last_norm(topo.dx0)
+    mean_len = jnp.sum(rest[..., 0] * topo.mask) / jnp.sum(topo.mask)
+    x = jnp.concatenate([rest, jnp.abs(topo.dx0)], axis=-1) / mean_len
+    h = jax.nn.silu(x @ w[:4] + w[4])
+    out = h @ w[5:5 + SPRING_HIDDEN, :1] + w[5 + SPRING_HIDDEN, :1]
+    return norm["spring_k"][0] * jax.nn.softplus(out[..., 0]) / np.log(2.0) * topo.mask
+
+
+def spring_force(weights, norm, z, topo: Topology):
+    """−∇_q U [N,3] of elastic_port's spring network at positions z[:, :3]: Σ over a node's edges of
+    k (ℓ − ℓ⁰) (q_j − q_i) / ℓ (a stretched edge pulls its nodes together)."""
+    q = z[:, :3]
+    k = spring_stiffness(weights, norm, topo)
+    d = gather_neighbors(q, topo) - expand_rows(q, topo)[:, None, :]
+    length = _last_norm(d)
+    rest = _last_norm(topo.dx0)
+    per_slot = (k[..., None] * (length - rest) / jnp.maximum(length, 1e-12)) * d * topo.mask[..., None]
+    return reduce_rows(jnp.sum(per_slot, axis=1), topo)
 
 
 def _matrices(heads):
@@ -621,6 +664,12 @@ def load_context(norm, f, topo: Topology):
     loaded = (member.T @ (weight > 0).astype(f.dtype)) > 0                   # [N,1]
     d = jnp.where(loaded, (member.T @ centre - topo.x0) / norm["x0_std"], 0.0)
     return jnp.concatenate([member.T @ total / norm["f_std"], d, _safe_norm(d)], 1)
+
+
+def _last_norm(x):
+    """Norms over the last axis, kept as a size-1 axis, with gradient 0 (not NaN) at a zero vector."""
+    sq = jnp.sum(x * x, axis=-1, keepdims=True)
+    return jnp.where(sq > 0, jnp.sqrt(jnp.where(sq > 0, sq, 1.0)), 0.0)
 
 
 def _safe_norm(x):
@@ -882,6 +931,13 @@ class Network(nn.Module):
             table = self.param("node_embedding", nn.initializers.zeros,
                                (x_node.shape[0] // copies, c.node_embedding), x_node.dtype)
             x_in = jnp.concatenate([jnp.tile(table, (copies, 1)), x_node], axis=1)
+        if c.elastic_port and not c.force_port:
+            raise ValueError("elastic_port=True needs force_port=True (the spring force enters through the port)")
+        if c.elastic_port:   # ψ's weights [W1 (4 rows); b1; W2 (column 0); b2]; read by spring_stiffness
+            def init_spring(key, shape, dtype):
+                w1 = nn.initializers.lecun_normal()(key, (4, SPRING_HIDDEN), dtype)
+                return jnp.concatenate([w1, jnp.zeros((2 + SPRING_HIDDEN, SPRING_HIDDEN), dtype)])   # ψ ≡ 0
+            self.param("spring", init_spring, (6 + SPRING_HIDDEN, SPRING_HIDDEN), x_node.dtype)
         h = MLP(hid, hid, c.mlp_layers, c.activation)(x_in)
         f = x_node[:, -(3 + LOAD_CONTEXT_DIM * c.load_context):]   # the force (and its context) feed every pass
         mask = topo.mask[..., None]

@@ -63,6 +63,7 @@ class TrainConfig(NamedTuple):
     coarse_mixing: bool = False
     rest_equilibrium: bool = False
     node_embedding: int = 0
+    elastic_port: bool = False
     lr: float = 3e-3
     lr_end: float = 2e-5
     weight_decay: float = 1e-6
