@@ -6,6 +6,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
+import fem.meshes
 from tignn_jax import api
 from tignn_jax import data as D
 from tignn_jax import graph as G
@@ -889,3 +890,25 @@ def test_elastic_port_is_a_spring_potential_through_the_port(toy):
         M.init_weights(jax.random.PRNGKey(7), config._replace(force_port=False), norm, z, f, nt, topo)
     with pytest.raises(ValueError, match="spring_k"):
         M.rates(w, config, {key: v for key, v in norm.items() if key != "spring_k"}, z, f, nt, topo)
+
+
+def test_port_hops_spread_a_force_linearly_over_h_edges(toy):
+    # port_hops = H: the port's input map F → F + P₁F + P₂P₁F is the identity at initialisation, linear in F,
+    # and a force on one node reaches exactly the nodes within H edges of it; the model keeps its structure.
+    data, z, f, nt = toy["data"], toy["z"], toy["f"], toy["nt"]
+    topo = M.topology(data.edges[0], data.edges[1], len(data.q0), q0=data.q0)
+    config = CONFIG._replace(force_port=True, port_hops=2)
+    w = M.init_weights(jax.random.PRNGKey(9), config, toy["norm"], z, f, nt, topo)
+    np.testing.assert_array_equal(np.asarray(M.spread_forces(w, f, topo, 2)), np.asarray(f))
+    w = {**w, "port_spread": jax.random.normal(jax.random.PRNGKey(10), w["port_spread"].shape) * 0.5}
+    rng = np.random.default_rng(0)
+    a, b = (jnp.asarray(rng.normal(size=f.shape), jnp.float32) for _ in range(2))
+    spread = lambda x: np.asarray(M.spread_forces(w, x, topo, 2))
+    np.testing.assert_allclose(spread(2.0 * a - b), 2.0 * spread(a) - spread(b), rtol=1e-4, atol=1e-4)
+    hops = fem.meshes.hop_distances(data.edges, len(data.q0))
+    node = int(np.where(np.asarray(data.node_type) == 0)[0][0])
+    reached = np.abs(spread(jnp.zeros_like(f).at[node].set(jnp.asarray([1.0, -2.0, 0.5])))).sum(1) > 0
+    np.testing.assert_array_equal(reached, hops[node] <= 2)
+    _assert_generic_structure((w, config, toy["norm"], z, f, nt, topo), seed=4)
+    with pytest.raises(ValueError, match="port_hops=2 needs force_port=True"):
+        M.init_weights(jax.random.PRNGKey(9), config._replace(force_port=False), toy["norm"], z, f, nt, topo)

@@ -64,6 +64,7 @@ class TrainConfig(NamedTuple):
     rest_equilibrium: bool = False
     node_embedding: int = 0
     elastic_port: bool = False
+    port_hops: int = 0
     lr: float = 3e-3
     lr_end: float = 2e-5
     weight_decay: float = 1e-6
