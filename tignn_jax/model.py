@@ -567,13 +567,15 @@ def force_term(port, f, norm):
     return jnp.pad(gain * f / norm["f_std"], ((0, 0), (3, 6)))
 
 
-def spring_stiffness(weights, norm, topo: Topology):
+def spring_stiffness(weights, norm, topo: Topology, x=None):
     """k [R,K]: elastic_port's stiffness of every edge slot, k₀ · softplus(ψ(x⁰)) / softplus(0) (0 in padding).
-    x⁰ = (|X_j − X_i|, |X_j − X_i|ₓ, |·|ᵧ, |·|_z) / mean rest edge length: symmetric in i, j."""
+    x⁰ = (|X_j − X_i|, |X_j − X_i|ₓ, |·|ᵧ, |·|_z) / mean rest edge length: symmetric in i, j (``x``: x⁰ if the
+    caller has it)."""
     if "spring_k" not in norm:
         raise ValueError("elastic_port needs the statistics' spring_k (data.normalization of data whose cases "
                          "start at rest under a load)")
-    x, _ = _rest_edge_geometry(topo)
+    if x is None:
+        x, _ = _rest_edge_geometry(topo)
     out = _edge_mlp(weights["spring"], x, 1)
     return norm["spring_k"][0] * jax.nn.softplus(out[..., 0]) / np.log(2.0) * topo.mask
 
@@ -613,10 +615,10 @@ def spring_force(weights, norm, z, topo: Topology):
     """−∇_q U [N,3] of elastic_port's spring network at positions z[:, :3]: Σ over a node's edges of
     k (ℓ − ℓ⁰) (q_j − q_i) / ℓ (a stretched edge pulls its nodes together)."""
     q = z[:, :3]
-    k = spring_stiffness(weights, norm, topo)
+    x, rest = _rest_edge_geometry(topo)
+    k = spring_stiffness(weights, norm, topo, x)
     d = gather_neighbors(q, topo) - expand_rows(q, topo)[:, None, :]
     length = _last_norm(d)
-    rest = _last_norm(topo.dx0)
     per_slot = (k[..., None] * (length - rest) / jnp.maximum(length, 1e-12)) * d * topo.mask[..., None]
     return reduce_rows(jnp.sum(per_slot, axis=1), topo)
 
@@ -697,24 +699,19 @@ def load_context(norm, f, topo: Topology):
     if topo.x0 is None:
         raise ValueError("load_context needs the rest positions: build the Topology with q0")
     member = jnp.ones((1, f.shape[0]), f.dtype) if topo.member is None else topo.member.astype(f.dtype)
-    w = _safe_norm(f)                                                        # [N,1] |f_i|
+    w = _last_norm(f)                                                        # [N,1] |f_i|
     total = member @ f                                                       # [G,3]
     weight = member @ w                                                      # [G,1]
     centre = (member @ (w * topo.x0)) / jnp.where(weight > 0, weight, 1.0)   # [G,3]
     loaded = (member.T @ (weight > 0).astype(f.dtype)) > 0                   # [N,1]
     d = jnp.where(loaded, (member.T @ centre - topo.x0) / norm["x0_std"], 0.0)
-    return jnp.concatenate([member.T @ total / norm["f_std"], d, _safe_norm(d)], 1)
+    return jnp.concatenate([member.T @ total / norm["f_std"], d, _last_norm(d)], 1)
 
 
 def _last_norm(x):
-    """Norms over the last axis, kept as a size-1 axis, with gradient 0 (not NaN) at a zero vector."""
+    """Norms over the last axis, kept as a size-1 axis ([N,3] → [N,1]), with gradient 0 (not NaN) at a zero
+    vector (an unloaded node, the load centre itself, a padding slot)."""
     sq = jnp.sum(x * x, axis=-1, keepdims=True)
-    return jnp.where(sq > 0, jnp.sqrt(jnp.where(sq > 0, sq, 1.0)), 0.0)
-
-
-def _safe_norm(x):
-    """Row norms [N,1] whose gradient is 0 (not NaN) at a zero row (an unloaded node, the load centre itself)."""
-    sq = jnp.sum(x * x, axis=1, keepdims=True)
     return jnp.where(sq > 0, jnp.sqrt(jnp.where(sq > 0, sq, 1.0)), 0.0)
 
 
