@@ -69,13 +69,6 @@ def adjacency(edges, n):
     return coo_matrix((np.ones(edges.shape[1]), (edges[0], edges[1])), shape=(n, n)).tocsr()
 
 
-def hops_from(edges, n, sources) -> np.ndarray:
-    """Graph distances in edges [len(sources), n] from each source node."""
-    from fem.meshes import hop_distances
-
-    return hop_distances(edges, n, sources)
-
-
 def ring_means(adj):
     """Row-normalised adjacency (one-ring mean) as a scipy sparse matrix."""
     from scipy.sparse import diags
@@ -117,6 +110,8 @@ def local_probe(d, fit_cases, held_cases) -> dict:
 
 
 def measure(d) -> dict:
+    from fem.meshes import hop_distances
+
     z, f = d["z"].astype(np.float64), d["f"].astype(np.float64)
     n = len(d["q0"])
     e = d["edges"]
@@ -126,7 +121,7 @@ def measure(d) -> dict:
     c_s, c_p = np.sqrt(mu / m.density), np.sqrt((bulk + 4.0 * mu / 3.0) / m.density)
     dt = 0.05
     rows = []
-    hops = hops_from(e, n, np.asarray(d["load_nodes"], int))   # one search for all cases
+    hops = hop_distances(e, n, np.asarray(d["load_nodes"], int))   # [cases, n]: one search for all cases
     for c in range(len(z)):
         hop = hops[c]
         u = z[c, :, :, :3] - z[c, :1, :, :3]
