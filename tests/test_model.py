@@ -912,3 +912,26 @@ def test_port_hops_spread_a_force_linearly_over_h_edges(toy):
     _assert_generic_structure((w, config, toy["norm"], z, f, nt, topo), seed=4)
     with pytest.raises(ValueError, match="port_hops=2 needs force_port=True"):
         M.init_weights(jax.random.PRNGKey(9), config._replace(force_port=False), toy["norm"], z, f, nt, topo)
+
+
+def test_with_rest_caches_the_rest_mesh_constants_without_changing_the_step(toy):
+    # with_rest adds the weight-and-rest-mesh constants (rest gradients, elastic_port's edge stiffnesses,
+    # port_hops' edge coefficients) to the statistics once; a step with them equals a step that recomputes them.
+    data, z, f, nt = toy["data"], toy["z"], toy["f"], toy["nt"]
+    topo = M.topology(data.edges[0], data.edges[1], len(data.q0), q0=data.q0)
+    norm = {**toy["norm"], "port_gain": jnp.asarray([0.3]), "spring_k": jnp.asarray([1e6])}
+    config = CONFIG._replace(force_port=True, elastic_port=True, port_hops=2, rest_equilibrium=True)
+    w = M.init_weights(jax.random.PRNGKey(11), config, norm, z, f, nt, topo)
+    keys = jax.random.split(jax.random.PRNGKey(12), 2)
+    w = {**w, "spring": jax.random.normal(keys[0], w["spring"].shape) * 0.5,
+         "port_spread": jax.random.normal(keys[1], w["port_spread"].shape) * 0.5}
+    cached = M.with_rest(w, config, norm, nt, topo)
+    assert {"rest_grads", "spring_edges", "spread_edges"} <= set(cached)
+    assert cached["spread_edges"].shape[:1] == (2,)
+    step = jax.jit(M.step_state, static_argnames="config")
+    fresh, fast = (np.asarray(step(w, config, n, z, f, nt, topo)) for n in (norm, cached))
+    assert np.abs(fresh - np.asarray(z)).max() > 0
+    np.testing.assert_allclose(fast, fresh, rtol=1e-6, atol=1e-6 * np.abs(fresh).max())
+    plain = CONFIG
+    assert M.with_rest(M.init_weights(jax.random.PRNGKey(1), plain, norm, z, f, nt, topo), plain, norm, nt,
+                       topo) is norm

@@ -207,11 +207,18 @@ def rest_gradients(weights, config: ModelConfig, norm: dict, node_type, topo):
 
 
 def with_rest(weights, config: ModelConfig, norm: dict, node_type, topo) -> dict:
-    """``norm`` with the rest gradients of a ``rest_equilibrium`` model added (key "rest_grads"), so that steps
-    on this topology do not recompute them; ``norm`` unchanged for other models."""
-    if not config.rest_equilibrium:
-        return norm
-    return {**norm, "rest_grads": rest_gradients(weights, config, norm, node_type, topo)}
+    """``norm`` with the model's constants of the rest mesh added, so that steps on this topology do not
+    recompute them: the rest gradients of a ``rest_equilibrium`` model ("rest_grads"), ``elastic_port``'s edge
+    stiffnesses ("spring_edges" [R,K]) and ``port_hops``' edge coefficients ("spread_edges" [H,R,K,2]). They
+    depend on the weights and the rest mesh only; ``norm`` is unchanged for models without these options."""
+    extra = {}
+    if config.rest_equilibrium:
+        extra["rest_grads"] = rest_gradients(weights, config, norm, node_type, topo)
+    if config.force_port and config.elastic_port:
+        extra["spring_edges"] = spring_stiffness(weights, norm, topo)
+    if config.force_port and config.port_hops:
+        extra["spread_edges"] = _spread_coefficients(weights, topo, config.port_hops)
+    return {**norm, **extra} if extra else norm
 
 
 def _rest(weights, config, norm, node_type, topo):
@@ -526,7 +533,7 @@ def _generic(weights, config, norm, z, f, node_type, topo):
         if config.elastic_port:
             f = f + spring_force(weights, norm, z, topo)
         if config.port_hops:
-            f = spread_forces(weights, f, topo, config.port_hops)
+            f = spread_forces(weights, f, topo, config.port_hops, norm.get("spread_edges"))
         dw = dw + force_term(port, f, norm)
     clamped = (node_type != 0)[:, None] & (jnp.arange(STATE_DIM) < 6)[None, :]
     dw = jnp.where(clamped, 0.0, dw)
@@ -596,14 +603,23 @@ def _rest_edge_geometry(topo: Topology):
     return jnp.concatenate([rest, jnp.abs(topo.dx0)], axis=-1) / mean_len, rest
 
 
-def spread_forces(weights, f, topo: Topology, hops: int):
-    """port_hops' input map without the per-node gain: F + P₁F + P₂P₁F + … [N,3] (see ModelConfig)."""
-    x, rest = _rest_edge_geometry(topo)
+def _spread_coefficients(weights, topo: Topology, hops: int):
+    """[H,R,K,2]: port_hops' edge coefficients (a, b) of every slot, from the rest edge geometry."""
+    x, _ = _rest_edge_geometry(topo)
+    return jnp.stack([_edge_mlp(weights["port_spread"][h], x, 2) for h in range(hops)])
+
+
+def spread_forces(weights, f, topo: Topology, hops: int, coeffs=None):
+    """port_hops' input map without the per-node gain: F + P₁F + P₂P₁F + … [N,3] (see ModelConfig).
+    ``coeffs``: the edge coefficients from ``_spread_coefficients`` where the caller has cached them."""
+    _, rest = _rest_edge_geometry(topo)
     unit = topo.dx0 / jnp.maximum(rest, 1e-12)
     mask = topo.mask[..., None]
+    if coeffs is None:
+        coeffs = _spread_coefficients(weights, topo, hops)
     out, y = f, f
     for h in range(hops):
-        c = _edge_mlp(weights["port_spread"][h], x, 2)
+        c = coeffs[h]
         yj = gather_neighbors(y, topo)
         along = jnp.sum(unit * yj, axis=-1, keepdims=True) * unit
         y = reduce_rows(jnp.sum((c[..., :1] * yj + c[..., 1:] * along) * mask, axis=1), topo)
@@ -616,7 +632,7 @@ def spring_force(weights, norm, z, topo: Topology):
     k (ℓ − ℓ⁰) (q_j − q_i) / ℓ (a stretched edge pulls its nodes together)."""
     q = z[:, :3]
     x, rest = _rest_edge_geometry(topo)
-    k = spring_stiffness(weights, norm, topo, x)
+    k = norm["spring_edges"] if "spring_edges" in norm else spring_stiffness(weights, norm, topo, x)
     d = gather_neighbors(q, topo) - expand_rows(q, topo)[:, None, :]
     length = _last_norm(d)
     per_slot = (k[..., None] * (length - rest) / jnp.maximum(length, 1e-12)) * d * topo.mask[..., None]
