@@ -316,3 +316,22 @@ def test_evaluation_reuses_the_models_topology_on_its_own_mesh_only(toy):
     rebuilt = EV._rollout_many(weights, config, params["norm"], jnp.asarray(toy.z[rows, 0]), jnp.asarray(toy.f[rows]),
                                nt, topo)
     np.testing.assert_allclose(EV.rollout_cases(params, toy, rows), np.asarray(rebuilt), rtol=1e-6, atol=1e-6)
+
+
+def test_relative_errors_per_snapshot_and_per_case_peak():
+    # Known answers: one node, three snapshots whose true velocity is 2, 0 and 1 in x, predicted with an error of
+    # 0.5 in each. Per snapshot: 0.25, NaN (zero true norm), 0.5; relative to the case's peak (2): 0.25 each.
+    from tignn_jax import evaluate as EV
+
+    q0 = np.zeros((1, 3))
+    true = np.zeros((3, 1, 12))
+    true[:, 0, 3] = [2.0, 0.0, 1.0]
+    pred = true.copy()
+    pred[:, 0, 3] += 0.5
+    v = EV.VARIABLES.index("v")
+    snap = EV.relative_errors(pred, true, q0)[:, v]
+    np.testing.assert_allclose(snap[[0, 2]], [0.25, 0.5])
+    assert np.isnan(snap[1])
+    np.testing.assert_allclose(EV.relative_errors(pred, true, q0, reference="peak")[:, v], [0.25, 0.25, 0.25])
+    with pytest.raises(ValueError, match="reference"):
+        EV.relative_errors(pred, true, q0, reference="max")
