@@ -20,7 +20,9 @@ component and node that deviate most at the flagged step, with that node's graph
 the nearest loaded node.
 FEM: the beam at 0.9 (default), 1.0 and 1.5 × its stable sub-step (fewer sub-steps than stable): the run
 must either stay bounded or report the inversion (element and time), never return silent NaN.
-Initial state: the rest positions with zero stress; the velocity follows the convention of the model's
+The FEM reference uses the integrator of the model's training data (``info["fem_integrator"]``: "implicit"
+for backward Euler with the frame step, ``fem.implicit``; else the explicit solver) and its damping
+(``info["fem_damping"]``). Initial state: the rest positions with zero stress; the velocity follows the convention of the model's
 training data (``info["velocity"]``): "gradient" (the reference data: v(0) is the one-sided second-order
 difference of the trajectory, so it is taken from the FEM run) or "solver" (v(0) = 0).
 Writes benchmarks/results/stability.{json,md} and stability.png.
@@ -97,7 +99,11 @@ def model_runs(name: str, model: str, steps: int, fem_steps: int) -> dict:
     problem = scenes.setup_scene(scene._replace(n_frames=fem_steps))
     batch = fem.Loads(nodal=jnp.asarray(np.stack([loads[s][:fem_steps] for s in fem_names])))
     t0 = time.perf_counter()
-    res = fem.simulate_batch(problem, scene.material, batch)
+    if params.get("info", {}).get("fem_integrator") == "implicit":   # trained on backward-Euler frames
+        from fem import implicit
+        res, _ = implicit.simulate_implicit_batch(problem, scene.material, batch)
+    else:
+        res = fem.simulate_batch(problem, scene.material, batch)
     fem_q = np.asarray(res.q)                      # [S, fem_steps+1, N, 3]
     fem_s = time.perf_counter() - t0
     fem_v = np.asarray(res.v)
@@ -175,15 +181,25 @@ def model_runs(name: str, model: str, steps: int, fem_steps: int) -> dict:
 
 
 def _how_it_leaves(params, z, past_forces, hops) -> dict:
-    """The state component and node farthest outside the training envelope in ``z`` (in training standard
-    deviations of v and σ, as ``api.state_check`` measures it) and that node's distance in edges from the
-    nearest node loaded at any earlier step (None if nothing was loaded)."""
+    """The state component and node farthest outside the training envelope in ``z`` (as ``api.state_check``
+    measures it: v and σ deviations over the largest deviation seen in training, |u| over the largest training
+    displacement; in training standard deviations for models saved without the envelope) and that node's
+    distance in edges from the nearest node loaded at any earlier step (None if nothing was loaded)."""
+    from tignn_jax import api
+
+    z = np.asarray(z, np.float64)
     mean, std = (np.asarray(params["norm"][k], np.float64) for k in ("z_mean", "z_std"))
-    dev = np.abs((np.asarray(z, np.float64)[:, 3:] - mean[3:]) / std[3:])
-    dev = np.where(np.isfinite(dev), dev, np.inf)
-    node, col = np.unravel_index(int(np.argmax(dev)), dev.shape)
+    dev = np.abs((z[:, 3:] - mean[3:]) / std[3:])
+    if "z_dev_max" in params["norm"]:
+        score = np.asarray(api._envelope_ratios(params, z, np), np.float64)
+    else:
+        score = dev
+    score = np.where(np.isfinite(score), score, np.inf)
+    node, col = np.unravel_index(int(np.argmax(score)), score.shape)
     loaded = np.where(np.abs(np.asarray(past_forces)).sum(axis=(0, 2)) > 0)[0] if len(past_forces) else []
-    return {"component": COLUMNS[3 + col], "node": int(node), "deviation": float(dev[node, col]),
+    return {"component": (COLUMNS[3:] + ("|u|",))[col], "node": int(node),
+            "deviation": float(dev[node, col]) if col < dev.shape[1] else None,
+            "envelope_ratio": float(score[node, col]) if "z_dev_max" in params["norm"] else None,
             "hops_from_load": int(hops[node, loaded].min()) if len(loaded) else None}
 
 
@@ -213,7 +229,9 @@ def _leaves_text(run) -> str:
     how = run.get("leaves_envelope_by")
     if not how:
         return "—"
-    return f"{how['component']} at node {how['node']}, {how['deviation']:.3g} std ({how['hops_from_load']})"
+    size = (f"{how['envelope_ratio']:.3g}× the training envelope" if how.get("envelope_ratio") is not None
+            else f"{how['deviation']:.3g} std")
+    return f"{how['component']} at node {how['node']}, {size} ({how['hops_from_load']})"
 
 
 def plot(result: dict, path: Path) -> None:

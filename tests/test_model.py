@@ -935,3 +935,36 @@ def test_with_rest_caches_the_rest_mesh_constants_without_changing_the_step(toy)
     plain = CONFIG
     assert M.with_rest(M.init_weights(jax.random.PRNGKey(1), plain, norm, z, f, nt, topo), plain, norm, nt,
                        topo) is norm
+
+
+def test_state_check_measures_against_the_training_envelope(toy):
+    # With the envelope in the statistics (data.envelope: the largest deviation of each feature in training, the
+    # largest displacement) no training state is flagged, whatever its size in standard deviations; a state
+    # 2x beyond the envelope in one stress component, or with 2x the largest training displacement, is; a model
+    # without the envelope falls back to the fixed bound in standard deviations.
+    params, data = toy["params"], toy["data"]
+    norm = params["norm"]
+    assert {"z_dev_max", "u_max"} <= set(norm)
+    guard = jax.jit(api.state_guard(params))
+    for z in data.z.reshape(-1, *data.z.shape[-2:]):
+        check = api.state_check(params, z)
+        assert not check["out_of_distribution"] and check["envelope_ratio"] <= 1.0 + 1e-5
+        assert not bool(guard(jnp.asarray(z)))
+    wild = np.array(data.z[0, 2], np.float64)
+    k = 3 + int(np.argmax(np.asarray(norm["z_dev_max"])[3:]))   # the heaviest-tailed v/σ feature
+    wild[1, k] = float(norm["z_mean"][k] + 2.0 * norm["z_dev_max"][k] * norm["z_std"][k])
+    check = api.state_check(params, wild)
+    assert check["out_of_distribution"] and check["envelope_ratio"] == pytest.approx(2.0, rel=1e-3)
+    assert bool(guard(jnp.asarray(wild, jnp.float32)))
+    far = np.array(data.z[0, 2], np.float64)
+    far[2, :3] = data.q0[2] + np.array([2.0 * float(norm["u_max"][0]), 0.0, 0.0])
+    assert api.state_check(params, far)["out_of_distribution"]
+    assert api.state_check(params, far, tolerance=2.5)["envelope_ratio"] == pytest.approx(2.0, rel=1e-3)
+    two = np.concatenate([data.z[0, 2], wild])   # two stacked copies of the mesh
+    assert api.state_check(params, two)["out_of_distribution"] and bool(guard(jnp.asarray(two, jnp.float32)))
+    old = {**params, "norm": {k_: v for k_, v in norm.items() if k_ not in ("z_dev_max", "u_max")}}
+    fallback = api.state_check(old, wild)
+    assert fallback["envelope_ratio"] is None
+    assert fallback["out_of_distribution"] == (fallback["max_deviation"] > 8.0)
+    with pytest.raises(ValueError, match="tolerance"):
+        api.state_check(params, wild, tolerance=0.0)

@@ -87,34 +87,67 @@ def force_check(params: dict, forces, tolerance: float = 1.0) -> dict:
     return {"out_of_distribution": bool(ratio > tolerance), "max_force_ratio": ratio, "bound": bound}
 
 
-def state_check(params: dict, z, bound: float = 8.0) -> dict:
-    """Flag a state the model has left its training envelope with: the largest deviation of the nodes'
-    velocity and stress from the training mean, in training standard deviations (``norm``: z_mean, z_std),
-    and non-finite values. Returns {"finite": bool, "max_deviation": float, "out_of_distribution": bool}
-    (out of distribution when not finite or the deviation exceeds ``bound``). Cheap enough to call every
-    frame; a rollout drifting towards divergence crosses the bound before it produces NaN (measured in
-    benchmarks/results/stability.md)."""
+def state_check(params: dict, z, bound: float = 8.0, tolerance: float = 1.5) -> dict:
+    """Flag a state the model has left its training envelope with, and non-finite values; z [..., nodes, 12]
+    of any number of stacked copies of the model's mesh.
+
+    With the envelope in the statistics (``norm``: z_dev_max, u_max; see ``data.envelope``) a state is out of
+    distribution when some node's velocity or stress component deviates from the training mean by more than
+    ``tolerance`` × the largest deviation of that component in training, or its displacement exceeds
+    ``tolerance`` × the largest training displacement. Models saved without the envelope fall back to a fixed
+    ``bound`` in training standard deviations (which flags states inside the training data where stresses are
+    heavy-tailed). Returns {"finite", "max_deviation" (in standard deviations), "envelope_ratio" (the largest
+    ratio to the envelope; None without it), "out_of_distribution"}. Cheap enough to call every frame."""
     z = np.asarray(z, np.float64)
     if z.ndim < 2 or z.shape[-1] != M.STATE_DIM:
         raise ValueError(f"z has shape {z.shape}, expected [..., nodes, {M.STATE_DIM}]")
-    mean, std = (np.asarray(params["norm"][k], np.float64) for k in ("z_mean", "z_std"))
+    if not tolerance > 0:
+        raise ValueError(f"tolerance must be positive, got {tolerance!r}")
+    norm = params["norm"]
+    mean, std = (np.asarray(norm[k], np.float64) for k in ("z_mean", "z_std"))
     finite = bool(np.all(np.isfinite(z)))
     dev = np.abs((z[..., 3:] - mean[3:]) / std[3:])
     max_dev = float(np.nanmax(dev)) if finite else float("inf")
-    return {"finite": finite, "max_deviation": max_dev, "out_of_distribution": (not finite) or max_dev > bound}
+    ratio = None
+    if "z_dev_max" in norm:
+        ratio = float(np.max(_envelope_ratios(params, z, np))) if finite else float("inf")
+        out = (not finite) or ratio > tolerance
+    else:
+        out = (not finite) or max_dev > bound
+    return {"finite": finite, "max_deviation": max_dev, "envelope_ratio": ratio, "out_of_distribution": out}
 
 
-def state_guard(params: dict, bound: float = 8.0):
+def state_guard(params: dict, bound: float = 8.0, tolerance: float = 1.5):
     """The jit-able form of ``state_check`` for loops: ``fn(z) -> bool`` (True = out of distribution), z
     [..., nodes, 12] of any number of stacked copies of the model's mesh."""
     mean = jnp.asarray(params["norm"]["z_mean"], jnp.float32)[3:]
     std = jnp.asarray(params["norm"]["z_std"], jnp.float32)[3:]
+    envelope = "z_dev_max" in params["norm"]
 
     def fn(z):
-        dev = jnp.abs((z[..., 3:] - mean) / std)
-        return ~jnp.all(jnp.isfinite(z)) | (jnp.max(jnp.where(jnp.isfinite(dev), dev, jnp.inf)) > bound)
+        if envelope:
+            r = _envelope_ratios(params, z, jnp)
+            over = jnp.max(jnp.where(jnp.isfinite(r), r, jnp.inf)) > tolerance
+        else:
+            dev = jnp.abs((z[..., 3:] - mean) / std)
+            over = jnp.max(jnp.where(jnp.isfinite(dev), dev, jnp.inf)) > bound
+        return ~jnp.all(jnp.isfinite(z)) | over
 
     return fn
+
+
+def _envelope_ratios(params, z, xp):
+    """[..., nodes, 10]: each node's v and σ deviations over the training envelope's, and its displacement over
+    the largest training displacement (numpy or jax.numpy as ``xp``)."""
+    norm, n = params["norm"], len(params["mesh"]["q0"])
+    mean, std, dmax = (xp.asarray(np.asarray(norm[k], np.float32)) for k in ("z_mean", "z_std", "z_dev_max"))
+    u_max = float(np.asarray(norm["u_max"]).reshape(-1)[0])
+    if z.shape[-2] % n:
+        raise ValueError(f"z has {z.shape[-2]} nodes, not a multiple of the model's {n}")
+    q0 = xp.asarray(np.tile(np.asarray(params["mesh"]["q0"], np.float32), (z.shape[-2] // n, 1)))
+    dev = xp.abs((z[..., 3:] - mean[3:]) / std[3:]) / xp.maximum(dmax[3:], 1e-6)
+    u = xp.sqrt(xp.sum((z[..., :3] - q0) ** 2, axis=-1, keepdims=True)) / max(u_max, 1e-12)
+    return xp.concatenate([dev, u], axis=-1)
 
 
 def load_pretrained(name: str = "beam-abaqus"):

@@ -179,7 +179,8 @@ def normalization(data: Dataset, rows: np.ndarray) -> dict:
     at rest under a load): the velocity a unit force adds in the first frame at the loaded nodes, the
     least-squares ratio Σ Δv·f / Σ f·f (≈ Δt / nodal mass; the scale of ``ModelConfig.force_port``);
     spring_k [1] (with port_gain, where positive): the least-squares stiffness of one spring on every mesh edge
-    that explains Δv / port_gain − f (the scale of ``ModelConfig.elastic_port``).
+    that explains Δv / port_gain − f (the scale of ``ModelConfig.elastic_port``); z_dev_max [12] and u_max [1]:
+    the training envelope (see ``envelope``).
     Vectors (q, v, their increments, f, dq) get one isotropic scale (RMS over components), so a direction
     unseen in training is not blown up; stress components get their own std, floored at 1e-2 of the largest;
     every scale is positive.
@@ -213,6 +214,7 @@ def normalization(data: Dataset, rows: np.ndarray) -> dict:
         dqn_std=np.array([max(dqn.std(), 1e-3 * dqn_mean, 1e-12)]),
         dt=np.array([data.dt]),
     )
+    stats.update(envelope(z, data.q0, stats["z_mean"], stats["z_std"]))
     gain = _rest_start_gain(z, f)
     if gain is not None:
         stats["port_gain"] = np.array([gain])
@@ -220,6 +222,18 @@ def normalization(data: Dataset, rows: np.ndarray) -> dict:
         if k is not None:
             stats["spring_k"] = np.array([k])
     return {k: np.asarray(v, np.float32) for k, v in stats.items()}
+
+
+def envelope(z, q0, z_mean, z_std) -> dict:
+    """The training envelope of states z [..., N, 12] (what ``api.state_check`` compares a state against):
+    z_dev_max [12], the largest |z − z_mean| / z_std of each feature, and u_max [1], the largest nodal
+    displacement |q − q0|. Stress and velocity are heavy-tailed where loads concentrate (on the bunny's patch
+    loads σ reaches 100–500 standard deviations, on the beam σ23 41), so a fixed bound in standard deviations
+    flags states the model was trained on."""
+    z = np.asarray(z, np.float64)
+    dev = np.abs((z - np.asarray(z_mean, np.float64)) / np.asarray(z_std, np.float64)).reshape(-1, STATE_DIM)
+    u = np.linalg.norm(z[..., :3] - np.asarray(q0, np.float64), axis=-1)
+    return {"z_dev_max": dev.max(0), "u_max": np.array([u.max()])}
 
 
 def _rest_start_gain(z, f) -> float | None:
