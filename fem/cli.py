@@ -47,6 +47,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     g.add_argument("--integrator", choices=("explicit", "implicit"), default="explicit",
                    help="explicit central differences (default) or implicit backward Euler with the frame step "
                         "(fem.implicit: damps what a frame cannot resolve; elastic scenes without contact)")
+    g.add_argument("--newton-iterations", type=int, default=12, metavar="K",
+                   help="--integrator implicit: at most K Newton iterations per frame (default: %(default)s); "
+                        "frames that stop above the tolerance keep their residual in the data (newton_residual)")
     g.add_argument("--density", type=float, default=None, metavar="RHO",
                    help="mass density instead of the scene's (beam: 7.135e-3, identified; bunny: 1e-5, chosen so "
                         "the first mode shows within the run; a much lighter bunny, e.g. 1e-7 with --integrator "
@@ -72,6 +75,10 @@ def run_generate(args) -> int:
         raise SystemExit(f"--cases must be positive, got {args.cases}")
     if args.batch < 1:
         raise SystemExit(f"--batch must be positive, got {args.batch}")
+    if args.newton_iterations < 1:
+        raise SystemExit(f"--newton-iterations must be positive, got {args.newton_iterations}")
+    if args.newton_iterations != 12 and args.integrator != "implicit":
+        raise SystemExit("--newton-iterations applies only with --integrator implicit")
     try:
         worker = tuple(int(t) for t in args.worker.split("/"))
         if len(worker) != 2 or not 0 <= worker[0] < worker[1]:
@@ -170,7 +177,7 @@ def run_generate(args) -> int:
     out = run_cases(scene, problem, forces, args.out, batch_size=args.batch, progress=not args.no_progress,
                     xdmf=args.xdmf, metadata=meta, sim_ids=sim_ids,
                     velocity=args.velocity or ("gradient" if args.scene == "beam-reference" else "solver"),
-                    worker=worker, integrator=args.integrator)
+                    worker=worker, integrator=args.integrator, newton_iterations=args.newton_iterations)
     print(f"wrote {out}" if out is not None else f"worker {args.worker} done; the last worker writes {args.out}")
     return 0
 

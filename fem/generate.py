@@ -30,13 +30,15 @@ from .solver import Loads, check, simulate_batch
 
 def run_cases(scene, problem, forces, out, *, batch_size: int = 8, progress: bool = True, xdmf: bool = False,
               metadata: dict | None = None, sim_ids=None, velocity: str = "gradient",
-              worker: tuple[int, int] = (0, 1), integrator: str = "explicit") -> Path | None:
+              worker: tuple[int, int] = (0, 1), integrator: str = "explicit",
+              newton_iterations: int = 12) -> Path | None:
     """Simulate every case of ``forces`` [C, T, N, 3] and write the data set to ``out`` (.npz).
 
     Cases are run in batches of ``batch_size`` (vmapped; the last batch is padded, so one compilation serves
     all); finished cases are kept in ``<out>.parts/`` and skipped on a rerun. ``integrator='implicit'`` runs
     `fem.implicit` (backward Euler with the frame step; its preconditioner is computed once and kept in the parts
-    folder) and keeps each case's Newton residuals. ``worker = (k, n)`` runs only
+    folder, at most ``newton_iterations`` Newton iterations per frame) and keeps each case's Newton residuals
+    and iteration counts. ``worker = (k, n)`` runs only
     the cases c with c mod n = k, so n processes can share the work (one core each); the worker that finds
     every part present at its end writes ``out`` and returns its path, the others return None.
     """
@@ -49,6 +51,8 @@ def run_cases(scene, problem, forces, out, *, batch_size: int = 8, progress: boo
         raise ValueError(f"velocity must be 'gradient' or 'solver', got {velocity!r}")
     if integrator not in ("explicit", "implicit"):
         raise ValueError(f"integrator must be 'explicit' or 'implicit', got {integrator!r}")
+    if not (isinstance(newton_iterations, (int, np.integer)) and newton_iterations >= 1):
+        raise ValueError(f"newton_iterations must be a positive integer, got {newton_iterations!r}")
     k, n_workers = worker
     if not (n_workers >= 1 and 0 <= k < n_workers):
         raise ValueError(f"worker must be (k, n) with 0 <= k < n, got {worker}")
@@ -60,7 +64,7 @@ def run_cases(scene, problem, forces, out, *, batch_size: int = 8, progress: boo
     todo = [c for c in range(k, n_cases, n_workers) if not _part(parts, c).exists()]
     bar = _progress(total=n_cases, initial=n_cases - len(todo), enabled=progress, desc=f"{scene.name} cases")
     t_start = time.perf_counter()
-    run = _implicit_runner(scene, problem, parts) if (integrator == "implicit" and todo) else None
+    run = _implicit_runner(scene, problem, parts, newton_iterations) if (integrator == "implicit" and todo) else None
     for start in range(0, len(todo), batch_size):
         idx = todo[start:start + batch_size]
         padded = idx + [idx[-1]] * (batch_size - len(idx))
@@ -94,7 +98,7 @@ def run_cases(scene, problem, forces, out, *, batch_size: int = 8, progress: boo
     return assemble(scene, problem, forces, parts, out, metadata=meta, sim_ids=sim_ids, velocity=velocity)
 
 
-def _implicit_runner(scene, problem, parts: Path):
+def _implicit_runner(scene, problem, parts: Path, newton_iterations: int = 12):
     """``loads -> (Result, Diagnostics)`` of `fem.implicit` for the batch; the preconditioner is cached in the
     parts folder (it takes minutes to compute on the bunny and depends only on the problem)."""
     from . import implicit
@@ -108,7 +112,8 @@ def _implicit_runner(scene, problem, parts: Path):
         tmp = parts / f"implicit_preconditioner.{os.getpid()}.tmp.npy"
         np.save(tmp, np.asarray(pinv))
         os.replace(tmp, cache)
-    return lambda loads: implicit.simulate_implicit_batch(problem, scene.material, loads, pinv)
+    return lambda loads: implicit.simulate_implicit_batch(problem, scene.material, loads, pinv,
+                                                          max_newton=int(newton_iterations))
 
 
 def _part(parts: Path, c: int) -> Path:

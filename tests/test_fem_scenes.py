@@ -302,7 +302,10 @@ def test_generate_rejects_bunny_flags_that_would_be_ignored(tmp_path):
            (["bunny", "--load-nodes", "3,4", "--loads-per-case", "2"], "--load-nodes cannot be combined"),
            (["bunny", "--load-radius", "5", "--loads-per-case", "2"], "--load-radius applies only to single-load"),
            (["beam-reference", "--load-radius", "5"], "--load-radius applies only to the bunny scene"),
-           (["two-beams", "--loads-per-case", "3"], "--loads-per-case applies only to the bunny scene")]
+           (["two-beams", "--loads-per-case", "3"], "--loads-per-case applies only to the bunny scene"),
+           (["beam-reference", "--newton-iterations", "0", "--integrator", "implicit"],
+            "--newton-iterations must be positive, got 0"),
+           (["beam-reference", "--newton-iterations", "30"], "--newton-iterations applies only with --integrator")]
     for argv, message in bad:
         with pytest.raises(SystemExit, match=message):
             cli.main(["generate", *argv, "--out", out])
