@@ -122,6 +122,14 @@ SESSION10_BUNNY = dict(edge_traction=True, force_port=True, load_context=True, c
                        coarse_mixing=True, rest_equilibrium=True)
 
 
+def unit_statistics(*extra: str) -> dict:
+    """Normalisation statistics of an untrained model for timing (every scale 1): the keys a model needs, plus
+    ``extra`` one-element keys (e.g. "port_gain", "spring_k" for the port options)."""
+    sizes = (("z_mean", 12), ("z_std", 12), ("dz_std", 12), ("f_std", 3), ("dq_std", 3), ("dv_std", 3),
+             ("du_std", 3), ("u_std", 3), ("x0_mean", 3), ("x0_std", 3), ("dqn_mean", 1), ("dqn_std", 1))
+    return {k: jnp.ones(d, jnp.float32) for k, d in sizes + tuple((k, 1) for k in extra)}
+
+
 def untrained_step(name: str, repeats: int, sizes=((16, 3), (24, 3))) -> dict:
     """Step time of untrained models of the given sizes on a scene's mesh, for scenes without a shipped model
     (the cost a trained model of that size would have; its weights do not change the time), with the features
@@ -139,10 +147,7 @@ def untrained_step(name: str, repeats: int, sizes=((16, 3), (24, 3))) -> dict:
     rng = np.random.default_rng(0)
     z = jnp.asarray(np.concatenate([q0, 0.01 * rng.normal(size=(n, 9))], 1), jnp.float32)
     f = jnp.zeros((n, 3), jnp.float32)
-    norm = {k: jnp.ones(d, jnp.float32) for k, d in (("z_mean", 12), ("z_std", 12), ("dz_std", 12), ("f_std", 3),
-                                                        ("dq_std", 3), ("dv_std", 3), ("du_std", 3), ("u_std", 3),
-                                                        ("x0_mean", 3), ("x0_std", 3),
-                                                        ("dqn_mean", 1), ("dqn_std", 1))}
+    norm = unit_statistics()
     nt = jnp.asarray(scene.node_type, jnp.int32)
     topo = M.topology(s, r, n, q0)
     base = T.CONFIGS.get(name, T.CONFIGS["beam"]).model._replace(edge_strain=True)

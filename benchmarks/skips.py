@@ -161,8 +161,9 @@ def rest_constants_skip(repeats: int) -> dict:
     only: ``model.with_rest`` computes them once for inference instead of in every step. Timed on the bunny
     mesh with the session-13 bunny architecture (32×3, force_port, elastic_port, port_hops=2, edge strain, load
     context), untrained, its port weights drawn at random so the spread is not the identity."""
-    from fem import scenes as fs
+    from realtime import unit_statistics
 
+    from fem import scenes as fs
     from tignn_jax import model as M
     from tignn_jax import train as T
 
@@ -172,10 +173,7 @@ def rest_constants_skip(repeats: int) -> dict:
     rng = np.random.default_rng(0)
     z = jnp.asarray(np.concatenate([q0, 0.01 * rng.normal(size=(n, 9))], 1), jnp.float32)
     f = jnp.asarray(np.where(np.arange(n)[:, None] == 100, 1.0, 0.0) * np.array([0.0, 0.0, -1.0]), jnp.float32)
-    norm = {k: jnp.ones(d, jnp.float32) for k, d in (("z_mean", 12), ("z_std", 12), ("dz_std", 12), ("f_std", 3),
-                                                        ("dq_std", 3), ("dv_std", 3), ("du_std", 3), ("u_std", 3),
-                                                        ("x0_mean", 3), ("x0_std", 3), ("dqn_mean", 1),
-                                                        ("dqn_std", 1), ("port_gain", 1), ("spring_k", 1))}
+    norm = unit_statistics("port_gain", "spring_k")
     cfg = T.CONFIGS["bunny"].model._replace(hidden=32, passes=3, edge_strain=True, force_port=True,
                                             load_context=True, elastic_port=True, port_hops=2)
     nt = jnp.asarray(scene.node_type, jnp.int32)
