@@ -120,18 +120,16 @@ def state_check(params: dict, z, bound: float = 8.0, tolerance: float = 1.5) -> 
 def state_guard(params: dict, bound: float = 8.0, tolerance: float = 1.5):
     """The jit-able form of ``state_check`` for loops: ``fn(z) -> bool`` (True = out of distribution), z
     [..., nodes, 12] of any number of stacked copies of the model's mesh."""
-    mean = jnp.asarray(params["norm"]["z_mean"], jnp.float32)[3:]
-    std = jnp.asarray(params["norm"]["z_std"], jnp.float32)[3:]
-    envelope = "z_dev_max" in params["norm"]
+    if "z_dev_max" in params["norm"]:
+        score, limit = (lambda z: _envelope_ratios(params, z, jnp)), tolerance
+    else:
+        mean = jnp.asarray(params["norm"]["z_mean"], jnp.float32)[3:]
+        std = jnp.asarray(params["norm"]["z_std"], jnp.float32)[3:]
+        score, limit = (lambda z: jnp.abs((z[..., 3:] - mean) / std)), bound
 
     def fn(z):
-        if envelope:
-            r = _envelope_ratios(params, z, jnp)
-            over = jnp.max(jnp.where(jnp.isfinite(r), r, jnp.inf)) > tolerance
-        else:
-            dev = jnp.abs((z[..., 3:] - mean) / std)
-            over = jnp.max(jnp.where(jnp.isfinite(dev), dev, jnp.inf)) > bound
-        return ~jnp.all(jnp.isfinite(z)) | over
+        s = score(z)
+        return ~jnp.all(jnp.isfinite(z)) | (jnp.max(jnp.where(jnp.isfinite(s), s, jnp.inf)) > limit)
 
     return fn
 

@@ -228,7 +228,7 @@ def envelope(z, q0, z_mean, z_std) -> dict:
     """The training envelope of states z [..., N, 12] (what ``api.state_check`` compares a state against):
     z_dev_max [12], the largest |z − z_mean| / z_std of each feature, and u_max [1], the largest nodal
     displacement |q − q0|. Stress and velocity are heavy-tailed where loads concentrate (on the bunny's patch
-    loads σ reaches 100–500 standard deviations, on the beam σ23 41), so a fixed bound in standard deviations
+    loads σ reaches 100–540 standard deviations, on the beam σ23 41), so a fixed bound in standard deviations
     flags states the model was trained on."""
     z = np.asarray(z, np.float64)
     dev = np.abs((z - np.asarray(z_mean, np.float64)) / np.asarray(z_std, np.float64)).reshape(-1, STATE_DIM)
