@@ -51,6 +51,7 @@ BEAM_SIZE = (40.0, 10.0, 10.0)
 REFINEMENTS = ((20, 5, 5), (28, 7, 7), (40, 10, 10), (56, 14, 14), (80, 20, 20), (92, 23, 23))
 BATCHES = (1, 2, 4, 8, 16, 32)
 FEM_BATCHES = (1, 2, 4, 8, 16)
+GPU_EXTRA_BATCHES = (64, 128)  # an accelerator amortises per-call costs much further than one core
 FIT_FROM_NODES = 4000          # fit exponents over meshes with at least this many nodes
 TIP_FORCE = 3.0e4              # total tip load [force], the size of the reference data's first frame (6 × 5000)
 
@@ -63,15 +64,21 @@ def main(argv=None) -> int:
     parser.add_argument("--seconds", type=float, default=None,
                         help="CPU seconds of timed calls per variant (default 2, quick 0.5)")
     parser.add_argument("--out", default=None, help="output folder (default benchmarks/results; quick: /tmp)")
+    parser.add_argument("--render", default=None, metavar="JSON",
+                        help="only write the table and plot of a result (or a cut-off run's .partial.json) "
+                             "measured elsewhere, e.g. on a GPU machine")
     args = parser.parse_args(argv)
+    if args.render:
+        return render(Path(args.render), Path(args.out) if args.out else RESULTS)
     if args.max_nodes < 756:
         raise SystemExit(f"--max-nodes must be at least 756 (the paper's mesh), got {args.max_nodes}")
     quick = args.quick
     seconds = args.seconds or (0.5 if quick else 2.0)
     refinements = [d for d in (REFINEMENTS[:3] if quick else REFINEMENTS) if nodes_of(d) <= args.max_nodes]
-    batches = BATCHES[:3] if quick else BATCHES
-    fem_batches = FEM_BATCHES[:2] if quick else FEM_BATCHES
+    batches = BATCHES[:3] if quick else BATCHES if on_cpu() else BATCHES + GPU_EXTRA_BATCHES
+    fem_batches = FEM_BATCHES[:2] if quick else FEM_BATCHES if on_cpu() else FEM_BATCHES + GPU_EXTRA_BATCHES
     out = Path(args.out) if args.out else (QUICK_OUT if quick else RESULTS)
+    stem = "scaling" if on_cpu() else f"scaling_{jax.default_backend()}"
 
     machine = describe()
     machine["load_average_1m_at_start"] = machine.pop("load_average_1m")
@@ -87,10 +94,17 @@ def main(argv=None) -> int:
 
     print(f"learned step on {len(refinements)} meshes ...", flush=True)
     learned = learned_mesh_scaling(base, refinements, seconds)
+    out.mkdir(parents=True, exist_ok=True)
+    partial = out / f"{stem}.partial.json"     # what is done so far, should a long run be cut off
+    partial.write_text(json.dumps({"machine": machine, "learned_vs_nodes": learned}, indent=1))
     print(f"learned step, batch {list(batches)} ...", flush=True)
     learned_batch = learned_batch_scaling(base, batches, seconds)
+    partial.write_text(json.dumps({"machine": machine, "learned_vs_nodes": learned,
+                                   "learned_vs_batch": learned_batch}, indent=1))
     print(f"FEM on {len(refinements)} meshes ...", flush=True)
     fem_rows = fem_mesh_scaling(refinements, quick, seconds)
+    partial.write_text(json.dumps({"machine": machine, "learned_vs_nodes": learned,
+                                   "learned_vs_batch": learned_batch, "fem_vs_nodes": fem_rows}, indent=1))
     print(f"FEM batch {list(fem_batches)} ...", flush=True)
     fem_batch = fem_batch_scaling(fem_batches, 50 if quick else 200, seconds)
     machine["load_average_1m_at_end"] = describe()["load_average_1m"]
@@ -103,12 +117,45 @@ def main(argv=None) -> int:
         "fits": fits(learned, fem_rows),
     }
     out.mkdir(parents=True, exist_ok=True)
-    (out / "scaling.json").write_text(json.dumps(result, indent=1))
+    (out / f"{stem}.json").write_text(json.dumps(result, indent=1))
+    partial.unlink(missing_ok=True)
     md = format_md(result)
-    (out / "scaling.md").write_text(md)
-    plot(result, out / "scaling.png")
+    (out / f"{stem}.md").write_text(md)
+    plot(result, out / f"{stem}.png")
     print(md)
-    print(f"wrote {out}/scaling.{{json,md,png}}")
+    print(f"wrote {out}/{stem}.{{json,md,png}}")
+    return 0
+
+
+def render(path: Path, out: Path) -> int:
+    """Tables and plot of a saved result; the stages a cut-off run did not reach are left empty and named."""
+    if not path.exists():
+        raise SystemExit(f"--render: no such file {path}")
+    result = json.loads(path.read_text())
+    missing = [k for k in ("learned_vs_nodes", "learned_vs_batch", "fem_vs_nodes", "fem_vs_batch")
+               if k not in result]
+    for k in missing:
+        result[k] = []
+    result.setdefault("not_measured", missing)
+    result.setdefault("quick", False)
+    if "model_config" not in result:
+        from tignn_jax import api
+        result["model"] = result.get("model", "beam-abaqus")
+        result["model_config"] = api.load_pretrained(result["model"])[0]["config"]
+    m = result["machine"]
+    m.setdefault("load_average_1m_at_end", m.get("load_average_1m_at_start"))
+    result.setdefault("wall_seconds", float("nan"))
+    for row in result["learned_vs_nodes"] + result["learned_vs_batch"]:   # results from before the "ms" key
+        row.setdefault("ms", row["cpu_ms"] if timed_on_cpu(result) else row["wall_ms"])
+    result["fits"] = fits(result["learned_vs_nodes"], result["fem_vs_nodes"])
+    stem = "scaling" if timed_on_cpu(result) else f"scaling_{m['backend']}"
+    out.mkdir(parents=True, exist_ok=True)
+    (out / f"{stem}.json").write_text(json.dumps(result, indent=1))
+    md = format_md(result)
+    (out / f"{stem}.md").write_text(md)
+    plot(result, out / f"{stem}.png")
+    print(md)
+    print(f"wrote {out}/{stem}.{{json,md,png}}")
     return 0
 
 
@@ -155,7 +202,9 @@ def sample_state(params: dict, copies: int = 1, seed: int = 0):
 def time_interleaved(fns: dict, seconds: float, min_repeats: int = 3, max_repeats: int = 50) -> dict:
     """Compile each fn(), then time the calls round-robin until each has its quota (≈ ``seconds`` of CPU
     time, between min and max repeats). Returns {name: {"cpu_ms", "wall_ms", "wall_p90_ms", "repeats",
-    "compile_s"}}: medians of the process's CPU time and of the wall-clock time per call. With single-threaded
+    "compile_s", "ms"}}: medians of the process's CPU time and of the wall-clock time per call; "ms" is the
+    primary clock (CPU time on the CPU backend, wall time on an accelerator, whose work the process's CPU time
+    does not count). With single-threaded
     XLA the CPU time is the cost of the work itself, which other jobs on a shared machine inflate only through
     the caches and memory bandwidth they share; the wall time also counts the time the process waited for
     a core."""
@@ -176,9 +225,29 @@ def time_interleaved(fns: dict, seconds: float, min_repeats: int = 3, max_repeat
                 jax.block_until_ready(fn())
                 cpu[k].append(time.process_time() - c0)
                 wall[k].append(time.perf_counter() - t0)
-    return {k: {"cpu_ms": 1e3 * float(np.median(cpu[k])), "wall_ms": 1e3 * float(np.median(wall[k])),
+    primary = cpu if on_cpu() else wall
+    return {k: {"ms": 1e3 * float(np.median(primary[k])),
+                "cpu_ms": 1e3 * float(np.median(cpu[k])), "wall_ms": 1e3 * float(np.median(wall[k])),
                 "wall_p90_ms": 1e3 * float(np.percentile(wall[k], 90)), "repeats": len(cpu[k]),
                 "compile_s": compile_s[k]} for k in fns}
+
+
+def on_cpu() -> bool:
+    return jax.default_backend() == "cpu"
+
+
+def timed_on_cpu(result: dict) -> bool:
+    """Whether a result was measured on the CPU backend (formatting may run on another machine)."""
+    return result["machine"]["backend"] == "cpu"
+
+
+def clocks(result: dict) -> tuple:
+    """(primary, secondary) clock names for the table headers."""
+    return ("CPU", "wall") if timed_on_cpu(result) else ("wall", "CPU")
+
+
+def second(r: dict, result: dict) -> float:
+    return r["wall_ms"] if timed_on_cpu(result) else r["cpu_ms"]
 
 
 def learned_mesh_scaling(base: dict, refinements, seconds: float) -> list:
@@ -201,8 +270,8 @@ def learned_mesh_scaling(base: dict, refinements, seconds: float) -> list:
     timed = time_interleaved(fns, seconds)
     for row, (name, t) in zip(rows, timed.items()):
         row.update(t)
-        row["us_per_node"] = 1e3 * t["cpu_ms"] / row["nodes"]
-        row["ns_per_edge"] = 1e6 * t["cpu_ms"] / row["edges"]
+        row["us_per_node"] = 1e3 * t["ms"] / row["nodes"]
+        row["ns_per_edge"] = 1e6 * t["ms"] / row["edges"]
     return rows
 
 
@@ -219,7 +288,7 @@ def learned_batch_scaling(base: dict, batches, seconds: float) -> list:
     timed = time_interleaved(fns, seconds)
     rows = []
     for b, t in timed.items():
-        rows.append({"copies": b, "nodes": b * len(points), **t, "ms_per_body_step": t["cpu_ms"] / b,
+        rows.append({"copies": b, "nodes": b * len(points), **t, "ms_per_body_step": t["ms"] / b,
                      "wall_ms_per_body_step": t["wall_ms"] / b})
     for r in rows:
         r["speedup_per_body_vs_1"] = rows[0]["ms_per_body_step"] / r["ms_per_body_step"]
@@ -274,12 +343,12 @@ def fem_substep_fns(points, cells, node_type, k: int, batch: int | None = None) 
 
 
 def substep_slope(timed: dict, k: int) -> dict:
-    """ms per sub-step (slope between k and 2k sub-steps; CPU time, and wall time) and the per-run overhead
-    (intercept: initial force, frame outputs; CPU time)."""
-    per = max(timed[2 * k]["cpu_ms"] - timed[k]["cpu_ms"], 0.0) / k
+    """ms per sub-step (slope between k and 2k sub-steps; the primary clock, and wall time) and the per-run
+    overhead (intercept: initial force, frame outputs; the primary clock)."""
+    per = max(timed[2 * k]["ms"] - timed[k]["ms"], 0.0) / k
     per_wall = max(timed[2 * k]["wall_ms"] - timed[k]["wall_ms"], 0.0) / k
     return {"ms_per_substep": per, "ms_per_substep_wall": per_wall,
-            "overhead_ms": max(timed[k]["cpu_ms"] - k * per, 0.0), "substeps_timed": [k, 2 * k],
+            "overhead_ms": max(timed[k]["ms"] - k * per, 0.0), "substeps_timed": [k, 2 * k],
             "repeats": timed[k]["repeats"], "compile_s": timed[k]["compile_s"] + timed[2 * k]["compile_s"]}
 
 
@@ -308,7 +377,7 @@ def fem_mesh_scaling(refinements, quick: bool, seconds: float) -> list:
             loads = fem.Loads(nodal=jnp.asarray(tip_loads(points, 1)[0]))
             frame = time_interleaved({"frame": fem_runner(problem, scene.material, loads, False)}, 0.0,
                                      min_repeats=3)["frame"]
-            row["ms_per_frame_measured"] = frame["cpu_ms"]
+            row["ms_per_frame_measured"] = frame["ms"]
             row["ms_per_frame_measured_wall"] = frame["wall_ms"]
         rows.append(row)
         print(f"  FEM {'x'.join(map(str, d))}: {row['ms_per_substep']:.3f} ms/sub-step × {n_sub} = "
@@ -354,7 +423,7 @@ def power_fit(nodes, ms) -> dict | None:
 
 def fits(learned: list, fem_rows: list) -> dict:
     col = lambda rows, k: [r[k] for r in rows]
-    return {"learned_step": power_fit(col(learned, "nodes"), col(learned, "cpu_ms")),
+    return {"learned_step": power_fit(col(learned, "nodes"), col(learned, "ms")),
             "fem_substep": power_fit(col(fem_rows, "nodes"), col(fem_rows, "ms_per_substep")),
             "fem_frame": power_fit(col(fem_rows, "nodes"), col(fem_rows, "ms_per_frame")),
             "learned_step_wall": power_fit(col(learned, "nodes"), col(learned, "wall_ms")),
@@ -369,34 +438,45 @@ def _exp(fit) -> str:
 def format_md(result: dict) -> str:
     m, f = result["machine"], result["fits"]
     cfg = result["model_config"]
+    one, two = clocks(result)
+    timing = (f"of the process's CPU time (the cost of the work; other jobs inflate it only through shared caches "
+              f"and memory bandwidth), with the wall-clock median (which also counts waiting for a core) in "
+              f"brackets; the fits and ratios use the CPU time." if timed_on_cpu(result) else
+              f"of the wall-clock time (the device works asynchronously: the process's CPU time, in brackets, "
+              f"counts only the host side); the fits and ratios use the wall-clock time.")
     lines = [
         "# Scaling: step time against mesh size and batch size" + (" (QUICK smoke run)" if result["quick"] else ""),
         "",
         f"Machine: {m['cpu']}, {m['cores']} cores, jax {m['jax']} ({m['backend']}); accelerator: "
-        f"{m['accelerator']}. Shared machine: load average {m['load_average_1m_at_start']} at start, "
-        f"{m['load_average_1m_at_end']} at end (other jobs ran alongside; absolute times are inflated and noisy, "
-        f"ratios within a table less so). {m['threads'].split(':')[0]} (XLA_FLAGS=\"{m['xla_flags']}\"). "
-        f"Whole run {result['wall_seconds'] / 60:.1f} min. Times are medians of interleaved calls after "
-        f"compilation, of the process's CPU time (the cost of the work; other jobs inflate it only through shared "
-        f"caches and memory bandwidth), with the wall-clock median (which also counts waiting for a core) in "
-        f"brackets; the fits and ratios use the CPU time.",
+        f"{m['accelerator']}. " + (
+            f"Shared machine: load average {m['load_average_1m_at_start']} at start, "
+            f"{m['load_average_1m_at_end']} at end (other jobs ran alongside; absolute times are inflated and noisy, "
+            f"ratios within a table less so). " if timed_on_cpu(result) else
+            f"Load average {m['load_average_1m_at_start']} at start (the host was otherwise idle). ")
+        + f"{m['threads'].split(':')[0]} (XLA_FLAGS=\"{m['xla_flags']}\"). "
+        + (f"Whole run {result['wall_seconds'] / 60:.1f} min. " if math.isfinite(result["wall_seconds"]) else
+           "Whole run: cut off (see the caveats). ")
+        + f"Times are medians of interleaved calls after "
+        f"compilation, {timing}",
         "",
         f"## Mesh size (the 40×10×10 beam refined; learned step: `{result['model']}`, hidden {cfg['hidden']}, "
         f"{cfg['passes']} passes; one step = one 0.05 s frame)",
         "",
-        "| elements | nodes | edges | learned step CPU (wall) ms | µs / node | ns / edge | FEM sub-step CPU (wall) ms | "
-        "sub-steps / frame | FEM frame (ms) | FEM frame / learned step |",
+        f"| elements | nodes | edges | learned step {one} ({two}) ms | µs / node | ns / edge | FEM sub-step "
+        + ("CPU (wall) ms | " if timed_on_cpu(result) else "wall ms | ")
+        + "sub-steps / frame | FEM frame (ms) | FEM frame / learned step |",
         "|---|---|---|---|---|---|---|---|---|---|"]
     fem_by = {r["nodes"]: r for r in result["fem_vs_nodes"]}
     for r in result["learned_vs_nodes"]:
         e = fem_by.get(r["nodes"])
         fem_cells = "| – | – | – | – |" if e is None else (
-            f"| {e['ms_per_substep']:.3f} ({e['ms_per_substep_wall']:.3f}) | {e['substeps_per_frame']} | "
+            f"| {e['ms_per_substep']:.3f}" + (f" ({e['ms_per_substep_wall']:.3f})" if timed_on_cpu(result) else "")
+            + f" | {e['substeps_per_frame']} | "
             f"{e['ms_per_frame']:.0f}"
             + (f" (measured {e['ms_per_frame_measured']:.0f})" if "ms_per_frame_measured" in e else "")
-            + f" | {e['ms_per_frame'] / r['cpu_ms']:.0f}× |")
-        lines.append(f"| {'×'.join(map(str, r['elements']))} | {r['nodes']} | {r['edges']} | {r['cpu_ms']:.2f} "
-                     f"({r['wall_ms']:.2f}), {r['repeats']} calls | {r['us_per_node']:.2f} | {r['ns_per_edge']:.0f} "
+            + f" | {e['ms_per_frame'] / r['ms']:.0f}× |")
+        lines.append(f"| {'×'.join(map(str, r['elements']))} | {r['nodes']} | {r['edges']} | {r['ms']:.2f} "
+                     f"({second(r, result):.2f}), {r['repeats']} calls | {r['us_per_node']:.2f} | {r['ns_per_edge']:.0f} "
                      + fem_cells)
     lines += ["",
               f"Fitted exponents a of time ∝ nodes^a (log–log least squares over the meshes with ≥ {FIT_FROM_NODES} "
@@ -410,7 +490,8 @@ def format_md(result: dict) -> str:
               "sub-step + the per-run overhead (initial force, frame outputs); where a whole 0.05 s frame was cheap "
               "enough it was also timed directly (measured)."]
     lines += ["", "## Batch size (the paper's beam, 756 nodes / 500 hex8)", "",
-              "| bodies | learned step CPU (wall) ms | ms / body-step | per-body speed-up vs 1 | FEM sub-step CPU ms | "
+              f"| bodies | learned step {one} ({two}) ms | ms / body-step | per-body speed-up vs 1 | FEM sub-step "
+              f"{one} ms | "
               "ms / body-sub-step | FEM element-sub-steps / s | per-body speed-up vs 1 |",
               "|---|---|---|---|---|---|---|---|"]
     fb = {r["batch"]: r for r in result["fem_vs_batch"]}
@@ -419,15 +500,19 @@ def format_md(result: dict) -> str:
         fem_cells = "| – | – | – | – |" if e is None else (
             f"| {e['ms_per_substep']:.3f} | {e['ms_per_body_substep']:.4f} | "
             f"{e['element_substeps_per_s'] / 1e6:.2f} M | {e['speedup_per_body_vs_1']:.2f}× |")
-        lines.append(f"| {r['copies']} | {r['cpu_ms']:.2f} ({r['wall_ms']:.2f}) | {r['ms_per_body_step']:.2f} | "
+        lines.append(f"| {r['copies']} | {r['ms']:.2f} ({second(r, result):.2f}) | {r['ms_per_body_step']:.2f} | "
                      f"{r['speedup_per_body_vs_1']:.2f}× " + fem_cells)
     lines += ["", "## How the cost grows", "", summary(result), "", "## Caveats", ""] + caveats(result)
     cpu = f"; {result['cpu_seconds'] / 60:.1f} min of CPU time in this run" if "cpu_seconds" in result else ""
+    if not timed_on_cpu(result):
+        lines += ["", f"Re-run on a GPU machine (jax with CUDA): `python benchmarks/scaling.py` (writes "
+                      f"benchmarks/results/scaling_gpu.*){cpu}.", ""]
+        return "\n".join(lines)
     lines += ["", f"Re-run on a quiet machine (same settings{cpu}):", "",
               "    XLA_FLAGS=\"--xla_cpu_multi_thread_eigen=false intra_op_parallelism_threads=1\" "
               "python benchmarks/scaling.py", "",
-              "and on a GPU machine (jax with CUDA) with `python benchmarks/scaling.py --out <dir>` (without XLA_FLAGS; "
-              "the CPU-time columns then count only the host side: read the wall-clock ones there).", ""]
+              "and on a GPU machine (jax with CUDA) with `python benchmarks/scaling.py` (without XLA_FLAGS; it writes "
+              "scaling_gpu.* and times by the wall clock there).", ""]
     return "\n".join(lines)
 
 
@@ -436,13 +521,17 @@ def caveats(result: dict) -> list:
     ln, lb = result["learned_vs_nodes"], result["learned_vs_batch"]
     out = ["- No GPU measurement: no GPU was available in this session; all times are for this CPU."] \
         if result["machine"]["backend"] == "cpu" else []
+    out += [f"- {note}" for note in result.get("notes", [])]
+    if result.get("not_measured"):
+        out.append(f"- Not measured: {', '.join(result['not_measured'])} (the run was cut off at its time limit "
+                   f"before these stages; the tables leave them empty).")
     if ln and lb and ln[0]["nodes"] == lb[0]["nodes"]:
-        a, b = ln[0]["cpu_ms"], lb[0]["cpu_ms"]
-        out.append(f"- Reproducibility on this shared machine: the same 756-node step timed in the mesh table "
-                   f"and in the batch table gives {a:.2f} and {b:.2f} ms CPU ({100 * abs(a - b) / min(a, b):.0f} % "
+        a, b = ln[0]["ms"], lb[0]["ms"]
+        out.append(f"- Reproducibility: the same 756-node step timed in the mesh table "
+                   f"and in the batch table gives {a:.2f} and {b:.2f} ms {clocks(result)[0]} ({100 * abs(a - b) / min(a, b):.0f} % "
                    f"apart); differences smaller than that are not resolved.")
     big = [r for r in ln if r["nodes"] >= FIT_FROM_NODES]
-    if big and len(ln) > len(big):
+    if big and len(ln) > len(big) and timed_on_cpu(result):
         per = [r["us_per_node"] for r in big]
         small = [r for r in ln if r["nodes"] < FIT_FROM_NODES]
         small_per = ", ".join(f"{r['us_per_node']:.1f}" for r in small)
@@ -462,9 +551,34 @@ def caveats(result: dict) -> list:
     check = "; ".join(f"{r['nodes']} nodes: a whole frame measured {r['ms_per_frame_measured']:.0f} ms against "
                       f"{r['ms_per_frame']:.0f} ms estimated ({100 * (r['ms_per_frame'] / r['ms_per_frame_measured'] - 1):+.0f} %)"
                       for r in checked)
-    out.append("- FEM frames of the large meshes are not run whole (minutes each): a frame is sub-steps per frame × "
-               "the measured sub-step + the per-run overhead" + (f"; check on the small mesh: {check}." if checked
-                                                                   else " (no mesh was cheap enough to check)."))
+    if checked and len(checked) == len(result["fem_vs_nodes"]):
+        out.append("- FEM frame = sub-steps per frame × the measured sub-step + the per-run overhead; every mesh's "
+                   f"whole frame was also timed: {check}.")
+    else:
+        out.append("- FEM frames of the large meshes are not run whole (minutes each): a frame is sub-steps per "
+                   "frame × the measured sub-step + the per-run overhead"
+                   + (f"; check on the small mesh: {check}." if checked else " (no mesh was cheap enough to check)."))
+    if not timed_on_cpu(result) and len(ln) > 1:
+        out.append(f"- On the accelerator the learned step costs {ln[0]['ms']:.2f} ms at {ln[0]['nodes']} nodes and "
+                   f"{ln[1]['ms']:.2f} ms at {ln[1]['nodes']}: below a few thousand nodes the time is a fixed cost "
+                   f"per call (launching the step's kernels), not work, which is why the fitted exponent is below 1 "
+                   f"and why batching bodies pays.")
+        cpu_path = RESULTS / "scaling.json"
+        if cpu_path.exists():
+            cpu_res = json.loads(cpu_path.read_text())
+            by = {r["nodes"]: r for r in cpu_res.get("learned_vs_nodes", [])}
+            fby = {r["nodes"]: r for r in cpu_res.get("fem_vs_nodes", [])}
+            pairs = [(r, by[r["nodes"]]) for r in ln if r["nodes"] in by]
+            fem_pairs = [(r, fby[r["nodes"]]) for r in result["fem_vs_nodes"] if r["nodes"] in fby]
+            if pairs:
+                cpu_key = "ms" if "ms" in pairs[0][1] else "cpu_ms"
+                out.append("- Against this project's CPU result (`scaling.md`, "
+                           f"{cpu_res['machine']['cpu']}, single core; another run on another machine): learned step "
+                           + ", ".join(f"{c[cpu_key] / g['ms']:.0f}×" for g, c in pairs)
+                           + " faster here" + (", FEM frame " + ", ".join(
+                               f"{c['ms_per_frame'] / g['ms_per_frame']:.0f}×" for g, c in fem_pairs) + " faster"
+                               if fem_pairs else "")
+                           + f" (meshes of {', '.join(str(g['nodes']) for g, _ in pairs)} nodes).")
     return out
 
 
@@ -491,7 +605,7 @@ def summary(result: dict) -> str:
                      f"frame grow from {fn[0]['substeps_per_frame']} to {fn[-1]['substeps_per_frame']} and the FEM "
                      f"frame grows as nodes^{f['fem_frame']['exponent']:.2f}.")
     if ln and fn and ln[-1]["nodes"] == fn[-1]["nodes"] and len(ln) > 1:
-        first, last = fn[0]["ms_per_frame"] / ln[0]["cpu_ms"], fn[-1]["ms_per_frame"] / ln[-1]["cpu_ms"]
+        first, last = fn[0]["ms_per_frame"] / ln[0]["ms"], fn[-1]["ms_per_frame"] / ln[-1]["ms"]
         trend = "widens" if last > 1.2 * first else "narrows" if last < first / 1.2 else "stays about the same"
         parts.append(f"Per 0.05 s frame the learned step's advantage over the FEM {trend} with refinement: "
                      f"{first:.0f}× on the paper's mesh, {last:.0f}× at {ln[-1]['nodes']} nodes.")
@@ -502,7 +616,8 @@ def summary(result: dict) -> str:
         if fb:
             parts[-1] += (f"; the FEM batch of {fb[-1]['batch']} load cases gives "
                           f"{fb[-1]['speedup_per_body_vs_1']:.2f}× per body-sub-step")
-        parts[-1] += f" on this CPU ({result['machine']['threads']})."
+        parts[-1] += (f" on this CPU ({result['machine']['threads']})." if timed_on_cpu(result) else
+                      f" on this {result['machine']['accelerator']}.")
     return " ".join(parts)
 
 
@@ -514,7 +629,7 @@ def plot(result: dict, path: Path) -> None:
 
     fig, (ax1, ax2) = plt.subplots(1, 2, figsize=(11, 4.2))
     ln, fn = result["learned_vs_nodes"], result["fem_vs_nodes"]
-    series = ((ln, "cpu_ms", "learned step (= one 0.05 s frame)", "learned_step", "C0"),
+    series = ((ln, "ms", "learned step (= one 0.05 s frame)", "learned_step", "C0"),
               (fn, "ms_per_frame", "FEM, one 0.05 s frame", "fem_frame", "C3"),
               (fn, "ms_per_substep", "FEM, one sub-step", "fem_substep", "C1"))
     for rows, key, label, fit_key, colour in series:
@@ -526,7 +641,7 @@ def plot(result: dict, path: Path) -> None:
             xs = np.geomspace(fit["from_nodes"], fit["to_nodes"], 20)
             ax1.loglog(xs, fit["coefficient_ms"] * xs ** fit["exponent"], ":", color=colour)
     ax1.set_xlabel("nodes (beam refined from 20×5×5 elements)")
-    ax1.set_ylabel("CPU time per call (ms)")
+    ax1.set_ylabel(f"{clocks(result)[0]} time per call (ms)")
     ax1.set_title("time ∝ nodes^a (fit dotted)")
     ax1.grid(True, which="both", alpha=0.3)
     ax1.legend(fontsize=8, loc="upper left")
@@ -539,13 +654,15 @@ def plot(result: dict, path: Path) -> None:
     ax2.xaxis.set_major_formatter(matplotlib.ticker.ScalarFormatter())
     ax2.xaxis.set_minor_formatter(matplotlib.ticker.NullFormatter())
     ax2.set_xlabel("bodies in one call (756-node beam)")
-    ax2.set_ylabel("CPU time per body (ms)")
+    ax2.set_ylabel(f"{clocks(result)[0]} time per body (ms)")
     ax2.set_title("per-body cost against batch size")
     ax2.grid(True, which="both", alpha=0.3)
     ax2.legend(fontsize=8, loc="upper left")
     m = result["machine"]
-    fig.suptitle(f"{m['cpu']}, {m['cores']} cores, {m['backend']} (shared: load {m['load_average_1m_at_start']}"
-                 f"→{m['load_average_1m_at_end']})" + (" — QUICK" if result["quick"] else ""), fontsize=9)
+    where = (f"{m['cpu']}, {m['cores']} cores, {m['backend']} (shared: load {m['load_average_1m_at_start']}"
+             f"→{m['load_average_1m_at_end']})" if timed_on_cpu(result) else
+             f"{m['accelerator']} ({m['backend']}, jax {m['jax']}), host {m['cpu']}")
+    fig.suptitle(where + (" — QUICK" if result["quick"] else ""), fontsize=9)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)
