@@ -968,3 +968,38 @@ def test_state_check_measures_against_the_training_envelope(toy):
     assert fallback["out_of_distribution"] == (fallback["max_deviation"] > 8.0)
     with pytest.raises(ValueError, match="tolerance"):
         api.state_check(params, wild, tolerance=0.0)
+
+
+def test_guarded_stepper_never_returns_non_finite_or_out_of_envelope_states(toy):
+    # In distribution the guarded step is the plain step; a state the plain step would carry outside the
+    # training envelope (or to NaN) is flagged and replaced: clipped into the envelope ("clip") or the rest
+    # state ("reset"); the clipped state passes state_check at the same tolerance.
+    params, data = toy["params"], toy["data"]
+    plain = api.stepper(params)
+    clip = api.guarded_stepper(params)
+    reset = api.guarded_stepper(params, policy="reset")
+    z, f = jnp.asarray(data.z[0, 2]), jnp.asarray(data.f[0, 2])
+    ref = np.asarray(plain(z, f))
+    loose = api.guarded_stepper(params, tolerance=1e6)   # nothing this untrained step gives is flagged
+    out, flagged = loose(z, f)
+    assert not bool(flagged)
+    np.testing.assert_array_equal(np.asarray(out), ref)
+    norm = params["norm"]
+    wild = np.array(data.z[0, 2], np.float32)
+    wild[:, 3:] = norm["z_mean"][3:] + 50.0 * np.asarray(norm["z_dev_max"])[3:] * norm["z_std"][3:]
+    wild[5, :3] = data.q0[5] + np.array([20.0 * float(norm["u_max"][0]), 0.0, 0.0], np.float32)
+    wild[6, 7] = np.nan
+    for z_in in (wild, np.full_like(wild, np.inf)):
+        out, flagged = clip(jnp.asarray(z_in), f)
+        out = np.asarray(out)
+        assert bool(flagged) and np.all(np.isfinite(out))
+        check = api.state_check(params, out, tolerance=1.5 * (1 + 1e-4))
+        assert not check["out_of_distribution"], check
+        back, flagged = reset(jnp.asarray(z_in), f)
+        assert bool(flagged)
+        np.testing.assert_array_equal(np.asarray(back)[:, :3], np.asarray(data.q0, np.float32))
+        assert not np.asarray(back)[:, 3:].any()
+    with pytest.raises(ValueError, match="policy"):
+        api.guarded_stepper(params, policy="freeze")
+    with pytest.raises(ValueError, match="tolerance"):
+        api.guarded_stepper(params, tolerance=-1.0)

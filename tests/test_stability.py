@@ -67,3 +67,18 @@ def test_a_flagged_run_says_which_state_component_left_the_envelope_and_where(be
         assert how["hops_from_load"] is not None and how["hops_from_load"] >= 0
     quiet = [run for run in beam_runs["runs"].values() if run["first_step_state_flagged"] is None]
     assert all(run["leaves_envelope_by"] is None for run in quiet)
+
+
+def test_guarded_rollouts_stay_finite_and_match_unflagged_plain_runs(beam_runs):
+    # Through api.guarded_stepper every policy's rollout is finite; where the plain rollout never left the
+    # envelope, no step is flagged and the guarded rollout's error against the FEM is the plain one's.
+    for name, run in beam_runs["runs"].items():
+        assert set(run["guarded"]) == set(api.GUARD_POLICIES)
+        for policy, g in run["guarded"].items():
+            assert g["nan_or_inf"] == 0, (name, policy)
+            assert len(g["u_error"]) == len(run["series"]["u_error"])
+            if run["first_step_state_flagged"] is None and name != "noise":   # noise: another random draw
+                assert g["flagged_steps"] == 0, (name, policy)
+                np.testing.assert_allclose(g["u_error"], run["series"]["u_error"], rtol=1e-5, atol=1e-7)
+            elif g["flagged_steps"]:
+                assert g["first_flagged_step"] >= 1

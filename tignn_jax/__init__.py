@@ -2,7 +2,8 @@
 __version__ = "0.1.0"
 
 _LAZY = {name: "tignn_jax.api" for name in
-         ("step", "rollout", "load_pretrained", "stepper", "force_check", "state_check", "state_guard")}
+         ("step", "rollout", "load_pretrained", "stepper", "force_check", "state_check", "state_guard",
+          "guarded_stepper")}
 
 
 def __getattr__(name):

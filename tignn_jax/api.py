@@ -134,6 +134,61 @@ def state_guard(params: dict, bound: float = 8.0, tolerance: float = 1.5):
     return fn
 
 
+GUARD_POLICIES = ("clip", "reset")
+
+
+def guarded_stepper(params: dict, copies: int = 1, policy: str = "clip", tolerance: float = 1.5,
+                    bound: float = 8.0):
+    """A ``stepper`` that never returns a non-finite state or one outside the model's training envelope:
+    ``z_next, flagged = fn(z, forces)``, with ``flagged`` True where the plain step's state was out of
+    distribution (as ``state_guard`` measures it) or non-finite, and the state then replaced:
+
+    * ``policy="clip"``: each node's v and σ components are clipped to the training mean ± ``tolerance`` ×
+      the envelope (the largest deviation of that component in training; ``bound`` standard deviations for
+      models saved without it), and a displacement longer than ``tolerance`` × the largest training
+      displacement is shortened to it; non-finite values are first replaced by the input state's (by the rest
+      state's where those are non-finite too). The body keeps its shape, bounded.
+    * ``policy="reset"``: the rest state (q = q0, v = 0, σ = 0), the demo's reaction.
+
+    This is a safeguard for interactive loops, not physics: a flagged step's state is no longer the model's
+    prediction, and ``benchmarks/stability.py`` reports how far guarded rollouts are from the FEM. A step that
+    is not flagged returns the plain step's state unchanged."""
+    if policy not in GUARD_POLICIES:
+        raise ValueError(f"policy must be one of {GUARD_POLICIES}, got {policy!r}")
+    if not tolerance > 0:
+        raise ValueError(f"tolerance must be positive, got {tolerance!r}")
+    if not bound > 0:
+        raise ValueError(f"bound must be positive, got {bound!r}")
+    step = stepper(params, copies)
+    norm = params["norm"]
+    q0 = jnp.asarray(np.tile(np.asarray(params["mesh"]["q0"], np.float32), (int(copies), 1)))
+    mean, std = (jnp.asarray(np.asarray(norm[k], np.float32))[3:] for k in ("z_mean", "z_std"))
+    if "z_dev_max" in norm:
+        half = tolerance * jnp.maximum(jnp.asarray(np.asarray(norm["z_dev_max"], np.float32))[3:], 1e-6) * std
+        u_cap = tolerance * float(np.asarray(norm["u_max"]).reshape(-1)[0])
+    else:
+        half, u_cap = bound * std, None
+    lo, hi = mean - half, mean + half
+    rest = jnp.concatenate([q0, jnp.zeros((q0.shape[0], M.STATE_DIM - 3), jnp.float32)], axis=1)
+    flag = state_guard(params, bound=bound, tolerance=tolerance)
+
+    @jax.jit
+    def fn(z, forces):
+        nxt = step(z, forces)
+        flagged = flag(nxt)
+        if policy == "reset":
+            return jnp.where(flagged, rest, nxt), flagged
+        safe = jnp.where(jnp.isfinite(nxt), nxt, jnp.where(jnp.isfinite(z), z, rest))
+        u = safe[:, :3] - q0
+        if u_cap is not None:
+            length = jnp.sqrt(jnp.sum(u * u, axis=1, keepdims=True))
+            u = u * jnp.minimum(1.0, u_cap / jnp.maximum(length, 1e-30))
+        fixed = jnp.concatenate([q0 + u, jnp.clip(safe[:, 3:], lo, hi)], axis=1)
+        return jnp.where(flagged, fixed, nxt), flagged
+
+    return fn
+
+
 def _envelope_ratios(params, z, xp):
     """[..., nodes, 10]: each node's v and σ deviations over the training envelope's, and its displacement over
     the largest training displacement (numpy or jax.numpy as ``xp``)."""
