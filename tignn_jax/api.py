@@ -140,8 +140,9 @@ GUARD_POLICIES = ("clip", "reset")
 def guarded_stepper(params: dict, copies: int = 1, policy: str = "clip", tolerance: float = 1.5,
                     bound: float = 8.0):
     """A ``stepper`` that never returns a non-finite state or one outside the model's training envelope:
-    ``z_next, flagged = fn(z, forces)``, with ``flagged`` True where the plain step's state was out of
-    distribution (as ``state_guard`` measures it) or non-finite, and the state then replaced:
+    ``z_next, flagged = fn(z, forces)`` for ``copies`` stacked bodies, with ``flagged`` [copies] True for each
+    body whose plain-step state was out of distribution (as ``state_guard`` measures it) or non-finite, and that
+    body's state then replaced (the other bodies keep their plain step):
 
     * ``policy="clip"``: each node's v and σ components are clipped to the training mean ± ``tolerance`` ×
       the envelope (the largest deviation of that component in training; ``bound`` standard deviations for
@@ -170,21 +171,23 @@ def guarded_stepper(params: dict, copies: int = 1, policy: str = "clip", toleran
         half, u_cap = bound * std, None
     lo, hi = mean - half, mean + half
     rest = jnp.concatenate([q0, jnp.zeros((q0.shape[0], M.STATE_DIM - 3), jnp.float32)], axis=1)
-    flag = state_guard(params, bound=bound, tolerance=tolerance)
+    flag = jax.vmap(state_guard(params, bound=bound, tolerance=tolerance))
+    n = q0.shape[0] // int(copies)
 
     @jax.jit
     def fn(z, forces):
         nxt = step(z, forces)
-        flagged = flag(nxt)
+        flagged = flag(nxt.reshape(int(copies), n, M.STATE_DIM))      # one flag per body
+        per_node = jnp.repeat(flagged, n)[:, None]
         if policy == "reset":
-            return jnp.where(flagged, rest, nxt), flagged
+            return jnp.where(per_node, rest, nxt), flagged
         safe = jnp.where(jnp.isfinite(nxt), nxt, jnp.where(jnp.isfinite(z), z, rest))
         u = safe[:, :3] - q0
         if u_cap is not None:
             length = jnp.sqrt(jnp.sum(u * u, axis=1, keepdims=True))
             u = u * jnp.minimum(1.0, u_cap / jnp.maximum(length, 1e-30))
         fixed = jnp.concatenate([q0 + u, jnp.clip(safe[:, 3:], lo, hi)], axis=1)
-        return jnp.where(flagged, fixed, nxt), flagged
+        return jnp.where(per_node, fixed, nxt), flagged
 
     return fn
 
