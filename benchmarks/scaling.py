@@ -92,39 +92,39 @@ def main(argv=None) -> int:
     from tignn_jax import api
     base = api.load_pretrained(args.model)[0]
 
-    print(f"learned step on {len(refinements)} meshes ...", flush=True)
-    learned = learned_mesh_scaling(base, refinements, seconds)
     out.mkdir(parents=True, exist_ok=True)
     partial = out / f"{stem}.partial.json"     # what is done so far, should a long run be cut off
-    partial.write_text(json.dumps({"machine": machine, "learned_vs_nodes": learned}, indent=1))
-    print(f"learned step, batch {list(batches)} ...", flush=True)
-    learned_batch = learned_batch_scaling(base, batches, seconds)
-    partial.write_text(json.dumps({"machine": machine, "learned_vs_nodes": learned,
-                                   "learned_vs_batch": learned_batch}, indent=1))
-    print(f"FEM on {len(refinements)} meshes ...", flush=True)
-    fem_rows = fem_mesh_scaling(refinements, quick, seconds)
-    partial.write_text(json.dumps({"machine": machine, "learned_vs_nodes": learned,
-                                   "learned_vs_batch": learned_batch, "fem_vs_nodes": fem_rows}, indent=1))
-    print(f"FEM batch {list(fem_batches)} ...", flush=True)
-    fem_batch = fem_batch_scaling(fem_batches, 50 if quick else 200, seconds)
-    machine["load_average_1m_at_end"] = describe()["load_average_1m"]
+    done = {"machine": machine, "quick": quick, "model": args.model, "model_config": base["config"]}
 
-    result = {
-        "machine": machine, "quick": quick, "model": args.model, "model_config": base["config"],
-        "wall_seconds": time.perf_counter() - t_start, "cpu_seconds": time.process_time() - c_start,
-        "learned_vs_nodes": learned, "learned_vs_batch": learned_batch,
-        "fem_vs_nodes": fem_rows, "fem_vs_batch": fem_batch,
-        "fits": fits(learned, fem_rows),
-    }
+    def stage(key, label, fn, *fn_args):
+        print(label, flush=True)
+        done[key] = fn(*fn_args)
+        partial.write_text(json.dumps(done, indent=1))
+
+    stage("learned_vs_nodes", f"learned step on {len(refinements)} meshes ...", learned_mesh_scaling, base,
+          refinements, seconds)
+    stage("learned_vs_batch", f"learned step, batch {list(batches)} ...", learned_batch_scaling, base, batches,
+          seconds)
+    stage("fem_vs_nodes", f"FEM on {len(refinements)} meshes ...", fem_mesh_scaling, refinements, quick, seconds)
+    stage("fem_vs_batch", f"FEM batch {list(fem_batches)} ...", fem_batch_scaling, fem_batches,
+          50 if quick else 200, seconds)
+    machine["load_average_1m_at_end"] = describe()["load_average_1m"]
+    result = {**done, "wall_seconds": time.perf_counter() - t_start, "cpu_seconds": time.process_time() - c_start,
+              "fits": fits(done["learned_vs_nodes"], done["fem_vs_nodes"])}
+    write_result(result, out, stem)
+    partial.unlink(missing_ok=True)
+    return 0
+
+
+def write_result(result: dict, out: Path, stem: str) -> None:
+    """``stem``.json, .md and .png in ``out``; prints the table."""
     out.mkdir(parents=True, exist_ok=True)
     (out / f"{stem}.json").write_text(json.dumps(result, indent=1))
-    partial.unlink(missing_ok=True)
     md = format_md(result)
     (out / f"{stem}.md").write_text(md)
     plot(result, out / f"{stem}.png")
     print(md)
     print(f"wrote {out}/{stem}.{{json,md,png}}")
-    return 0
 
 
 def render(path: Path, out: Path) -> int:
@@ -148,14 +148,7 @@ def render(path: Path, out: Path) -> int:
     for row in result["learned_vs_nodes"] + result["learned_vs_batch"]:   # results from before the "ms" key
         row.setdefault("ms", row["cpu_ms"] if timed_on_cpu(result) else row["wall_ms"])
     result["fits"] = fits(result["learned_vs_nodes"], result["fem_vs_nodes"])
-    stem = "scaling" if timed_on_cpu(result) else f"scaling_{m['backend']}"
-    out.mkdir(parents=True, exist_ok=True)
-    (out / f"{stem}.json").write_text(json.dumps(result, indent=1))
-    md = format_md(result)
-    (out / f"{stem}.md").write_text(md)
-    plot(result, out / f"{stem}.png")
-    print(md)
-    print(f"wrote {out}/{stem}.{{json,md,png}}")
+    write_result(result, out, "scaling" if timed_on_cpu(result) else f"scaling_{m['backend']}")
     return 0
 
 
