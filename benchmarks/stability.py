@@ -28,7 +28,9 @@ difference of the trajectory, so it is taken from the FEM run) or "solver" (v(0)
 Writes benchmarks/results/stability.{json,md} and stability.png.
 
     python benchmarks/stability.py [--steps 1000] [--fem-steps 100] [--scenes beam,bunny] [--models beam=beam]
-    (several models of one scene: --models beam=beam-abaqus+beam)
+    (several models of one scene: --models beam=beam-abaqus+beam; --tag bunny writes stability_bunny.*)
+For the bunny the FEM uses the mass density and the load patch radius of the model's training data
+(``info["fem_density"]``, ``info["fem_load_radius"]``) where the model records them.
 """
 from __future__ import annotations
 
@@ -52,16 +54,18 @@ COLUMNS = ("q1", "q2", "q3", "v1", "v2", "v3", "σ11", "σ22", "σ33", "σ12", "
 BUNNY_RISE = 10   # the bunny data's loads rise over 10 frames (tignn generate bunny --rise-frames 10)
 
 
-def loadings(name: str, steps: int, seed: int = 0):
-    """(scene, {scenario: forces [steps, N, 3]}) on the FEM scene whose mesh is the model's mesh."""
+def loadings(name: str, steps: int, seed: int = 0, density: float | None = None, load_radius: float = 0.0):
+    """(scene, {scenario: forces [steps, N, 3]}) on the FEM scene whose mesh is the model's mesh; for the bunny,
+    the mass density and the load patch radius of the model's training data (``density`` None: the scene's)."""
     from fem import cases, scenes
 
     if name == "beam":
         scene = scenes.beam_scene()
         base = scenes.beam_reference_forces(scene, [9])[0]      # test case 9 of the published split
     else:
-        scene = scenes.bunny_scene()
-        base, _ = cases.point_load_forces(scene, n_cases=1, seed=seed + 7, rise_frames=BUNNY_RISE)
+        scene = scenes.bunny_scene() if density is None else scenes.bunny_scene(density=density)
+        base, _ = cases.point_load_forces(scene, n_cases=1, seed=seed + 7, rise_frames=BUNNY_RISE,
+                                          radius=load_radius)
         base = base[0]
     n = len(scene.points)
     t0 = base.shape[0]
@@ -74,7 +78,7 @@ def loadings(name: str, steps: int, seed: int = 0):
         tips, _ = cases.fingertip_forces(scene, -(-steps // scene.n_frames), seed)
     else:
         tips, _ = cases.point_load_forces(scene, n_cases=-(-steps // scene.n_frames), seed=seed + 1,
-                                          rise_frames=BUNNY_RISE)
+                                          rise_frames=BUNNY_RISE, radius=load_radius)
     fingertip = tips.reshape(-1, n, 3)[:steps]
     return scene, {"release": release, "constant": constant, "fingertip": fingertip, "3x load": 3 * constant,
                    "noise": constant}
@@ -87,7 +91,9 @@ def model_runs(name: str, model: str, steps: int, fem_steps: int) -> dict:
     from tignn_jax import model as M
 
     params, graph = api.load_pretrained(model)
-    scene, loads = loadings(name, steps)
+    info = params.get("info", {})
+    scene, loads = loadings(name, steps, density=info.get("fem_density"),
+                            load_radius=float(info.get("fem_load_radius", 0.0)))
     if "fem_damping" in params.get("info", {}):   # the model was trained on FEM data with this damping
         scene = scene._replace(damping=float(params["info"]["fem_damping"]))
     q0 = np.asarray(params["mesh"]["q0"], np.float64)
@@ -290,7 +296,12 @@ def main(argv=None) -> int:
     ap.add_argument("--scenes", default="beam,bunny")
     ap.add_argument("--models", default="", help="override the demo's models, e.g. beam=beam (the FEM then runs "
                     "with the damping recorded in the model, info['fem_damping'], when there is one)")
+    ap.add_argument("--tag", default="", help="write stability_TAG.* instead of stability.* (e.g. a second "
+                    "scene run separately)")
     args = ap.parse_args(argv)
+    if args.tag and not args.tag.replace("-", "").replace("_", "").isalnum():
+        raise SystemExit(f"--tag must be letters, digits, - and _, got {args.tag!r}")
+    stem = f"stability_{args.tag}" if args.tag else "stability"
     if args.steps < args.fem_steps or args.fem_steps < 20:
         raise SystemExit(f"need --steps ≥ --fem-steps ≥ 20, got {args.steps} and {args.fem_steps}")
     machine = describe()
@@ -310,8 +321,8 @@ def main(argv=None) -> int:
                 print(f"{label}: skipped ({err})")
     result = {"machine": machine, "steps": args.steps, "models": models, "fem_limit": fem_limit()}
     RESULTS.mkdir(parents=True, exist_ok=True)
-    (RESULTS / "stability.json").write_text(json.dumps(result))
-    plot(result, RESULTS / "stability.png")
+    (RESULTS / f"{stem}.json").write_text(json.dumps(result))
+    plot(result, RESULTS / f"{stem}.png")
     lines = ["# Numerical stress tests", "",
              f"Machine: {machine['cpu']}, {machine['cores']} cores, jax {machine['jax']}; load average "
              f"{machine['load_average_1m']} at start. {args.steps}-step rollouts (Δt = 0.05; the training horizon "
@@ -350,7 +361,7 @@ def main(argv=None) -> int:
         lines.append(f"| {row['step_over_stable']:.2f} | {row['n_sub']} | {row['nan_or_inf']} | "
                      f"{row['inverted_element']} | {row['inversion_time']:.3g} | "
                      f"{'; '.join(row['reported'])[:160] or 'nothing to report'} |")
-    (RESULTS / "stability.md").write_text("\n".join(lines) + "\n")
+    (RESULTS / f"{stem}.md").write_text("\n".join(lines) + "\n")
     print("\n".join(lines))
     return 0
 

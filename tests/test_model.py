@@ -997,8 +997,8 @@ def test_guarded_stepper_never_returns_non_finite_or_out_of_envelope_states(toy)
     # state ("reset"); the clipped state passes state_check at the same tolerance.
     params, data = toy["params"], toy["data"]
     plain = api.stepper(params)
-    clip = api.guarded_stepper(params)
-    reset = api.guarded_stepper(params, policy="reset")
+    clip = api.guarded_stepper(params, policy="clip")
+    reset = api.guarded_stepper(params)   # the default policy
     z, f = jnp.asarray(data.z[0, 2]), jnp.asarray(data.f[0, 2])
     ref = np.asarray(plain(z, f))
     loose = api.guarded_stepper(params, tolerance=1e6)   # nothing this untrained step gives is flagged
