@@ -349,6 +349,19 @@ def test_guard_resets_bodies_whose_state_goes_bad():
     assert t.guard_trips > 0 and t.summary()["guard_trips"] == t.guard_trips
 
 
+def test_guard_with_one_flag_per_body_resets_only_the_flagged_body():
+    # Two bodies, one whose step goes bad: a guard that returns one flag per body resets that body alone and
+    # counts one trip per reset body; the other keeps stepping.
+    scene, _ = _demo_scene(frames=6)
+    body = scene.bodies[0]
+    bad = body._replace(step_fn=lambda z, f: z * jnp.nan)
+    guard = lambda zs: jnp.stack([~jnp.all(jnp.isfinite(z)) for z in zs])
+    zs, t = sc.run(scene._replace(bodies=(body, bad), guard=guard))
+    np.testing.assert_array_equal(np.asarray(zs[1]), body.z)
+    assert np.abs(np.asarray(zs[0])[:, :3] - body.q0).max() > 1e-3    # the good body was pressed and moved
+    assert t.guard_trips > 0
+
+
 def test_loop_pauses_garbage_collection_and_restores_it():
     # The loop runs with automatic collection off (young-generation collections between frames instead) and
     # gives the same states as with it on; the caller's setting comes back, also after an error.

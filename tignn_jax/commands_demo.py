@@ -71,8 +71,8 @@ def run(args) -> int:
         print(f"{k:8s} {summary[k]['p50_ms']:8.2f} {summary[k]['p99_ms']:8.2f}")
     print(f"{summary['fps_at_p50']:.1f} frames per second at the median frame time")
     if summary.get("guard_trips"):
-        print(f"WARNING: the state left the model's training envelope {summary['guard_trips']} times "
-              "(api.state_check); the bodies were reset to rest each time")
+        print(f"WARNING: a body's state left the model's training envelope {summary['guard_trips']} times "
+              "(api.state_check); that body was reset to rest each time")
     print(f"wrote {gif}, {out / f'{args.scene}{suffix}_timings.json'} and the fingertip track {track_path}")
     if suffix:
         print("NOTE: no shipped model was used: the motion comes from the STAND-IN spring dynamics.")
@@ -163,7 +163,7 @@ def _dynamics(model_name, stand_in, q0, cells, edges, clamped, copies):
                 def step(zs, forces):
                     return tuple(jnp.split(fn(jnp.concatenate(zs), jnp.concatenate(forces)), copies))
 
-                step.guard = lambda zs: guard(jnp.concatenate(zs))
+                step.guard = lambda zs: jnp.stack([guard(z) for z in zs])   # one flag per body
                 return step, f"model {model_name}", mesh_q0.astype(np.float32), units
             print(f"model {model_name!r} was trained on another mesh; using the STAND-IN dynamics")
     single = stand_in_step(q0, cells, clamped)

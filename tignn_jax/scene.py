@@ -98,9 +98,9 @@ class Scene(NamedTuple):
     each body's ``step_fn`` (e.g. one batched graph for two copies of a mesh); colour_by: "stress" (von Mises
     of sigma) or "displacement" (|q − q0|; the stress is then not evaluated); skip_rest: while no body has
     been touched (all forces zero since the start, bodies in their initial state) the step is skipped;
-    guard: optional ``zs -> bool`` (jit-able) that is True when a new state must not be shown (e.g. non-finite
-    or outside the model's training envelope, see ``api.state_check``): the bodies then return to their
-    initial state and the frame counts as a guard trip.
+    guard: optional ``zs -> bool`` or ``zs -> bool [bodies]`` (jit-able), True where a new state must not be
+    shown (e.g. non-finite or outside the model's training envelope, see ``api.state_check``): the flagged
+    bodies (all bodies for a single bool) return to their initial state, and each counts as a guard trip.
     """
     bodies: tuple
     camera: Camera
@@ -185,9 +185,12 @@ def _run(scene, frames, write, warmup, gc_pause):
         touched = touched or any(bool(jnp.any(f != 0)) for f in forces)
         if touched:   # bodies at rest and untouched stay as they are: no step
             zs = jax.block_until_ready(step_fn(zs, forces))
-            if guard_fn is not None and bool(guard_fn(zs)):
-                zs = tuple(jnp.asarray(b.z, jnp.float32) for b in scene.bodies)
-                guard_trips += 1
+            if guard_fn is not None:
+                flags = np.broadcast_to(np.asarray(guard_fn(zs), bool).reshape(-1), (len(zs),))
+                if flags.any():
+                    zs = tuple(jnp.asarray(b.z, jnp.float32) if bad else z
+                               for b, z, bad in zip(scene.bodies, zs, flags))
+                    guard_trips += int(flags.sum())
         t2 = time.perf_counter()
         image, overflow = jax.block_until_ready(render_fn(zs, tips))
         if bool(overflow) and capacity < max_capacity:  # rare: a body came much nearer the camera
