@@ -78,7 +78,7 @@ def main(argv=None) -> int:
     batches = BATCHES[:3] if quick else BATCHES if on_cpu() else BATCHES + GPU_EXTRA_BATCHES
     fem_batches = FEM_BATCHES[:2] if quick else FEM_BATCHES if on_cpu() else FEM_BATCHES + GPU_EXTRA_BATCHES
     out = Path(args.out) if args.out else (QUICK_OUT if quick else RESULTS)
-    stem = "scaling" if on_cpu() else f"scaling_{jax.default_backend()}"
+    stem = result_stem(jax.default_backend())
 
     machine = describe()
     machine["load_average_1m_at_start"] = machine.pop("load_average_1m")
@@ -116,6 +116,11 @@ def main(argv=None) -> int:
     return 0
 
 
+def result_stem(backend: str) -> str:
+    """scaling.* for the CPU backend, scaling_<backend>.* (e.g. scaling_gpu) for an accelerator."""
+    return "scaling" if backend == "cpu" else f"scaling_{backend}"
+
+
 def write_result(result: dict, out: Path, stem: str) -> None:
     """``stem``.json, .md and .png in ``out``; prints the table."""
     out.mkdir(parents=True, exist_ok=True)
@@ -148,7 +153,7 @@ def render(path: Path, out: Path) -> int:
     for row in result["learned_vs_nodes"] + result["learned_vs_batch"]:   # results from before the "ms" key
         row.setdefault("ms", row["cpu_ms"] if timed_on_cpu(result) else row["wall_ms"])
     result["fits"] = fits(result["learned_vs_nodes"], result["fem_vs_nodes"])
-    write_result(result, out, "scaling" if timed_on_cpu(result) else f"scaling_{m['backend']}")
+    write_result(result, out, result_stem(m["backend"]))
     return 0
 
 

@@ -94,8 +94,8 @@ def model_runs(name: str, model: str, steps: int, fem_steps: int) -> dict:
     info = params.get("info", {})
     scene, loads = loadings(name, steps, density=info.get("fem_density"),
                             load_radius=float(info.get("fem_load_radius", 0.0)))
-    if "fem_damping" in params.get("info", {}):   # the model was trained on FEM data with this damping
-        scene = scene._replace(damping=float(params["info"]["fem_damping"]))
+    if "fem_damping" in info:   # the model was trained on FEM data with this damping
+        scene = scene._replace(damping=float(info["fem_damping"]))
     q0 = np.asarray(params["mesh"]["q0"], np.float64)
     units = float(np.sum(q0 * scene.points) / np.sum(scene.points ** 2))
     if not np.allclose(q0, scene.points * units, atol=1e-3 * np.abs(q0).max()):
@@ -105,7 +105,7 @@ def model_runs(name: str, model: str, steps: int, fem_steps: int) -> dict:
     problem = scenes.setup_scene(scene._replace(n_frames=fem_steps))
     batch = fem.Loads(nodal=jnp.asarray(np.stack([loads[s][:fem_steps] for s in fem_names])))
     t0 = time.perf_counter()
-    if params.get("info", {}).get("fem_integrator") == "implicit":   # trained on backward-Euler frames
+    if info.get("fem_integrator") == "implicit":   # trained on backward-Euler frames
         from fem import implicit
         res, _ = implicit.simulate_implicit_batch(problem, scene.material, batch)
     else:
@@ -127,32 +127,39 @@ def model_runs(name: str, model: str, steps: int, fem_steps: int) -> dict:
     from fem.meshes import hop_distances
     hops = hop_distances(np.stack([np.asarray(graph.senders), np.asarray(graph.receivers)]),
                          len(q0))   # [N, N] graph distances (756 or 1330 nodes: small)
-    key = jax.random.PRNGKey(0)
     guarded = {p: api.guarded_stepper(params, policy=p) for p in api.GUARD_POLICIES}
+
+    def roll(fn, z, s, f_seq, key):
+        """States [steps+1, N, 12] and per-step flags of ``fn(z, f) -> (z, flagged)`` under the loads; the
+        noise scenario adds 1 % of the state std to the free nodes' input every step (draws from ``key``)."""
+        states, flags = [np.asarray(z)], []
+        for k in range(steps):
+            if s == "noise":
+                key, sub = jax.random.split(key)
+                z = z + 0.01 * jnp.asarray(z_std) * jax.random.normal(sub, z.shape) * (nt[:, None] == 0)
+            z, flagged = fn(z, f_seq[k])
+            states.append(np.asarray(z))
+            flags.append(bool(np.any(flagged)))
+        return np.stack(states), flags
 
     def u_error(zs, uf):   # relative to the largest FEM displacement norm over the horizon
         return np.linalg.norm((zs[:fem_steps + 1, :, :3] - q0) - uf, axis=(1, 2)) / max(
             float(np.linalg.norm(uf, axis=(1, 2)).max()), 1e-12)
 
-    def guarded_run(policy, s, z, f_seq, uf):   # the same loads (and noise) through api.guarded_stepper
-        key_g, states, flags = jax.random.PRNGKey(1), [np.asarray(z)], []
-        for k in range(steps):
-            if s == "noise":
-                key_g, sub = jax.random.split(key_g)
-                z = z + 0.01 * jnp.asarray(z_std) * jax.random.normal(sub, z.shape) * (nt[:, None] == 0)
-            z, flagged = guarded[policy](z, f_seq[k])
-            states.append(np.asarray(z))
-            flags.append(bool(flagged))
-        zs = np.stack(states)
-        err = u_error(zs, uf)
+    def first_over(err):   # the first step with u error > 10 % (NaN counts as over), or None
         over = np.where(~(err[1:] <= 0.10))[0]
+        return int(over[0] + 1) if len(over) else None
+
+    def guarded_run(policy, s, z, f_seq, uf):   # the same loads (and noise) through api.guarded_stepper
+        zs, flags = roll(guarded[policy], z, s, f_seq, jax.random.PRNGKey(1))
+        err = u_error(zs, uf)
         return {"nan_or_inf": int(np.size(zs) - np.count_nonzero(np.isfinite(zs))),
                 "flagged_steps": int(sum(flags)), "first_flagged_step": flags.index(True) + 1 if any(flags) else None,
                 "max_u_model": float(np.nanmax(np.linalg.norm(zs[..., :3] - q0, axis=-1))),
                 "u_error_at_fem_horizon": float(err[-1]),
-                "first_step_u_error_over_10pct": int(over[0] + 1) if len(over) else None,
+                "first_step_u_error_over_10pct": first_over(err),
                 "u_error": err.tolist()}
-    gradient_velocity = params.get("info", {}).get("velocity", "gradient") == "gradient"
+    gradient_velocity = info.get("velocity", "gradient") == "gradient"
     for s in SCENARIOS:
         f_seq = jnp.asarray(loads[s], jnp.float32)
         guard = api.force_check(params, np.asarray(loads[s]))
@@ -162,16 +169,9 @@ def model_runs(name: str, model: str, steps: int, fem_steps: int) -> dict:
             qf = fem_q[ref] * units  # difference of the trajectory (numpy.gradient), not the rest value 0
             v0 = (-3 * qf[0] + 4 * qf[1] - qf[2]) / (2 * scene.frame_dt)
             z = z.at[:, 3:6].set(jnp.asarray(v0, z.dtype))
-        states = [np.asarray(z)]
         t0 = time.perf_counter()
-        for k in range(steps):
-            if s == "noise":
-                key, sub = jax.random.split(key)
-                z = z + 0.01 * jnp.asarray(z_std) * jax.random.normal(sub, z.shape) * (nt[:, None] == 0)
-            z = step(z, f_seq[k])
-            states.append(np.asarray(z))
+        zs, _ = roll(lambda z_, f_: (step(z_, f_), False), z, s, f_seq, jax.random.PRNGKey(0))  # [steps+1, N, 12]
         wall = time.perf_counter() - t0
-        zs = np.stack(states)                                  # [steps+1, N, 12]
         finite = np.isfinite(zs)
         u = np.linalg.norm(zs[..., :3] - q0, axis=-1).max(-1)
         v = np.linalg.norm(zs[..., 3:6], axis=-1).max(-1)
@@ -180,8 +180,6 @@ def model_runs(name: str, model: str, steps: int, fem_steps: int) -> dict:
         # error relative to the largest FEM displacement over the horizon (a relative error of the tiny
         # first-step displacement says nothing about the rollout)
         err = u_error(zs, uf)
-        z_start = jnp.asarray(zs[0])
-        over = np.where(~(err[1:] <= 0.10))[0]   # NaN counts as over
         checks = [api.state_check(params, zk) for zk in zs]
         flagged = [k for k, c in enumerate(checks) if c["out_of_distribution"]]
         leaves = _how_it_leaves(params, zs[flagged[0]], loads[s][:flagged[0]], hops) if flagged else None
@@ -195,7 +193,7 @@ def model_runs(name: str, model: str, steps: int, fem_steps: int) -> dict:
             "max_v_model": float(np.nanmax(v)),
             "max_v_fem": float(np.linalg.norm(fem_v[ref] * units, axis=-1).max()),
             "u_error_at_fem_horizon": float(err[-1]),
-            "first_step_u_error_over_10pct": int(over[0] + 1) if len(over) else None,
+            "first_step_u_error_over_10pct": first_over(err),
             "entropy_steps": int(live),
             "entropy_non_decreasing_fraction": float(np.mean(ds >= 0)) if live else float("nan"),
             "entropy_production_non_negative_fraction": float(np.mean(rate >= 0)) if live else float("nan"),
@@ -205,7 +203,7 @@ def model_runs(name: str, model: str, steps: int, fem_steps: int) -> dict:
             "first_step_state_flagged": flagged[0] if flagged else None,
             "first_step_non_finite": nonfinite[0] if nonfinite else None,
             "leaves_envelope_by": leaves,
-            "guarded": {p: guarded_run(p, s, z_start, f_seq, uf) for p in api.GUARD_POLICIES},
+            "guarded": {p: guarded_run(p, s, z, f_seq, uf) for p in api.GUARD_POLICIES},
             "series": {"u_max": u.tolist(), "v_max": v.tolist(), "u_error": err.tolist(),
                        "E": e_s[:, 0].tolist(), "S": e_s[:, 1].tolist()}}
     return out

@@ -123,8 +123,7 @@ def state_guard(params: dict, bound: float = 8.0, tolerance: float = 1.5):
     if "z_dev_max" in params["norm"]:
         score, limit = (lambda z: _envelope_ratios(params, z, jnp)), tolerance
     else:
-        mean = jnp.asarray(params["norm"]["z_mean"], jnp.float32)[3:]
-        std = jnp.asarray(params["norm"]["z_std"], jnp.float32)[3:]
+        mean, std, _, _ = _envelope_arrays(params)
         score, limit = (lambda z: jnp.abs((z[..., 3:] - mean) / std)), bound
 
     def fn(z):
@@ -166,12 +165,10 @@ def guarded_stepper(params: dict, copies: int = 1, policy: str = "reset", tolera
     if not bound > 0:
         raise ValueError(f"bound must be positive, got {bound!r}")
     step = stepper(params, copies)
-    norm = params["norm"]
     q0 = jnp.asarray(np.tile(np.asarray(params["mesh"]["q0"], np.float32), (int(copies), 1)))
-    mean, std = (jnp.asarray(np.asarray(norm[k], np.float32))[3:] for k in ("z_mean", "z_std"))
-    if "z_dev_max" in norm:
-        half = tolerance * jnp.maximum(jnp.asarray(np.asarray(norm["z_dev_max"], np.float32))[3:], 1e-6) * std
-        u_cap = tolerance * float(np.asarray(norm["u_max"]).reshape(-1)[0])
+    mean, std, dmax, u_max = _envelope_arrays(params)
+    if dmax is not None:
+        half, u_cap = tolerance * dmax * std, tolerance * u_max
     else:
         half, u_cap = bound * std, None
     lo, hi = mean - half, mean + half
@@ -197,16 +194,26 @@ def guarded_stepper(params: dict, copies: int = 1, policy: str = "reset", tolera
     return fn
 
 
+def _envelope_arrays(params):
+    """(mean, std, dmax, u_max) of the v and σ features, float32 [9] each (dmax floored at 1e-6), and the
+    largest training displacement; dmax and u_max are None for models saved without the envelope."""
+    norm = params["norm"]
+    mean, std = (np.asarray(norm[k], np.float32)[3:] for k in ("z_mean", "z_std"))
+    if "z_dev_max" not in norm:
+        return mean, std, None, None
+    return (mean, std, np.maximum(np.asarray(norm["z_dev_max"], np.float32)[3:], 1e-6),
+            float(np.asarray(norm["u_max"]).reshape(-1)[0]))
+
+
 def _envelope_ratios(params, z, xp):
     """[..., nodes, 10]: each node's v and σ deviations over the training envelope's, and its displacement over
     the largest training displacement (numpy or jax.numpy as ``xp``)."""
-    norm, n = params["norm"], len(params["mesh"]["q0"])
-    mean, std, dmax = (xp.asarray(np.asarray(norm[k], np.float32)) for k in ("z_mean", "z_std", "z_dev_max"))
-    u_max = float(np.asarray(norm["u_max"]).reshape(-1)[0])
+    n = len(params["mesh"]["q0"])
+    mean, std, dmax, u_max = (xp.asarray(a) if isinstance(a, np.ndarray) else a for a in _envelope_arrays(params))
     if z.shape[-2] % n:
         raise ValueError(f"z has {z.shape[-2]} nodes, not a multiple of the model's {n}")
     q0 = xp.asarray(np.tile(np.asarray(params["mesh"]["q0"], np.float32), (z.shape[-2] // n, 1)))
-    dev = xp.abs((z[..., 3:] - mean[3:]) / std[3:]) / xp.maximum(dmax[3:], 1e-6)
+    dev = xp.abs((z[..., 3:] - mean) / std) / dmax
     u = xp.sqrt(xp.sum((z[..., :3] - q0) ** 2, axis=-1, keepdims=True)) / max(u_max, 1e-12)
     return xp.concatenate([dev, u], axis=-1)
 
