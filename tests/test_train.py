@@ -262,6 +262,53 @@ def test_unrolled_training_runs_resumes_and_checks_its_length(toy, tmp_path):
         T.train(toy, TINY._replace(unroll=5), tmp_path / "bad", **QUIET)
 
 
+def test_snapshot_loss_is_the_mean_squared_relative_rollout_error(toy):
+    # snapshot_loss: the loss is the mean over steps, samples and (u, v, σ) of |pred − true|² / |true|² at each
+    # snapshot, the square of evaluate.relative_errors' measure, from the model's own states.
+    cfg = TINY._replace(noise=0.0, snapshot_loss=True, deg_weight=0.0)
+    topo, node_type, norm, z, f, weights = _loss_inputs(toy, cfg)
+    rel = jnp.asarray(T.snapshot_weights(toy, np.arange(2))[:, 1:3])
+    loss, metrics = _jit_loss(weights, T.Batch(z[:, 0], f[:, 0:2], z[:, 1:3], rel=rel), jax.random.PRNGKey(0),
+                              norm, cfg, node_type, topo)
+    step = jax.vmap(lambda a, b: M.step_state(weights, cfg.model, norm, a, b, node_type, topo))
+    pred1 = step(z[:, 0], f[:, 0])
+    pred = np.stack([np.asarray(z[:, 0]), np.asarray(pred1), np.asarray(step(pred1, f[:, 1]))], axis=1)
+    from tignn_jax import evaluate as EV
+    err = EV.relative_errors(pred, np.asarray(z[:, :3]), toy.q0)[:, 1:, 1:]     # [cases, 2, (v, σ, u)]
+    expected = np.mean(err[..., [2, 0, 1]] ** 2)
+    assert float(loss) == pytest.approx(expected, rel=1e-4)
+    assert float(metrics["rel2_u"]) == pytest.approx(np.mean(err[..., 2] ** 2), rel=1e-4)
+
+
+def test_bptt_gradient_is_the_derivative_of_the_rollout_loss(toy):
+    # With bptt the gradient of the unrolled loss matches a central finite difference of that loss along a
+    # random direction (float64); the pushforward gradient (each step's input state held constant) does not.
+    cfg = TINY._replace(noise=0.0, unroll=3)
+    with jax.enable_x64(True):
+        topo, node_type, norm, z, f, weights = _loss_inputs(toy, cfg)
+        as64 = lambda t: jax.tree.map(lambda a: jnp.asarray(a, jnp.float64), t)
+        weights, norm = as64(weights), as64(norm)
+        z, f = jnp.asarray(z, jnp.float64), jnp.asarray(f, jnp.float64)
+        batch, key = T.Batch(z[:, 0], f[:, 0:3], z[:, 1:4]), jax.random.PRNGKey(0)
+        leaves, tree = jax.tree_util.tree_flatten(weights)
+        dirs = jax.tree_util.tree_unflatten(tree, [jax.random.normal(jax.random.PRNGKey(i), x.shape, x.dtype)
+                                                   for i, x in enumerate(leaves)])
+
+        def loss_at(eps):
+            w = jax.tree.map(lambda a, d: a + eps * d, weights, dirs)
+            return float(T.loss_fn(w, batch, key, norm, cfg, node_type, topo)[0])
+
+        def directional(c):
+            g = jax.grad(lambda w: T.loss_fn(w, batch, key, norm, c, node_type, topo)[0])(weights)
+            return sum(float(jnp.vdot(a, d)) for a, d in zip(jax.tree.leaves(g), jax.tree.leaves(dirs)))
+
+        h = 1e-5
+        fd = (loss_at(h) - loss_at(-h)) / (2 * h)
+        through, held = directional(cfg._replace(bptt=True)), directional(cfg)
+    assert through == pytest.approx(fd, rel=1e-5)
+    assert abs(held - fd) > 1e-3 * abs(fd)
+
+
 def test_v_weight_is_a_weighted_mean_of_the_feature_mses(toy):
     # loss = the mean of the squared errors with the v entries counted w times (q and v over the free nodes, σ
     # over all) + degeneracy; w = 1 is the plain loss; the reported MSEs do not change with w.
@@ -335,3 +382,24 @@ def test_relative_errors_per_snapshot_and_per_case_peak():
     np.testing.assert_allclose(EV.relative_errors(pred, true, q0, reference="peak")[:, v], [0.25, 0.25, 0.25])
     with pytest.raises(ValueError, match="reference"):
         EV.relative_errors(pred, true, q0, reference="max")
+
+
+def test_a_batch_with_a_non_finite_loss_is_skipped(toy):
+    # The train step leaves weights and optimiser unchanged when a batch's loss is not finite and reports it.
+    cfg = TINY
+    rows = D.split_rows(toy, "train")
+    norm = {k: jnp.asarray(v) for k, v in D.normalization(toy, rows).items()}
+    node_type = jnp.asarray(toy.node_type, jnp.int32)
+    topo = M.topology(toy.edges[0], toy.edges[1], len(toy.q0))
+    z, f = jnp.asarray(toy.z[:2]), jnp.asarray(toy.f[:2])
+    weights = M.init_weights(jax.random.PRNGKey(1), cfg.model, norm, z[0, 0], f[0, 0], node_type, topo)
+    state = {"step": jnp.zeros((), jnp.int32), "weights": weights,
+             "opt_state": T.make_optimizer(cfg, 10).init(weights)}
+    step = T.make_train_step(cfg, 10, norm, node_type, topo)
+    good, m_good = step(state, T.Batch(z[:, 0], f[:, 0], z[:, 1]))
+    bad, m_bad = step(state, T.Batch(z[:, 0], f[:, 0].at[0, 0, 0].set(jnp.nan), z[:, 1]))
+    assert float(m_good["skipped"]) == 0.0 and float(m_bad["skipped"]) == 1.0
+    assert float(m_bad["loss"]) == 0.0
+    np.testing.assert_array_equal(_flat(bad), _flat(state))
+    assert not np.array_equal(_flat(good), _flat(state))
+    assert int(bad["step"]) == 1

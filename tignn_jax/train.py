@@ -43,6 +43,11 @@ class TrainConfig(NamedTuple):
     per-feature increment std; ``eval_every``/``ckpt_every`` are in epochs. ``unroll`` = K > 1 trains on K
     consecutive steps from each sampled state: step j+1 starts from the model's own prediction of step j (held
     constant in the gradient, the "pushforward" trick), so the loss sees the states a rollout visits.
+    ``bptt``: the gradient flows through the K unrolled steps instead (backpropagation through time; each step
+    is rematerialised in the backward pass, so memory grows with K only by one state per step).
+    ``snapshot_loss``: each unrolled step's loss is the squared relative error of u, v and σ over the true
+    snapshot's norm, as ``evaluate.relative_errors`` measures a rollout ("snapshot" reference; a snapshot whose
+    true norm is below 1e-3 of the split's mean is divided by that floor instead).
     ``v_weight``: the squared errors of the velocity features count v_weight times in the loss's mean; the
     reported MSEs stay unweighted. ``val_reference``: how the validation rollout errors (and the score that
     selects the best model) are made relative, "snapshot" (the published measure) or "peak" (over each case's
@@ -77,6 +82,8 @@ class TrainConfig(NamedTuple):
     deg_weight: float = 1.0
     case_weight: float = 0.0
     unroll: int = 1
+    bptt: bool = False
+    snapshot_loss: bool = False
     v_weight: float = 1.0
     seed: int = 0
     eval_every: int = 2
@@ -99,11 +106,27 @@ CONFIGS = {
 
 class Batch(NamedTuple):
     """Stacked transitions: z, z_next [B,N,12]; f [B,N,3]; optional per-sample feature weights w [B,12].
-    For unrolled training f [B,K,N,3] and z_next [B,K,N,12] hold the K steps after z."""
+    For unrolled training f [B,K,N,3] and z_next [B,K,N,12] hold the K steps after z; ``rel`` [B,K,3] are the
+    inverse true squared norms of u, v and σ at those snapshots (``snapshot_loss``)."""
     z: jax.Array
     f: jax.Array
     z_next: jax.Array
     w: jax.Array | None = None
+    rel: jax.Array | None = None
+
+
+GROUPS = np.repeat(np.eye(3, dtype=np.float32), [3, 3, 6], axis=0)   # [12, 3]: state feature -> u, v, σ
+
+
+def snapshot_weights(data: D.Dataset, rows, floor: float = 1e-3) -> np.ndarray:
+    """[len(rows), T+1, 3]: 1 / (squared L2 norm over all nodes of u = q − q0, v, σ) per case and snapshot, each
+    norm floored at ``floor`` × its mean over the cases' snapshots 1..T."""
+    z = np.asarray(data.z[np.asarray(rows)], np.float64)
+    u = z[..., :3] - np.asarray(data.q0, np.float64)
+    e = np.stack([np.sum(u ** 2, axis=(-2, -1)), np.sum(z[..., 3:6] ** 2, axis=(-2, -1)),
+                  np.sum(z[..., 6:] ** 2, axis=(-2, -1))], axis=-1)
+    e = np.maximum(e, floor * e[:, 1:].mean(axis=(0, 1)) + 1e-30)
+    return (1.0 / e).astype(np.float32)
 
 
 def case_weights(data: D.Dataset, rows, power: float) -> np.ndarray:
@@ -146,24 +169,46 @@ def loss_fn(weights, batch: Batch, key, norm, cfg: TrainConfig, node_type, topo)
     z_in = batch.z + jax.random.normal(key, batch.z.shape, batch.z.dtype) * (cfg.noise * c) * keep
     to_unit = s / c
     denom = batch.z.shape[0] * jnp.sum(keep, axis=0)
-    sq_sum, deg_sum = 0.0, 0.0
     n_steps = f_seq.shape[1]
-    for j in range(n_steps):
-        target = (z_seq[:, j] - z_in) / s
-        rt = jax.vmap(lambda z, f: M.rates(weights, cfg.model, norm, z, f, node_type, topo))(z_in, f_seq[:, j])
-        sq = ((rt.dw - target) * to_unit) ** 2 * keep
+    rel_seq = batch.rel if batch.rel is not None else jnp.zeros(f_seq.shape[:2] + (3,), batch.z.dtype)
+
+    # bptt: a step's increment is bounded at 100 increment stds per feature before it feeds the next step, so
+    # a rollout that blows up gives a large, finite loss (bounded entries pass no gradient)
+    lim = 100.0 / to_unit
+    dw_bounded = (lambda dw: jnp.clip(dw, -lim, lim)) if cfg.bptt else (lambda dw: dw)
+
+    def one_step(z_in, xs):
+        f_j, z_true, rel_j = xs
+        target = (z_true - z_in) / s
+        rt = jax.vmap(lambda z, f: M.rates(weights, cfg.model, norm, z, f, node_type, topo))(z_in, f_j)
+        dw = dw_bounded(rt.dw)
+        sq = ((dw - target) * to_unit) ** 2 * keep
         if batch.w is not None:
             sq = sq * batch.w[:, None, :]
-        sq_sum = sq_sum + jnp.sum(sq, axis=(0, 1))
-        deg_sum = deg_sum + jnp.mean((rt.deg_l * to_unit) ** 2 + (rt.deg_m * to_unit) ** 2)
-        z_in = jax.lax.stop_gradient(z_in + rt.dw * s)
+        err2 = jnp.sum(((dw - target) * s) ** 2 * keep, axis=1) @ GROUPS   # [B, 3] squared state errors
+        rel = jnp.mean(err2 * rel_j, axis=0)                                   # [3] mean squared relative error
+        deg = jnp.mean((rt.deg_l * to_unit) ** 2 + (rt.deg_m * to_unit) ** 2)
+        z_next = z_in + dw * s
+        if not cfg.bptt:
+            z_next = jax.lax.stop_gradient(z_next)
+        return z_next, (jnp.sum(sq, axis=(0, 1)), deg, rel)
+
+    body = jax.checkpoint(one_step) if cfg.bptt else one_step
+    _, (sq_steps, deg_steps, rel_steps) = jax.lax.scan(
+        body, z_in, (jnp.swapaxes(f_seq, 0, 1), jnp.swapaxes(z_seq, 0, 1), jnp.swapaxes(rel_seq, 0, 1)))
+    sq_sum, deg_sum, rel_mean = jnp.sum(sq_steps, axis=0), jnp.sum(deg_steps), jnp.mean(rel_steps, axis=0)
     per_feature = sq_sum / (denom * n_steps)
     data_loss = jnp.sum(sq_sum) / (jnp.sum(denom) * n_steps)
     deg = deg_sum / n_steps
     fw = jnp.ones(M.STATE_DIM, sq_sum.dtype).at[3:6].set(cfg.v_weight)   # v counts v_weight times (1: data_loss)
-    loss = jnp.sum(sq_sum * fw) / (jnp.sum(denom * fw) * n_steps) + cfg.deg_weight * deg
+    if cfg.snapshot_loss:
+        loss = jnp.mean(rel_mean) + cfg.deg_weight * deg
+    else:
+        loss = jnp.sum(sq_sum * fw) / (jnp.sum(denom * fw) * n_steps) + cfg.deg_weight * deg
     metrics = {"loss": loss, "mse": data_loss, "degeneracy": deg, "mse_q": per_feature[:3].mean(),
                "mse_v": per_feature[3:6].mean(), "mse_sigma": per_feature[6:].mean()}
+    if batch.rel is not None:
+        metrics.update(rel2_u=rel_mean[0], rel2_v=rel_mean[1], rel2_sigma=rel_mean[2])
     return loss, metrics
 
 
@@ -181,6 +226,14 @@ def _train_step(state, batch, norm, node_type, topo, cfg, total_steps):
         state["weights"], batch, key, norm, cfg, node_type, topo)
     updates, opt_state = optimizer.update(grads, state["opt_state"], state["weights"])
     weights = optax.apply_updates(state["weights"], updates)
+    # a batch whose loss or gradient is not finite (an unrolled rollout that blew up) leaves the weights and the
+    # optimiser as they were; its metrics count as 0 and it is reported in "skipped"
+    finite = jnp.isfinite(metrics["loss"]) & jnp.all(jnp.array([jnp.all(jnp.isfinite(g))
+                                                                for g in jax.tree.leaves(grads)]))
+    keep = lambda new, old: jax.tree.map(lambda a, b: jnp.where(finite, a, b), new, old)
+    weights, opt_state = keep(weights, state["weights"]), keep(opt_state, state["opt_state"])
+    metrics = {k: jnp.where(finite, v, 0.0) for k, v in metrics.items()}
+    metrics["skipped"] = 1.0 - finite.astype(jnp.float32)
     return {"step": state["step"] + 1, "weights": weights, "opt_state": opt_state}, metrics
 
 
@@ -264,6 +317,7 @@ def train(data: D.Dataset, cfg: TrainConfig, run_dir: str | Path, train_split="t
 
     z_train, f_train = data.z[rows], data.f[rows]
     w_train = case_weights(data, rows, cfg.case_weight) if cfg.case_weight > 0 else None
+    rel_train = snapshot_weights(data, rows) if cfg.snapshot_loss else None
     last_epoch = cfg.epochs if stop_after_epoch is None else min(cfg.epochs, stop_after_epoch)
     t_start = time.time()
     elapsed_before = _elapsed(run_dir)
@@ -278,13 +332,16 @@ def train(data: D.Dataset, cfg: TrainConfig, run_dir: str | Path, train_split="t
             r, k = idx // starts, idx % starts
             ahead = k[:, None] + np.arange(unroll)[None, :]   # [B, K] frames of the unrolled steps
             batch = Batch(z_train[r, k], f_train[r[:, None], ahead], z_train[r[:, None], ahead + 1],
-                          None if w_train is None else w_train[r])
+                          None if w_train is None else w_train[r],
+                          None if rel_train is None else rel_train[r[:, None], ahead + 1])
             batch = jax.device_put(batch, batch_sharding)
             state, metrics = train_step(state, batch)
             for name, val in metrics.items():
                 sums[name] = sums.get(name, 0.0) + val
+        skipped = int(round(float(sums.pop("skipped"))))
+        used = max(steps_per_epoch - skipped, 1)
         record = {"epoch": epoch + 1, "step": int(state["step"]),
-                  **{k: float(v) / steps_per_epoch for k, v in sums.items()},
+                  **{k: float(v) / used for k, v in sums.items()}, "skipped": skipped,
                   "epoch_s": time.time() - t0, "elapsed_s": elapsed_before + time.time() - t_start}
         done = epoch + 1 == last_epoch or (time_limit_s is not None and time.time() - t_start > time_limit_s)
         if val_rows is not None and ((epoch + 1) % cfg.eval_every == 0 or done):
