@@ -278,6 +278,8 @@ def test_snapshot_loss_is_the_mean_squared_relative_rollout_error(toy):
     expected = np.mean(err[..., [2, 0, 1]] ** 2)
     assert float(loss) == pytest.approx(expected, rel=1e-4)
     assert float(metrics["rel2_u"]) == pytest.approx(np.mean(err[..., 2] ** 2), rel=1e-4)
+    with pytest.raises(ValueError, match="snapshot_loss needs"):
+        T.loss_fn(weights, T.Batch(z[:, 0], f[:, 0:2], z[:, 1:3]), jax.random.PRNGKey(0), norm, cfg, node_type, topo)
 
 
 def test_bptt_gradient_is_the_derivative_of_the_rollout_loss(toy):

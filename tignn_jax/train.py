@@ -47,7 +47,7 @@ class TrainConfig(NamedTuple):
     is rematerialised in the backward pass, so memory grows with K only by one state per step).
     ``snapshot_loss``: each unrolled step's loss is the squared relative error of u, v and σ over the true
     snapshot's norm, as ``evaluate.relative_errors`` measures a rollout ("snapshot" reference; a snapshot whose
-    true norm is below 1e-3 of the split's mean is divided by that floor instead).
+    true squared norm is below 1e-3 of the training split's mean is divided by that floor instead).
     ``v_weight``: the squared errors of the velocity features count v_weight times in the loss's mean; the
     reported MSEs stay unweighted. ``val_reference``: how the validation rollout errors (and the score that
     selects the best model) are made relative, "snapshot" (the published measure) or "peak" (over each case's
@@ -170,6 +170,8 @@ def loss_fn(weights, batch: Batch, key, norm, cfg: TrainConfig, node_type, topo)
     to_unit = s / c
     denom = batch.z.shape[0] * jnp.sum(keep, axis=0)
     n_steps = f_seq.shape[1]
+    if cfg.snapshot_loss and batch.rel is None:
+        raise ValueError("snapshot_loss needs the batch's inverse snapshot norms (Batch.rel, see snapshot_weights)")
     rel_seq = batch.rel if batch.rel is not None else jnp.zeros(f_seq.shape[:2] + (3,), batch.z.dtype)
 
     # bptt: a step's increment is bounded at 100 increment stds per feature before it feeds the next step, so
