@@ -23,6 +23,13 @@ VARIABLES = ("q", "v", "sigma", "u")
 PUBLISHED_TEST = {"q": 4.14e-3, "v": 1.72e-2, "sigma": 9.51e-2, "u": 7.07e-2}
 
 
+def variable(states, q0, name: str):
+    """One of ``VARIABLES`` from states [..., N, 12]: q, v, sigma, or the displacement u = q − q0."""
+    if name == "u":
+        return states[..., :3] - q0
+    return states[..., {"q": D.Q, "v": D.V, "sigma": D.SIGMA}[name]]
+
+
 def relative_errors(pred, true, q0, mask=None, reference: str = "snapshot") -> np.ndarray:
     """Per-snapshot relative L2 errors [..., T+1, 4] (q, v, sigma, u) of states pred, true [..., T+1, N, 12].
 
@@ -38,11 +45,7 @@ def relative_errors(pred, true, q0, mask=None, reference: str = "snapshot") -> n
         pred, true, q0 = pred[..., mask, :], true[..., mask, :], np.asarray(q0)[mask]
     out = []
     for name in VARIABLES:
-        if name == "u":
-            p, t = pred[..., :3] - q0, true[..., :3] - q0
-        else:
-            sl = {"q": D.Q, "v": D.V, "sigma": D.SIGMA}[name]
-            p, t = pred[..., sl], true[..., sl]
+        p, t = variable(pred, q0, name), variable(true, q0, name)
         num = np.sum((p - t) ** 2, axis=(-2, -1))
         den = np.sum(t ** 2, axis=(-2, -1))
         if reference == "peak":

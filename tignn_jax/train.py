@@ -34,6 +34,7 @@ from jax.sharding import Mesh, NamedSharding, PartitionSpec as P
 
 from tignn_jax import api
 from tignn_jax import data as D
+from tignn_jax import evaluate as EV
 from tignn_jax import model as M
 
 
@@ -121,10 +122,8 @@ GROUPS = np.repeat(np.eye(3, dtype=np.float32), [3, 3, 6], axis=0)   # [12, 3]: 
 def snapshot_weights(data: D.Dataset, rows, floor: float = 1e-3) -> np.ndarray:
     """[len(rows), T+1, 3]: 1 / (squared L2 norm over all nodes of u = q − q0, v, σ) per case and snapshot, each
     norm floored at ``floor`` × its mean over the cases' snapshots 1..T."""
-    z = np.asarray(data.z[np.asarray(rows)], np.float64)
-    u = z[..., :3] - np.asarray(data.q0, np.float64)
-    e = np.stack([np.sum(u ** 2, axis=(-2, -1)), np.sum(z[..., 3:6] ** 2, axis=(-2, -1)),
-                  np.sum(z[..., 6:] ** 2, axis=(-2, -1))], axis=-1)
+    z, q0 = np.asarray(data.z[np.asarray(rows)], np.float64), np.asarray(data.q0, np.float64)
+    e = np.stack([np.sum(EV.variable(z, q0, name) ** 2, axis=(-2, -1)) for name in ("u", "v", "sigma")], axis=-1)
     e = np.maximum(e, floor * e[:, 1:].mean(axis=(0, 1)) + 1e-30)
     return (1.0 / e).astype(np.float32)
 
@@ -184,10 +183,11 @@ def loss_fn(weights, batch: Batch, key, norm, cfg: TrainConfig, node_type, topo)
         target = (z_true - z_in) / s
         rt = jax.vmap(lambda z, f: M.rates(weights, cfg.model, norm, z, f, node_type, topo))(z_in, f_j)
         dw = dw_bounded(rt.dw)
-        sq = ((dw - target) * to_unit) ** 2 * keep
+        miss = dw - target                                                 # state error / s
+        sq = (miss * to_unit) ** 2 * keep
         if batch.w is not None:
             sq = sq * batch.w[:, None, :]
-        err2 = jnp.sum(((dw - target) * s) ** 2 * keep, axis=1) @ GROUPS   # [B, 3] squared state errors
+        err2 = jnp.sum((miss * s) ** 2 * keep, axis=1) @ GROUPS            # [B, 3] squared state errors
         rel = jnp.mean(err2 * rel_j, axis=0)                                   # [3] mean squared relative error
         deg = jnp.mean((rt.deg_l * to_unit) ** 2 + (rt.deg_m * to_unit) ** 2)
         z_next = z_in + dw * s
@@ -259,8 +259,6 @@ def train(data: D.Dataset, cfg: TrainConfig, run_dir: str | Path, train_split="t
     fine-tuned into ``exact_degeneracy``)."""
     import orbax.checkpoint as ocp
     from tqdm import tqdm
-
-    from tignn_jax import evaluate as EV
 
     run_dir = Path(run_dir).resolve()
     run_dir.mkdir(parents=True, exist_ok=True)
