@@ -204,3 +204,57 @@ def _inversion(arr: sv.Arrays, u_all, t):
 
 
 _run = jax.jit(_run_impl, static_argnames=("cfg", "n_sub", "tol", "max_newton", "cg_tol", "max_cg"))
+
+
+class RestLinearization(NamedTuple):
+    """The linear dynamics of a scene about its rest state, as sparse node blocks (numpy, float64).
+
+    K₀ = ∂f_int/∂u at u = 0 ([N·3]² stiffness; ``k_rows``, ``k_cols`` [B] node pairs with ``k_blocks`` [B,3,3],
+    block (a, b) = ∂f_a/∂u_b, symmetrised); S₀ = ∂σ/∂u at u = 0, the nodal Cauchy stress the data store
+    (``s_rows``, ``s_cols`` [B'] with ``s_blocks`` [B',6,3], Voigt order S11 S22 S33 S12 S13 S23); ``mass`` [N]
+    lumped nodal masses; ``alpha`` the Rayleigh mass-damping coefficient; ``free`` [N] bool. Node pairs whose
+    block is below 1e-9 of the largest entry are dropped. About the rest state the frame dynamics are
+    u̇ = v, M v̇ = f − K₀u − αMv, σ̇ = S₀v."""
+    k_rows: np.ndarray
+    k_cols: np.ndarray
+    k_blocks: np.ndarray
+    s_rows: np.ndarray
+    s_cols: np.ndarray
+    s_blocks: np.ndarray
+    mass: np.ndarray
+    alpha: float
+    free: np.ndarray
+
+
+def rest_linearization(problem: sv.Problem, material: Material, chunk: int = 128) -> RestLinearization:
+    """`RestLinearization` of an elastic scene: the columns of K₀ and S₀ by one `jax.jvp` per degree of freedom
+    (``chunk`` at a time) of the internal force and the nodal stress together, in the problem's precision."""
+    check_scope(problem, material)
+    arr, cfg = problem.arrays, problem.config
+    n = arr.points.shape[0]
+    force = _force_fn(arr, material, cfg, sv._hourglass_for(arr, material, cfg))
+    stress = lambda u: sv._nodal_stress(arr, sv._element_stress(arr, material, u, (), cfg))
+    u0 = jnp.zeros((n, 3), arr.points.dtype)
+    cols = jax.jit(jax.vmap(lambda d: jax.jvp(lambda u: (force(u), stress(u)), (u0,), (d.reshape(n, 3),))[1]))
+    eye = np.eye(3 * n, dtype=np.asarray(u0).dtype)
+    kc, sc = [], []
+    for s in range(0, 3 * n, chunk):
+        k_, s_ = cols(jnp.asarray(eye[s:s + chunk]))
+        kc.append(np.asarray(k_, np.float64))
+        sc.append(np.asarray(s_, np.float64))
+    # column 3b + j holds ∂(out_a)_i/∂u_bj at [a, i]: reorder to blocks [a, b, i, j]
+    K = np.concatenate(kc).reshape(n, 3, n, 3).transpose(2, 0, 3, 1)
+    K = 0.5 * (K + K.transpose(1, 0, 3, 2))   # a Hessian: symmetrise the float32 rounding
+    S = np.concatenate(sc).reshape(n, 3, n, 6).transpose(2, 0, 3, 1)
+    k_rows, k_cols, k_blocks = _blocks(K)
+    s_rows, s_cols, s_blocks = _blocks(S)
+    mass = np.asarray(sv.lumped_mass(problem, material), np.float64)
+    return RestLinearization(k_rows, k_cols, k_blocks, s_rows, s_cols, s_blocks, mass,
+                             float(arr.damping_alpha), np.asarray(arr.free[:, 0]) > 0)
+
+
+def _blocks(dense, rtol: float = 1e-9):
+    """(rows, cols, blocks) of the node pairs of a [N, N, i, j] block matrix whose block is not negligible."""
+    size = np.abs(dense).max(axis=(2, 3))
+    rows, cols = np.nonzero(size > rtol * size.max())
+    return rows.astype(np.int32), cols.astype(np.int32), dense[rows, cols]

@@ -21,6 +21,7 @@ import jraph
 import numpy as np
 from flax import traverse_util
 
+from tignn_jax import framesolve as FS
 from tignn_jax import graph as G
 from tignn_jax import model as M
 
@@ -239,6 +240,10 @@ def load_pretrained(name: str = "beam-abaqus"):
 def make_params(config: M.ModelConfig, norm: dict, weights, q0, edges, node_type) -> dict:
     """Bundle a model: architecture, normalisation, weights and its mesh."""
     edges = np.asarray(edges)
+    if config.linear_prior and not config.frame_solve:
+        raise ValueError("linear_prior needs frame_solve (forward Euler on the stiff rest dynamics is unstable)")
+    if config.frame_solve:
+        norm = FS.with_inverse(norm, node_type)   # the dense A₀⁻¹ of the W-method step, built once per model
     return {
         "config": dict(config._asdict()),
         "norm": {k: jnp.asarray(v, jnp.float32) for k, v in norm.items()},
@@ -255,7 +260,8 @@ def save_model(params: dict, path: str | Path, info: dict | None = None) -> Path
     path.parent.mkdir(parents=True, exist_ok=True)
     arrays = {f"weights/{k}": np.asarray(v, np.float32)
               for k, v in traverse_util.flatten_dict(jax.device_get(params["weights"]), sep="/").items()}
-    arrays.update({f"norm/{k}": np.asarray(v, np.float32) for k, v in params["norm"].items()})
+    arrays.update({f"norm/{k}": np.asarray(v, np.float32) for k, v in params["norm"].items()
+                   if k not in FS.DERIVED})
     arrays.update({f"mesh/{k}": np.asarray(v) for k, v in params["mesh"].items()})
     arrays["config"] = np.array(json.dumps(params["config"]))
     arrays["info"] = np.array(json.dumps(info or {}))

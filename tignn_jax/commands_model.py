@@ -50,9 +50,13 @@ def _train(args) -> int:
         kind = type(getattr(cfg, key))
         cfg = cfg._replace(**{key: value.lower() in ("1", "true", "yes") if kind is bool else kind(value)})
     data = D.load(args.data)
+    frame_ops = None
+    if cfg.frame_solve and not args.init_from:
+        from tignn_jax import framesolve as FS
+        frame_ops = FS.operators_cached(args.data, Path(args.run_dir) / "frame_ops.npz")
     T.train(data, cfg, args.run_dir, train_split=D.parse_split(args.split),
             val_split=D.parse_split(args.val) if args.val else None, time_limit_s=args.time_limit,
-            progress=not args.no_progress, init_from=args.init_from)
+            progress=not args.no_progress, init_from=args.init_from, frame_ops=frame_ops)
     print(f"run folder: {Path(args.run_dir).resolve()}")
     return 0
 

@@ -165,8 +165,12 @@ def parse_split(text: str) -> str | list[int]:
     return text
 
 
-def normalization(data: Dataset, rows: np.ndarray) -> dict:
+def normalization(data: Dataset, rows: np.ndarray, increments=None) -> dict:
     """Per-feature statistics of the rows' cases (the training split), float32 numpy arrays.
+
+    ``increments`` [C,T,N,12] (the rows' cases): what the model's step must produce per frame, where that is not
+    z[k+1] − z[k] (the W-method targets of ``ModelConfig.frame_solve``); dz_std, port_gain and spring_k are
+    taken from them.
 
     z_mean, z_std [12]: node state; dz_std [12]: per-frame increment z[k+1]-z[k] of free nodes' q, v and all
     nodes' stress (the output scale); f_std [3]: RMS of the nodal forces that are not zero (a load on a few
@@ -190,7 +194,9 @@ def normalization(data: Dataset, rows: np.ndarray) -> dict:
     dq = z[..., s, :3] - z[..., r, :3]
     dqn = np.linalg.norm(dq, axis=-1)
     free = data.node_type == 0
-    dz = z[:, 1:] - z[:, :-1]
+    dz = z[:, 1:] - z[:, :-1] if increments is None else np.asarray(increments, np.float64)
+    if dz.shape != z[:, 1:].shape:
+        raise ValueError(f"increments must have the shape {z[:, 1:].shape} of the rows' transitions, got {dz.shape}")
     flat = z.reshape(-1, STATE_DIM)
     z_std = np.concatenate([_iso(flat[:, :3] - flat[:, :3].mean(0)), _iso(flat[:, 3:6] - flat[:, 3:6].mean(0)),
                             _floored(flat[:, 6:].std(0))])
@@ -215,10 +221,10 @@ def normalization(data: Dataset, rows: np.ndarray) -> dict:
         dt=np.array([data.dt]),
     )
     stats.update(envelope(z, data.q0, stats["z_mean"], stats["z_std"]))
-    gain = _rest_start_gain(z, f)
+    gain = _rest_start_gain(z, f, dz)
     if gain is not None:
         stats["port_gain"] = np.array([gain])
-        k = _spring_constant(z, f, data.q0, data.edges, free, gain)
+        k = _spring_constant(z, f, dz, data.q0, data.edges, free, gain)
         if k is not None:
             stats["spring_k"] = np.array([k])
     return {k: np.asarray(v, np.float32) for k, v in stats.items()}
@@ -236,18 +242,18 @@ def envelope(z, q0, z_mean, z_std) -> dict:
     return {"z_dev_max": dev.max(0), "u_max": np.array([u.max()])}
 
 
-def _rest_start_gain(z, f) -> float | None:
+def _rest_start_gain(z, f, dz) -> float | None:
     """Σ Δv·f / Σ f·f over the loaded nodes of the first frame of the cases that start at rest (v = 0) under a
     nonzero load; None where there are none or the ratio is not positive."""
     at_rest = np.all(z[:, 0, :, 3:6] == 0, axis=(1, 2)) & np.any(f[:, 0] != 0, axis=(1, 2))
     if not at_rest.any():
         return None
-    dv, f0 = z[at_rest, 1, :, 3:6] - z[at_rest, 0, :, 3:6], f[at_rest, 0]
+    dv, f0 = dz[at_rest, 0, :, 3:6], f[at_rest, 0]
     ratio = float(np.sum(dv * f0) / np.sum(f0 * f0))
     return ratio if np.isfinite(ratio) and ratio > 0 else None
 
 
-def _spring_constant(z, f, q0, edges, free, gain, max_samples: int = 200) -> float | None:
+def _spring_constant(z, f, dz, q0, edges, free, gain, max_samples: int = 200) -> float | None:
     """k₀ of ``ModelConfig.elastic_port``: the least-squares spring constant of one stiffness on every mesh edge,
     Δv / port_gain − f ≈ k₀ Σ_j (ℓ_ij − ℓ⁰_ij)(q_j − q_i)/ℓ_ij at the free nodes, over up to ``max_samples``
     transitions evenly spread over the cases and frames; None where it is not positive."""
@@ -262,7 +268,7 @@ def _spring_constant(z, f, q0, edges, free, gain, max_samples: int = 200) -> flo
         length = np.linalg.norm(d, axis=-1)
         unit = np.zeros_like(q)
         np.add.at(unit, r, ((length - rest) / np.maximum(length, 1e-12))[:, None] * d)
-        y = (z[c, k + 1, :, 3:6] - z[c, k, :, 3:6]) / gain - f[c, k]
+        y = dz[c, k, :, 3:6] / gain - f[c, k]
         num += float(np.sum(y[free] * unit[free]))
         den += float(np.sum(unit[free] ** 2))
     k0 = num / den if den > 0 else float("nan")

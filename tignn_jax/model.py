@@ -27,6 +27,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from tignn_jax import framesolve as FS
+
 STATE_DIM = 12
 N_L = STATE_DIM * (STATE_DIM - 1) // 2   # 66 strictly-lower entries of l
 N_M = STATE_DIM * (STATE_DIM + 1) // 2   # 78 lower entries of m
@@ -113,7 +115,13 @@ class ModelConfig(NamedTuple):
     first-frame response reached the load's neighbours at 0.5× and the next ring at 0.1–0.5×); P is a
     sparse approximate inverse of that operator, linear in F, so the port stays an input map. Measured there
     (session 13, with elastic_port, 16-wide): val u 0.70 against 0.76 with H = 0; the first-frame response two
-    to three edges out reached with slope 0.60 (32-wide) against 0.12."""
+    to three edges out reached with slope 0.60 (32-wide) against 0.12; frame_solve: step by a W-method whose
+    Jacobian is the rest state's linear dynamics from the FEM, z_{k+1} = z_k + (I − Δt J₀)⁻¹ Δt F (see
+    `tignn_jax.framesolve`): the network models the vector field F, the step answers it with the frame's
+    non-local linear response (needs the rest linearisation in ``norm``, computed from the data file when
+    training); linear_prior (needs frame_solve): F = J₀ z + B f + the network's GENERIC rate, so an untrained
+    model is the FEM's linearised backward-Euler frame map and the network learns what the rest linearisation
+    misses."""
     hidden: int = 32
     mlp_layers: int = 2
     passes: int = 4
@@ -134,6 +142,8 @@ class ModelConfig(NamedTuple):
     node_embedding: int = 0
     elastic_port: bool = False
     port_hops: int = 0
+    frame_solve: bool = False
+    linear_prior: bool = False
 
 
 SPRING_HIDDEN = 16     # width of elastic_port's stiffness MLP ψ
@@ -155,9 +165,20 @@ class Rates(NamedTuple):
 
 
 def step_state(weights, config: ModelConfig, norm: dict, z, f, node_type, topo):
-    """One forward-Euler step: z [N,12], f [N,3] (force during the step), node_type [N] → z_next [N,12]."""
+    """One step (forward Euler, or the W-method of ``frame_solve``): z [N,12], f [N,3] (force during the step),
+    node_type [N] → z_next [N,12]."""
     dw, _, _, _ = _generic(weights, config, norm, z, f, node_type, topo)
-    return z + dw * state_scale(norm)
+    return z + increment(config, norm, dw, z, f, node_type, topo)
+
+
+def increment(config: ModelConfig, norm: dict, dw, z, f, node_type, topo):
+    """The state increment [N,12] of a step from z under f whose network increment is ``dw`` (the GENERIC
+    rate's forward-Euler increment in scaled coordinates): dw · s, or with ``frame_solve`` the W-method's
+    W⁻¹(dw · s), to which ``linear_prior`` adds the rest linearisation's rate inside the solve."""
+    e = dw * state_scale(norm)
+    if config.linear_prior:
+        return FS.prior_step(norm, z, f, e, node_type, topo.x0)
+    return FS.solve(norm, e, node_type) if config.frame_solve else e
 
 
 def rates(weights, config: ModelConfig, norm: dict, z, f, node_type, topo) -> Rates:
@@ -1029,4 +1050,6 @@ class Network(nn.Module):
                                         c.coarse_nodes if c.coarse_mixing else 0, name=f"coarse_{p}")(
                     h, x_coarse, topo.coarse))
             h = h + MLP(hid, hid, c.mlp_layers, c.activation)(jnp.concatenate(parts, axis=1))
-        return MLP(hid, 2 + N_L + N_M + int(c.force_port), c.mlp_layers, c.activation, out_scale=0.1, split=2)(h)
+        # with linear_prior the network is a correction: it starts small, so training starts from the prior's map
+        return MLP(hid, 2 + N_L + N_M + int(c.force_port), c.mlp_layers, c.activation,
+                   out_scale=0.01 if c.linear_prior else 0.1, split=2)(h)

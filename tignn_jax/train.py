@@ -35,6 +35,7 @@ from jax.sharding import Mesh, NamedSharding, PartitionSpec as P
 from tignn_jax import api
 from tignn_jax import data as D
 from tignn_jax import evaluate as EV
+from tignn_jax import framesolve as FS
 from tignn_jax import model as M
 
 
@@ -73,6 +74,8 @@ class TrainConfig(NamedTuple):
     node_embedding: int = 0
     elastic_port: bool = False
     port_hops: int = 0
+    frame_solve: bool = False
+    linear_prior: bool = False
     lr: float = 3e-3
     lr_end: float = 2e-5
     weight_decay: float = 1e-6
@@ -178,19 +181,22 @@ def loss_fn(weights, batch: Batch, key, norm, cfg: TrainConfig, node_type, topo)
     lim = 100.0 / to_unit
     dw_bounded = (lambda dw: jnp.clip(dw, -lim, lim)) if cfg.bptt else (lambda dw: dw)
 
+    # frame_solve: the step is z + W⁻¹(dw s); its error is measured on the state, over the state increments'
+    # scale (the network's output scale s is that of W Δz, whose stiff components the solve all but removes)
+    step_of = jax.vmap(lambda dw, z, f: M.increment(cfg.model, norm, dw, z, f, node_type, topo))
+    state_unit = norm["fs_dz_std"] if cfg.frame_solve else c
+
     def one_step(z_in, xs):
         f_j, z_true, rel_j = xs
-        target = (z_true - z_in) / s
         rt = jax.vmap(lambda z, f: M.rates(weights, cfg.model, norm, z, f, node_type, topo))(z_in, f_j)
         dw = dw_bounded(rt.dw)
-        miss = dw - target                                                 # state error / s
-        sq = (miss * to_unit) ** 2 * keep
+        z_next = z_in + (step_of(dw, z_in, f_j) if cfg.frame_solve else dw * s)
+        sq = ((z_next - z_true) / state_unit) ** 2 * keep
         if batch.w is not None:
             sq = sq * batch.w[:, None, :]
-        err2 = jnp.sum((miss * s) ** 2 * keep, axis=1) @ GROUPS            # [B, 3] squared state errors
+        err2 = jnp.sum((z_next - z_true) ** 2 * keep, axis=1) @ GROUPS      # [B, 3] squared state errors
         rel = jnp.mean(err2 * rel_j, axis=0)                                   # [3] mean squared relative error
         deg = jnp.mean((rt.deg_l * to_unit) ** 2 + (rt.deg_m * to_unit) ** 2)
-        z_next = z_in + dw * s
         if not cfg.bptt:
             z_next = jax.lax.stop_gradient(z_next)
         return z_next, (jnp.sum(sq, axis=(0, 1)), deg, rel)
@@ -247,7 +253,7 @@ def data_mesh(devices=None) -> Mesh:
 
 def train(data: D.Dataset, cfg: TrainConfig, run_dir: str | Path, train_split="train", val_split="val",
           stop_after_epoch: int | None = None, time_limit_s: float | None = None, devices=None,
-          progress: bool = True, log=print, init_from: str | Path | None = None) -> dict:
+          progress: bool = True, log=print, init_from: str | Path | None = None, frame_ops=None) -> dict:
     """Train (or resume from ``run_dir``'s latest checkpoint) and return the final model params.
 
     Writes ``run_dir``/metrics.jsonl (one line per epoch), checkpoints/ (orbax), best/model.npz (lowest
@@ -256,7 +262,8 @@ def train(data: D.Dataset, cfg: TrainConfig, run_dir: str | Path, train_split="t
     interruption would; the schedule still spans ``cfg.epochs``. ``init_from`` (a model.npz or a run folder
     with best/model.npz) starts from that model's weights and normalisation instead of a random draw and the
     data's statistics; its architecture must match ``cfg`` (up to the ``WEIGHT_FREE`` options, e.g. a model
-    fine-tuned into ``exact_degeneracy``)."""
+    fine-tuned into ``exact_degeneracy``). ``frame_ops``: the `fem.implicit.RestLinearization` of the data's
+    scene, needed by ``frame_solve`` (`framesolve.operators_from_file`; a warm start reuses its parent's)."""
     import orbax.checkpoint as ocp
     from tqdm import tqdm
 
@@ -269,9 +276,23 @@ def train(data: D.Dataset, cfg: TrainConfig, run_dir: str | Path, train_split="t
     (run_dir / "config.json").write_text(json.dumps(record_cfg, indent=1))
     rows = D.split_rows(data, train_split)
     val_rows = D.split_rows(data, val_split) if val_split else None
-    norm_np = D.normalization(data, rows)
+    if cfg.linear_prior and not cfg.frame_solve:
+        raise ValueError("linear_prior needs frame_solve (forward Euler on the stiff rest dynamics is unstable)")
+    if cfg.frame_solve:
+        if frame_ops is None and (parent is None or "fs_k" not in parent["norm"]):
+            raise ValueError("frame_solve needs the rest linearisation of the data's scene: pass "
+                             "frame_ops=framesolve.operators_from_file(data_path)")
+        ops = FS.norm_entries(frame_ops) if frame_ops is not None else {k: parent["norm"][k] for k in FS.KEYS}
+        ops["dt"] = np.array([data.dt], np.float32)
+        norm_np = D.normalization(data, rows, increments=FS.increments(ops, data.z[rows], data.node_type))
+        norm_np.update({k: np.asarray(v, np.float32) for k, v in ops.items()})
+        norm_np["fs_dz_std"] = D.normalization(data, rows)["dz_std"]   # the state increments' scale (the loss's)
+    else:
+        norm_np = D.normalization(data, rows)
     if parent is not None:   # the parent's scales are part of the function its weights compute: keep them
         norm_np.update(parent["norm"])
+    if cfg.frame_solve:
+        norm_np = FS.with_inverse(norm_np, data.node_type)
     norm = {k: jnp.asarray(v) for k, v in norm_np.items()}
     node_type = jnp.asarray(data.node_type, jnp.int32)
     topo = M.model_topology(cfg.model, data.edges[0], data.edges[1], len(data.node_type), data.q0)

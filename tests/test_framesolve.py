@@ -1,0 +1,167 @@
+"""The frame_solve integrator and the linear_prior: the FEM's rest linearisation against `jax.jvp`, the W
+transform and its inverse, the untrained prior model against the linear backward-Euler recurrence and the
+implicit FEM, training, saving and the errors for bad use."""
+import json
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import fem
+from fem import implicit
+from fem.generate import run_cases
+from fem.meshes import mesh_edges
+from fem.scenes import Scene
+from tignn_jax import api
+from tignn_jax import data as D
+from tignn_jax import evaluate as EV
+from tignn_jax import framesolve as FS
+from tignn_jax import model as M
+from tignn_jax import train as T
+
+H, FRAMES, ALPHA = 0.05, 8, 2.0
+MATERIAL = dict(c10=0.26, c01=0.0, d1=0.049, density=1e-3)   # the bunny's material and data density
+
+
+def _scene():
+    pts, cells = fem.box_hex_mesh((6.0, 2.0, 2.0), (6, 2, 2))
+    cells = fem.hex_to_tet(cells)
+    node_type = (pts[:, 0] < 1e-9).astype(np.int8)
+    return Scene("bar", pts, cells, "tetra", mesh_edges(cells), node_type, fem.mooney_rivlin(**MATERIAL), H,
+                 FRAMES, ALPHA, "linear")
+
+
+def _problem(scene):
+    return fem.setup(scene.points, scene.cells, material=scene.material, frame_dt=H, n_frames=FRAMES,
+                     clamped=np.where(scene.node_type == 1)[0], damping=ALPHA, load_interp="linear", n_sub=1)
+
+
+@pytest.fixture(scope="module")
+def bar_data(tmp_path_factory):
+    """Six implicit runs of a clamped tet bar under small tip loads (the linear regime), as a data-set file."""
+    scene = _scene()
+    problem = _problem(scene)
+    rng = np.random.default_rng(0)
+    tip = np.where(scene.points[:, 0] > 6.0 - 1e-9)[0]
+    forces = np.zeros((6, FRAMES, len(scene.points), 3))
+    ramp = np.minimum(np.arange(1, FRAMES + 1) / 4.0, 1.0)
+    for c in range(6):
+        forces[c][:, tip] = 2e-3 * rng.normal(size=3) * ramp[:, None, None] / len(tip)
+    out = tmp_path_factory.mktemp("fs") / "bar.npz"
+    run_cases(scene, problem, forces, out, progress=False, velocity="solver", integrator="implicit",
+              metadata={"scene": "bar"})
+    return out
+
+
+def test_rest_linearization_matches_jvp():
+    scene = _scene()
+    problem = _problem(scene)
+    lin = implicit.rest_linearization(problem, scene.material)
+    norm = {k: jnp.asarray(v) for k, v in FS.norm_entries(lin).items()}
+    n = len(scene.points)
+    d = jnp.asarray(np.random.default_rng(1).normal(size=(n, 3)), jnp.float32)
+    force = implicit._force_fn(problem.arrays, scene.material, problem.config,
+                               fem.solver._hourglass_for(problem.arrays, scene.material, problem.config))
+    stress = lambda u: fem.solver._nodal_stress(problem.arrays, fem.solver._element_stress(
+        problem.arrays, scene.material, u, (), problem.config))
+    u0 = jnp.zeros((n, 3), jnp.float32)
+    k_ref = jax.jvp(force, (u0,), (d,))[1]
+    s_ref = jax.jvp(stress, (u0,), (d,))[1]
+    assert float(jnp.abs(FS.apply_k(norm, d) - k_ref).max()) < 1e-4 * float(jnp.abs(k_ref).max())
+    assert float(jnp.abs(FS.apply_s(norm, d) - s_ref).max()) < 1e-4 * float(jnp.abs(s_ref).max())
+    K = np.zeros((n, n, 3, 3))
+    K[lin.k_rows, lin.k_cols] = lin.k_blocks
+    K = K.transpose(0, 2, 1, 3).reshape(3 * n, 3 * n)
+    assert np.abs(K - K.T).max() <= 1e-12 * np.abs(K).max()
+    np.testing.assert_allclose(lin.mass.sum(), MATERIAL["density"] * 6.0 * 2.0 * 2.0, rtol=1e-5)
+    assert lin.alpha == ALPHA and lin.free.sum() == n - (scene.node_type == 1).sum()
+
+
+def _ops(path):
+    lin = FS.operators_from_file(path)
+    data = D.load(path)
+    norm = {k: jnp.asarray(v, jnp.float32) for k, v in FS.norm_entries(lin).items()}
+    norm["dt"] = jnp.asarray([data.dt], jnp.float32)
+    return data, lin, norm
+
+
+def test_solve_inverts_forward(bar_data):
+    data, _, norm = _ops(bar_data)
+    norm = {**norm, "fs_ainv": jnp.asarray(FS.inverse(norm, data.node_type))}
+    nt = jnp.asarray(data.node_type)
+    dz = jnp.asarray(np.random.default_rng(2).normal(size=(len(data.q0), 12)), jnp.float32)
+    dz = dz.at[:, :6].multiply(jnp.asarray(data.node_type == 0)[:, None])   # clamped nodes keep q and v
+    back = FS.solve(norm, FS.forward(norm, dz, nt), nt)
+    assert float(jnp.abs(back - dz).max()) < 1e-3 * float(jnp.abs(dz).max())
+
+
+def _zero_model(data, norm_np, config):
+    nt = jnp.asarray(data.node_type, jnp.int32)
+    topo = M.model_topology(config, data.edges[0], data.edges[1], len(data.node_type), data.q0)
+    normj = {k: jnp.asarray(v) for k, v in norm_np.items()}
+    w = M.init_weights(jax.random.PRNGKey(0), config, normj, jnp.asarray(data.z[0, 0]), jnp.asarray(data.f[0, 0]),
+                       nt, topo)
+    return api.make_params(config, norm_np, jax.tree.map(jnp.zeros_like, w), data.q0, data.edges, data.node_type)
+
+
+def test_untrained_prior_is_the_linear_backward_euler_map(bar_data):
+    """With the network's weights zero the step is the FEM's linearised backward-Euler frame: its rollouts
+    follow the dense recurrence A₀ u_{k+1} = f_k + c M u_k + M v_k / h to float32 precision, and the implicit
+    FEM (non-linear, small loads) to 1 %, with the stress from S₀."""
+    data, lin, norm = _ops(bar_data)
+    norm_np = {**D.normalization(data, np.arange(len(data.sim_id))),
+               **{k: np.asarray(v) for k, v in norm.items()}}
+    config = M.ModelConfig(hidden=8, passes=1, frame_solve=True, linear_prior=True)
+    params = _zero_model(data, norm_np, config)
+    pred = EV.rollout_cases(params, data, np.arange(len(data.sim_id)))
+    n = len(data.q0)
+    K = np.zeros((n, n, 3, 3))
+    K[lin.k_rows, lin.k_cols] = lin.k_blocks
+    K = K.transpose(0, 2, 1, 3).reshape(3 * n, 3 * n)
+    m = np.repeat(lin.mass, 3)
+    free = np.repeat(lin.free, 3)
+    c = (1 + ALPHA * H) / H ** 2
+    A = (K + np.diag(c * m))[np.ix_(free, free)]
+    for case in range(len(data.sim_id)):
+        u = v = np.zeros(free.sum())
+        for k in range(FRAMES):
+            u_new = np.linalg.solve(A, data.f[case, k].reshape(-1)[free] + c * m[free] * u + m[free] * v / H)
+            u, v = u_new, (u_new - u) / H
+            got = (pred[case, k + 1, :, :3] - data.q0).reshape(-1)[free]
+            assert np.abs(got - u).max() < 2e-3 * np.abs(u).max() + 1e-9
+    rel = EV.relative_errors(pred, data.z, data.q0)   # [cases, frames, variables q v sigma u]
+    means = np.nanmean(rel.reshape(-1, rel.shape[-1]), axis=0)
+    assert means[EV.VARIABLES.index("u")] < 0.01 and means[EV.VARIABLES.index("v")] < 0.01
+    assert means[EV.VARIABLES.index("sigma")] < 0.02
+
+
+def test_training_saving_and_loading(bar_data, tmp_path):
+    data, lin, _ = _ops(bar_data)
+    cfg = T.CONFIGS["tiny"]._replace(frame_solve=True, linear_prior=True, edge_strain=True, epochs=2, lr=1e-3)
+    params = T.train(data, cfg, tmp_path / "run", train_split="all", val_split="all", progress=False,
+                     log=lambda *_: None, frame_ops=lin)
+    log = [json.loads(line) for line in (tmp_path / "run" / "metrics.jsonl").read_text().splitlines()]
+    assert all(np.isfinite(r["loss"]) for r in log) and np.isfinite(log[-1]["val_u"])
+    path = api.save_model(params, tmp_path / "m.npz")
+    with np.load(path) as npz:
+        assert "norm/fs_ainv" not in npz.files and "norm/fs_k" in npz.files   # the dense inverse is rebuilt
+    loaded = api.load_model(path)
+    z, f = jnp.asarray(data.z[0, 2]), jnp.asarray(data.f[0, 2])
+    a = api.stepper(params)(z, f)
+    b = api.stepper(loaded)(z, f)
+    assert float(jnp.abs(a - b).max()) <= 1e-5 * float(jnp.abs(a).max())
+
+
+def test_bad_use_is_a_clear_error(bar_data, tmp_path):
+    data, lin, _ = _ops(bar_data)
+    with pytest.raises(ValueError, match="linear_prior needs frame_solve"):
+        T.train(data, T.CONFIGS["tiny"]._replace(linear_prior=True), tmp_path / "a", progress=False)
+    with pytest.raises(ValueError, match="frame_ops"):
+        T.train(data, T.CONFIGS["tiny"]._replace(frame_solve=True), tmp_path / "b", progress=False)
+    plain = D.synthetic_beam()
+    path = D.save(plain, tmp_path / "plain.npz")
+    with pytest.raises(ValueError, match="cells"):
+        FS.operators_from_file(path)
+    with pytest.raises(ValueError, match="missing"):
+        FS.inverse({"fs_mass": np.ones(4), "dt": np.array([0.05])}, np.zeros(4))

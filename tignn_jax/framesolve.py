@@ -1,0 +1,180 @@
+"""The ``frame_solve`` integrator and the ``linear_prior``: the rest state's linear dynamics inside the step.
+
+On a mesh whose frame step is long against its fastest waves (the bunny at the data's density: dilatational
+waves cross 3.3 edges per frame, and the exact frame map of backward Euler reaches 6 edges — truncated to 3,
+its rollouts miss u by 26 %, to 6 by 2 %, see README), forward Euler on a local vector field cannot reproduce
+the frame map: a network would have to learn a non-local operator. The standard answer to stiffness is an
+implicit integrator. Here it is a W-method (a Rosenbrock method with a fixed approximate Jacobian) whose
+Jacobian J₀ is the rest state's linear dynamics from the FEM (`fem.implicit.rest_linearization`)::
+
+    u̇ = v,   M v̇ = f − K₀ u − α M v,   σ̇ = S₀ v            (J₀ on z = (q, v, σ))
+    z_{k+1} = z_k + W⁻¹ e,   W = I − Δt J₀,   e = Δt F(z_k, f_k) the network's forward-Euler increment.
+
+W⁻¹ in closed form: with A₀ = (1 + αΔt) M / Δt² + K₀ (symmetric positive definite on the free nodes),
+Δv = A₀⁻¹ (M e_v − Δt K₀ e_u) / Δt², Δu = e_u + Δt Δv, Δσ = e_σ + Δt S₀ Δv. Clamped nodes keep q and v. A W-method
+is consistent for any fixed J₀ (J₀ only sets its stability), so F remains the model of the whole dynamics;
+training targets are W (z_{k+1} − z_k) / Δt, which for data from backward Euler are local (for a linear
+elastic body F = J₀z + Bf exactly: one node's rate depends on its element neighbours only).
+
+``linear_prior`` adds J₀ z + B f (B f = f / m in the velocity rows) to the network's vector field (`prior_step`), so that an
+untrained model is the linearised backward-Euler frame map of the FEM and the network learns what the rest
+linearisation misses (the stress's second-order volumetric terms of a nearly incompressible material, large
+rotations). Both need the operators in ``norm`` (`norm_entries`); A₀⁻¹ is dense ([3N, 3N], 64 MB for the
+bunny's 1330 nodes; one product per step) and is recomputed from K₀ when a model is built (`with_inverse`),
+never stored.
+"""
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+KEYS = ("fs_k_rows", "fs_k_cols", "fs_k", "fs_s_rows", "fs_s_cols", "fs_s", "fs_mass", "fs_alpha")
+DERIVED = ("fs_ainv",)   # recomputed by with_inverse, not saved with a model
+
+
+def operators_from_file(path: str | Path, chunk: int = 128):
+    """`fem.implicit.RestLinearization` of the scene a data-set file was generated from (its mesh, clamped
+    nodes and the material, density and damping in its metadata)."""
+    from fem import implicit
+    from fem.material import mooney_rivlin
+    from fem.solver import setup
+
+    with np.load(path, allow_pickle=False) as d:
+        if "cells" not in d.files or "metadata" not in d.files:
+            raise ValueError(f"{path}: frame_solve needs a data file with 'cells' and 'metadata' (written by "
+                             "tignn generate); this one has neither the mesh cells nor the material")
+        meta = json.loads(str(d["metadata"]))
+        q0, cells, node_type, dt = d["q0"], d["cells"], d["node_type"], float(d["dt"])
+        cell_type = str(d["cell_type"])
+    mat = meta.get("material")
+    if not mat or "damping" not in meta:
+        raise ValueError(f"{path}: the metadata has no material or damping, so the rest linearisation of its "
+                         "scene cannot be built")
+    material = mooney_rivlin(mat["c10"], mat["c01"], mat["d1"], mat["density"], mat.get("g", ()), mat.get("tau", ()))
+    extra = {"tet_formulation": meta["tet_formulation"]} if "tet_formulation" in meta else {}
+    problem = setup(q0, cells, material=material, frame_dt=dt, n_frames=1, clamped=np.where(node_type != 0)[0],
+                    cell_type=cell_type, damping=float(meta["damping"]), n_sub=1, **extra)
+    return implicit.rest_linearization(problem, material, chunk=chunk)
+
+
+def norm_entries(lin) -> dict:
+    """The ``norm`` entries (float32 numpy) that carry a `RestLinearization` with a model."""
+    return {"fs_k_rows": lin.k_rows, "fs_k_cols": lin.k_cols, "fs_k": lin.k_blocks, "fs_s_rows": lin.s_rows,
+            "fs_s_cols": lin.s_cols, "fs_s": lin.s_blocks, "fs_mass": lin.mass, "fs_alpha": np.array([lin.alpha])}
+
+
+def check(norm: dict, n_nodes: int):
+    missing = [k for k in KEYS if k not in norm]
+    if missing:
+        raise ValueError(f"frame_solve / linear_prior need the rest linearisation in the normalisation, missing "
+                         f"{missing}: train with it (tignn train computes it from the data file)")
+    if np.shape(norm["fs_mass"])[0] != n_nodes:
+        raise ValueError(f"the rest linearisation is for {np.shape(norm['fs_mass'])[0]} nodes, the mesh has {n_nodes}")
+
+
+def inverse(norm: dict, node_type) -> np.ndarray:
+    """A₀⁻¹ [3N, 3N] float32 (float64 inversion), identity on the clamped nodes' rows and columns."""
+    n = int(np.shape(norm["fs_mass"])[0])
+    check(norm, n)
+    h, alpha = float(np.asarray(norm["dt"]).reshape(-1)[0]), float(np.asarray(norm["fs_alpha"]).reshape(-1)[0])
+    K = np.zeros((n, n, 3, 3))
+    K[np.asarray(norm["fs_k_rows"], np.int64), np.asarray(norm["fs_k_cols"], np.int64)] = np.asarray(norm["fs_k"])
+    A = K.transpose(0, 2, 1, 3).reshape(3 * n, 3 * n)
+    A[np.diag_indices(3 * n)] += (1.0 + alpha * h) / h ** 2 * np.repeat(np.asarray(norm["fs_mass"], np.float64), 3)
+    free = np.repeat(np.asarray(node_type) == 0, 3)
+    A[~free, :] = 0.0
+    A[:, ~free] = 0.0
+    A[~free, ~free] = 1.0
+    return np.linalg.inv(A).astype(np.float32)
+
+
+def with_inverse(norm: dict, node_type) -> dict:
+    """``norm`` with ``fs_ainv`` added (once per model; the step only multiplies by it)."""
+    return norm if "fs_ainv" in norm else {**norm, "fs_ainv": inverse(norm, node_type)}
+
+
+def _apply(norm, prefix, x, out_dim):
+    rows = norm[f"fs_{prefix}_rows"].astype(jnp.int32)
+    cols = norm[f"fs_{prefix}_cols"].astype(jnp.int32)
+    y = jnp.einsum("bij,bj->bi", norm[f"fs_{prefix}"].astype(x.dtype), x[cols])
+    return jax.ops.segment_sum(y, rows, x.shape[0]) if out_dim else y
+
+
+def apply_k(norm, x):
+    """K₀ x: [N,3] → [N,3]."""
+    return _apply(norm, "k", x, 3)
+
+
+def apply_s(norm, x):
+    """S₀ x: [N,3] → [N,6]."""
+    return _apply(norm, "s", x, 6)
+
+
+def _constants(norm, node_type, dtype):
+    h = norm["dt"].reshape(-1)[0].astype(dtype)
+    alpha = norm["fs_alpha"].reshape(-1)[0].astype(dtype)
+    free = (node_type == 0)[:, None].astype(dtype)
+    return h, alpha, free, norm["fs_mass"].astype(dtype)[:, None]
+
+
+def forward(norm, dz, node_type):
+    """W dz [N,12] for a state increment dz [N,12] (the training target's transform; local)."""
+    h, alpha, free, m = _constants(norm, node_type, dz.dtype)
+    du, dv, ds = dz[:, :3] * free, dz[:, 3:6] * free, dz[:, 6:]
+    e_u = du - h * dv
+    e_v = (h * apply_k(norm, du) / m + (1.0 + alpha * h) * dv) * free
+    e_s = ds - h * apply_s(norm, dv)
+    return jnp.concatenate([e_u, e_v, e_s], axis=1)
+
+
+def solve(norm, e, node_type):
+    """W⁻¹ e [N,12] (the inverse of `forward`): the state increment of the W-method step."""
+    h, _, free, m = _constants(norm, node_type, e.dtype)
+    e_u, e_v, e_s = e[:, :3] * free, e[:, 3:6] * free, e[:, 6:]
+    rhs = (m * e_v - h * apply_k(norm, e_u)) * free / h ** 2
+    dv = (norm["fs_ainv"].astype(e.dtype) @ rhs.reshape(-1)).reshape(-1, 3) * free
+    du = e_u + h * dv
+    return jnp.concatenate([du, dv, e_s + h * apply_s(norm, dv)], axis=1)
+
+
+def prior_step(norm, z, f, e, node_type, q0):
+    """The state increment [N,12] of a ``linear_prior`` step: W⁻¹ (Δt (J₀ z + B f) + e) for the network's
+    forward-Euler increment e [N,12], with one product by K₀ and one by S₀ (the prior's and the solve's merged:
+    Δt K₀ (u + Δt v + e_u) in the right-hand side, Δt S₀ (v + Δv) in the stress)."""
+    h, alpha, free, m = _constants(norm, node_type, z.dtype)
+    u, v = (z[:, :3] - q0.astype(z.dtype)) * free, z[:, 3:6] * free
+    e_u, e_v, e_s = e[:, :3] * free, e[:, 3:6] * free, e[:, 6:]
+    rhs = (m * e_v + h * (f - alpha * m * v) - h * apply_k(norm, u + h * v + e_u)) * free / h ** 2
+    dv = (norm["fs_ainv"].astype(z.dtype) @ rhs.reshape(-1)).reshape(-1, 3) * free
+    return jnp.concatenate([h * v + e_u + h * dv, dv, e_s + h * apply_s(norm, v + dv)], axis=1)
+
+
+def increments(norm: dict, z, node_type) -> np.ndarray:
+    """W (z[k+1] − z[k]) / 1 for every transition of z [C,T+1,N,12]: [C,T,N,12] float32, the per-frame
+    increments a ``frame_solve`` model's forward-Euler part must produce (what its normalisation scales)."""
+    nt = jnp.asarray(node_type)
+    ops = {k: jnp.asarray(norm[k]) for k in KEYS + ("dt",)}
+    fn = jax.jit(jax.vmap(lambda a, b: forward(ops, b - a, nt)))
+    z = np.asarray(z, np.float32)
+    return np.stack([np.asarray(fn(jnp.asarray(c[:-1]), jnp.asarray(c[1:]))) for c in z])
+
+
+def operators_cached(data_path: str | Path, cache: str | Path):
+    """`operators_from_file`, kept in ``cache`` (.npz) so that a resumed or repeated run does not rebuild it
+    (minutes for the bunny: one `jax.jvp` per degree of freedom)."""
+    from fem.implicit import RestLinearization
+
+    cache = Path(cache)
+    if cache.exists():
+        with np.load(cache) as c:
+            return RestLinearization(**{k: (float(c[k]) if k == "alpha" else c[k]) for k in c.files})
+    lin = operators_from_file(data_path)
+    cache.parent.mkdir(parents=True, exist_ok=True)
+    tmp = cache.with_suffix(".tmp.npz")
+    np.savez(tmp, **lin._asdict())
+    tmp.replace(cache)
+    return lin
