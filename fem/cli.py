@@ -37,6 +37,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="bunny: spread each unit load over the free surface nodes within R of the load position "
                         "(weights (1 - (d/R)^2)^2, the position's normal) instead of one node: a fingertip-sized "
                         "press rather than a point force, whose dent is a property of the mesh (default: a point)")
+    g.add_argument("--load-magnitude", type=float, default=None, metavar="F",
+                   help="bunny single-load cases: the total force of each load instead of 1 (the paper's unit "
+                        "load); larger loads reach the geometrically and materially non-linear range")
     g.add_argument("--smooth-loads", action="store_true",
                    help="interactions: C¹ force histories (smooth rises and falls, a cross-fade when the patch "
                         "moves) instead of piecewise-linear ones, whose jumps in loading rate the frames cannot "
@@ -88,7 +91,8 @@ def run_generate(args) -> int:
     if args.scene != "bunny":
         for flag, value, unset in (("--load-nodes", args.load_nodes, None), ("--loads-per-case", args.loads_per_case, 1),
                                    ("--exclude-loads-of", args.exclude_loads_of, None),
-                                   ("--load-radius", args.load_radius, None)):
+                                   ("--load-radius", args.load_radius, None),
+                                   ("--load-magnitude", args.load_magnitude, None)):
             if value != unset:
                 raise SystemExit(f"{flag} applies only to the bunny scene, not {args.scene}")
     meta = {"seed": args.seed, "command": f"tignn generate {args.scene}"}
@@ -127,6 +131,10 @@ def run_generate(args) -> int:
                              "their loads themselves)")
         if args.load_radius is not None and args.loads_per_case > 1:
             raise SystemExit("--load-radius applies only to single-load cases (--loads-per-case 1)")
+        if args.load_magnitude is not None and (args.loads_per_case > 1 or not np.isfinite(args.load_magnitude)
+                                                or args.load_magnitude <= 0):
+            raise SystemExit(f"--load-magnitude must be a positive number and applies only to single-load cases, "
+                             f"got {args.load_magnitude} with --loads-per-case {args.loads_per_case}")
         if args.load_nodes:
             try:
                 nodes = [int(t) for t in args.load_nodes.split(",") if t.strip()]
@@ -142,9 +150,12 @@ def run_generate(args) -> int:
             else:
                 forces, picked = cs.point_load_forces(scene, args.cases or 100, args.seed, load_nodes=nodes,
                                                       rise_frames=args.rise_frames,
-                                                      radius=args.load_radius or 0.0)
+                                                      radius=args.load_radius or 0.0,
+                                                      magnitude=args.load_magnitude or 1.0)
                 if args.load_radius:
                     meta["load_radius"] = args.load_radius
+                if args.load_magnitude:
+                    meta["load_magnitude"] = args.load_magnitude
         except ValueError as e:
             raise SystemExit(str(e))
         meta["load_nodes"] = np.asarray(picked).tolist()

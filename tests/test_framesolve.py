@@ -136,9 +136,10 @@ def test_untrained_prior_is_the_linear_backward_euler_map(bar_data):
     assert means[EV.VARIABLES.index("sigma")] < 0.02
 
 
-def test_training_saving_and_loading(bar_data, tmp_path):
+@pytest.mark.parametrize("prior", [True, False])
+def test_training_saving_and_loading(bar_data, tmp_path, prior):
     data, lin, _ = _ops(bar_data)
-    cfg = T.CONFIGS["tiny"]._replace(frame_solve=True, linear_prior=True, edge_strain=True, epochs=2, lr=1e-3)
+    cfg = T.CONFIGS["tiny"]._replace(frame_solve=True, linear_prior=prior, edge_strain=True, epochs=2, lr=1e-3)
     params = T.train(data, cfg, tmp_path / "run", train_split="all", val_split="all", progress=False,
                      log=lambda *_: None, frame_ops=lin)
     log = [json.loads(line) for line in (tmp_path / "run" / "metrics.jsonl").read_text().splitlines()]

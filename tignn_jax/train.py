@@ -284,7 +284,10 @@ def train(data: D.Dataset, cfg: TrainConfig, run_dir: str | Path, train_split="t
                              "frame_ops=framesolve.operators_from_file(data_path)")
         ops = FS.norm_entries(frame_ops) if frame_ops is not None else {k: parent["norm"][k] for k in FS.KEYS}
         ops["dt"] = np.array([data.dt], np.float32)
-        norm_np = D.normalization(data, rows, increments=FS.increments(ops, data.z[rows], data.node_type))
+        # the network's output scale: without the prior it must produce all of W Δz (whose stiff components are
+        # orders of magnitude above the state's increments); with it, only a correction of the state's size
+        pseudo = None if cfg.linear_prior else FS.increments(ops, data.z[rows], data.node_type)
+        norm_np = D.normalization(data, rows, increments=pseudo)
         norm_np.update({k: np.asarray(v, np.float32) for k, v in ops.items()})
         norm_np["fs_dz_std"] = D.normalization(data, rows)["dz_std"]   # the state increments' scale (the loss's)
     else:
