@@ -96,8 +96,9 @@ def step_variants(name: str, repeats: int) -> dict:
     plain_cfg = cfg._replace(edge_strain=False)
     w_edge = EdgeListNetwork(plain_cfg).init(jax.random.PRNGKey(0), x_node, x_edge, s, r)["params"]
     fns = {
-        "straightforward (edge list)": jax.jit(lambda z, f: z + edge_list_rates(
-            w_edge, plain_cfg, norm, z, f, nt, jnp.asarray(s), jnp.asarray(r))[0] * M.state_scale(norm)),
+        # (M.increment: dw · s, or the frame_solve step with the model's solve and prior, the same in all four)
+        "straightforward (edge list)": jax.jit(lambda z, f: z + M.increment(cfg, norm, edge_list_rates(
+            w_edge, plain_cfg, norm, z, f, nt, jnp.asarray(s), jnp.asarray(r))[0], z, f, nt, rows)),
         "max-degree slots": jax.jit(lambda z, f: M.step_state(w, cfg, norm, z, f, nt, slots)),
         "assembled edge features": assembled_step(w, cfg, norm, nt, rows),
         "shipped (rows)": jax.jit(lambda z, f: M.step_state(w, cfg, norm, z, f, nt, rows)),
