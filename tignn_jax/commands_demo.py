@@ -21,7 +21,7 @@ import time
 from pathlib import Path
 
 BUNNY_PRESS_NODE = 917
-DEFAULT_MODELS = {"beam": "beam-abaqus", "two-beams": "beam-abaqus-small", "bunny": "bunny"}  # two bodies: the small model
+DEFAULT_MODELS = {"beam": "beam-abaqus", "two-beams": "beam-abaqus-small", "bunny": "bunny-linear"}  # two bodies: the small model
 SCENES = ("two-beams", "beam", "bunny")
 
 
