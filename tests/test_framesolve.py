@@ -164,5 +164,10 @@ def test_bad_use_is_a_clear_error(bar_data, tmp_path):
     path = D.save(plain, tmp_path / "plain.npz")
     with pytest.raises(ValueError, match="cells"):
         FS.operators_from_file(path)
+    params = _zero_model(data, {**D.normalization(data, np.arange(len(data.sim_id))),
+                                **{k: np.asarray(v) for k, v in _ops(bar_data)[2].items()}},
+                         M.ModelConfig(hidden=8, passes=1, frame_solve=True))
+    with pytest.raises(ValueError, match="one body per call"):
+        api.stepper(params, copies=2)
     with pytest.raises(ValueError, match="missing"):
         FS.inverse({"fs_mass": np.ones(4), "dt": np.array([0.05])}, np.zeros(4))

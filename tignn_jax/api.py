@@ -56,6 +56,9 @@ def stepper(params: dict, copies: int = 1):
     if not isinstance(copies, (int, np.integer)) or copies < 1:
         raise ValueError(f"copies must be a positive integer, got {copies!r}")
     config, weights, norm = _config(params), params["weights"], params["norm"]
+    if config.frame_solve and copies != 1:
+        raise ValueError(f"a frame_solve model steps one body per call (its solve is one body's A₀⁻¹), got "
+                         f"copies={copies}: call one stepper per body")
     topo = M.tile_topology(params["topo"], int(copies))
     node_type = jnp.tile(jnp.asarray(params["mesh"]["node_type"], jnp.int32), int(copies))
     n = int(node_type.shape[0])
