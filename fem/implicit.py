@@ -72,11 +72,9 @@ def rest_operator(problem: sv.Problem, material: Material, h: float | None = Non
     h = cfg.frame_dt if h is None else h
     n = arr.points.shape[0]
     force = _force_fn(arr, material, cfg, sv._hourglass_for(arr, material, cfg))
-    u0 = jnp.zeros((n, 3), arr.points.dtype)
-    cols = jax.jit(jax.vmap(lambda d: jax.jvp(force, (u0,), (d.reshape(n, 3),))[1].reshape(-1)))
-    eye = np.eye(3 * n, dtype=np.asarray(u0).dtype)
-    K = np.concatenate([np.asarray(cols(jnp.asarray(eye[s:s + chunk]))) for s in range(0, 3 * n, chunk)])
-    K = 0.5 * (K + K.T).astype(np.float64)   # K is a Hessian; symmetrise float32 rounding
+    (K,) = _jvp_columns(lambda u: (force(u),), n, arr.points.dtype, chunk)
+    K = K.reshape(3 * n, 3 * n)   # row 3b + j: ∂f/∂u_bj, i.e. Kᵀ = K
+    K = 0.5 * (K + K.T)   # K is a Hessian; symmetrise float32 rounding
     mass = np.repeat(np.asarray(sv.lumped_mass(problem, material), np.float64), 3)
     c = (1.0 + float(arr.damping_alpha) * h) / h ** 2
     A = K + np.diag(c * mass)
@@ -228,29 +226,34 @@ class RestLinearization(NamedTuple):
 
 def rest_linearization(problem: sv.Problem, material: Material, chunk: int = 128) -> RestLinearization:
     """`RestLinearization` of an elastic scene: the columns of K₀ and S₀ by one `jax.jvp` per degree of freedom
-    (``chunk`` at a time) of the internal force and the nodal stress together, in the problem's precision."""
+    (``chunk`` at a time) of the internal force and the nodal stress together, in the problem's precision
+    (dense columns: meant for meshes of a few thousand nodes; the bunny's 1330 take about 3 minutes)."""
     check_scope(problem, material)
     arr, cfg = problem.arrays, problem.config
     n = arr.points.shape[0]
     force = _force_fn(arr, material, cfg, sv._hourglass_for(arr, material, cfg))
     stress = lambda u: sv._nodal_stress(arr, sv._element_stress(arr, material, u, (), cfg))
-    u0 = jnp.zeros((n, 3), arr.points.dtype)
-    cols = jax.jit(jax.vmap(lambda d: jax.jvp(lambda u: (force(u), stress(u)), (u0,), (d.reshape(n, 3),))[1]))
-    eye = np.eye(3 * n, dtype=np.asarray(u0).dtype)
-    kc, sc = [], []
-    for s in range(0, 3 * n, chunk):
-        k_, s_ = cols(jnp.asarray(eye[s:s + chunk]))
-        kc.append(np.asarray(k_, np.float64))
-        sc.append(np.asarray(s_, np.float64))
+    kc, sc = _jvp_columns(lambda u: (force(u), stress(u)), n, arr.points.dtype, chunk)
     # column 3b + j holds ∂(out_a)_i/∂u_bj at [a, i]: reorder to blocks [a, b, i, j]
-    K = np.concatenate(kc).reshape(n, 3, n, 3).transpose(2, 0, 3, 1)
+    K = kc.reshape(n, 3, n, 3).transpose(2, 0, 3, 1)
     K = 0.5 * (K + K.transpose(1, 0, 3, 2))   # a Hessian: symmetrise the float32 rounding
-    S = np.concatenate(sc).reshape(n, 3, n, 6).transpose(2, 0, 3, 1)
+    S = sc.reshape(n, 3, n, 6).transpose(2, 0, 3, 1)
     k_rows, k_cols, k_blocks = _blocks(K)
     s_rows, s_cols, s_blocks = _blocks(S)
     mass = np.asarray(sv.lumped_mass(problem, material), np.float64)
     return RestLinearization(k_rows, k_cols, k_blocks, s_rows, s_cols, s_blocks, mass,
                              float(arr.damping_alpha), np.asarray(arr.free[:, 0]) > 0)
+
+
+def _jvp_columns(fn, n: int, dtype, chunk: int):
+    """The Jacobian columns at u = 0 of ``fn``: u [N,3] ↦ tuple of [N, k] arrays, one `jax.jvp` per degree of
+    freedom (``chunk`` at a time): a tuple of float64 arrays [3N, N, k], entry [3b + j, a, i] = ∂out_ai/∂u_bj.
+    Dense, so meant for meshes of a few thousand nodes."""
+    u0 = jnp.zeros((n, 3), dtype)
+    cols = jax.jit(jax.vmap(lambda d: jax.jvp(fn, (u0,), (d.reshape(n, 3),))[1]))
+    eye = np.eye(3 * n, dtype=np.asarray(u0).dtype)
+    parts = [cols(jnp.asarray(eye[s:s + chunk])) for s in range(0, 3 * n, chunk)]
+    return tuple(np.concatenate([np.asarray(p[i], np.float64) for p in parts]) for i in range(len(parts[0])))
 
 
 def _blocks(dense, rtol: float = 1e-9):

@@ -255,16 +255,20 @@ def test_loader_reads_the_reference_beam():
     assert all(np.all(v > 0) for k, v in norm.items() if k.endswith("std"))
 
 
+def _shipped(name):
+    """A shipped model and its graph (skipped where this checkout has none): at most 5 MiB, with a model card."""
+    path = Path(api.MODELS_DIR) / name / "model.npz"
+    if not path.exists():
+        pytest.skip(f"no shipped {name} model in this checkout")
+    assert path.stat().st_size <= 5 * 2 ** 20 and (path.parent / "MODEL_CARD.md").exists()
+    return api.load_pretrained(name)
+
+
 @pytest.mark.parametrize("name", ["beam-abaqus", "beam"])
 def test_shipped_beam_model_loads_with_its_mesh(name):
     # The shipped models are small and bring the rest-state graph of the beam mesh (the FEM's beam uses the
     # reference mesh and numbering).
-    path = Path(api.MODELS_DIR) / name / "model.npz"
-    if not path.exists():
-        pytest.skip(f"no shipped {name} model in this checkout")
-    assert path.stat().st_size <= 5 * 2 ** 20
-    assert (path.parent / "MODEL_CARD.md").exists()
-    params, graph = api.load_pretrained(name)
+    params, graph = _shipped(name)
     assert graph.nodes["z"].shape == (756, 12) and int(np.sum(graph.nodes["node_type"])) == 36
     moved = api.step(params, graph, np.zeros((756, 3), np.float32))
     assert np.all(np.isfinite(np.asarray(moved.nodes["z"])))
@@ -273,11 +277,7 @@ def test_shipped_beam_model_loads_with_its_mesh(name):
 def test_shipped_bunny_128x6_loads_on_the_bunny_mesh():
     # The GPU-trained bunny model (not meeting the targets; see its card) is small, carries its training
     # envelope, and steps the 1330-node bunny mesh (the FEM scene's mesh in the scan's scale) to finite states.
-    path = Path(api.MODELS_DIR) / "bunny-128x6" / "model.npz"
-    if not path.exists():
-        pytest.skip("no shipped bunny-128x6 model in this checkout")
-    assert path.stat().st_size <= 5 * 2 ** 20 and (path.parent / "MODEL_CARD.md").exists()
-    params, graph = api.load_pretrained("bunny-128x6")
+    params, graph = _shipped("bunny-128x6")
     assert graph.nodes["z"].shape == (1330, 12) and {"z_dev_max", "u_max"} <= set(params["norm"])
     assert params["info"]["fem_integrator"] == "implicit"
     from fem import scenes
@@ -295,11 +295,7 @@ def test_shipped_bunny_linear_is_the_rest_linearised_backward_euler_step():
     # The shipped `bunny-linear` (frame_solve + linear_prior with the network's weights zero, see its card):
     # one step from rest under a load equals the backward-Euler frame of the FEM's rest linearisation,
     # A₀ u₁ = f, to float32 precision, with v₁ = u₁ / Δt.
-    path = Path(api.MODELS_DIR) / "bunny-linear" / "model.npz"
-    if not path.exists():
-        pytest.skip("no shipped bunny-linear model in this checkout")
-    assert path.stat().st_size <= 5 * 2 ** 20 and (path.parent / "MODEL_CARD.md").exists()
-    params, graph = api.load_pretrained("bunny-linear")
+    params, graph = _shipped("bunny-linear")
     cfg = api._config(params)
     assert cfg.frame_solve and cfg.linear_prior and graph.nodes["z"].shape == (1330, 12)
     q0 = np.asarray(params["mesh"]["q0"], np.float64)
