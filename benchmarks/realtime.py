@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 import time
 from pathlib import Path
@@ -47,17 +48,17 @@ def percentiles(ms) -> dict:
     return {"p50_ms": float(np.median(ms)), "p99_ms": float(np.percentile(ms, 99)), "mean_ms": float(ms.mean())}
 
 
-def run_scene(name: str, frames: int, warmup: int) -> dict:
+def run_scene(name: str, frames: int, warmup: int, devices: tuple = ()) -> dict:
     from tignn_jax import scene as sc
     from tignn_jax.commands_demo import build_scene
 
-    scene, dynamics = build_scene(name, frames + warmup)
+    scene, dynamics = build_scene(name, frames + warmup, devices=devices)
     scene = scene._replace(skip_rest=False)   # every frame steps: the budget is for a body in motion
     _, t = sc.run(scene, frames=frames + warmup, warmup=warmup)
     sim = t.forces + t.step
     out = {"dynamics": dynamics, "valid": dynamics.startswith("model"), "frames": int(len(t.frame)),
            "nodes": int(sum(len(b.q0) for b in scene.bodies)),
-           "image": [scene.camera.width, scene.camera.height], "reallocations": t.reallocations,
+           "image": [scene.camera.width, scene.camera.height], "reallocations": t.reallocations, "guard_trips": t.guard_trips,
            **{k: percentiles(v) for k, v in (("forces", t.forces), ("step", t.step), ("simulation", sim),
                                               ("render", t.render), ("frame", t.frame))}}
     p50, p99 = out["simulation"]["p50_ms"], out["simulation"]["p99_ms"]
@@ -116,6 +117,41 @@ def step_variants(name: str, repeats: int) -> dict:
     return {"step_p50_ms": out, "speedup_vs_straightforward": {k: base / v for k, v in out.items()},
             "slots": {"max-degree": list(slots.nbr.shape), "rows": list(rows.nbr.shape), "edges": int(len(s))},
             "model": DEFAULT_MODELS[name], "hidden": cfg.hidden, "passes": cfg.passes}
+
+
+def concurrency(name: str, repeats: int, devices: tuple) -> dict:
+    """Step time of the scene's bodies (two copies of its model's mesh) four ways, interleaved: one body alone;
+    both in one batched graph (one program); both as two single-body steps in one program; each on its own
+    CPU device, dispatched together (``Scene.devices``: concurrent, one core each)."""
+    from tignn_jax import api
+    from tignn_jax.commands_demo import DEFAULT_MODELS
+
+    params, graph = api.load_pretrained(DEFAULT_MODELS[name])
+    one, two = api.stepper(params), api.stepper(params, 2)
+    rng = np.random.default_rng(0)
+    z = jnp.asarray(graph.nodes["z"])
+    n = z.shape[0]
+    z = z.at[:, 3:].set(jnp.asarray(0.01 * rng.normal(size=(n, 9)), jnp.float32))
+    f = jnp.asarray(0.01 * rng.normal(size=(n, 3)), jnp.float32)
+    batched = jax.jit(lambda za, zb, fa, fb: jnp.split(two(jnp.concatenate([za, zb]), jnp.concatenate([fa, fb])), 2))
+    serial = jax.jit(lambda za, zb, fa, fb: (one(za, fa), one(zb, fb)))
+    placed = [(jax.device_put(z, d), jax.device_put(f, d)) for d in devices[:2]]
+    fns = {"one body": lambda: one(z, f), "two bodies, one batched graph": lambda: batched(z, z, f, f),
+           "two bodies, two steps in one program": lambda: serial(z, z, f, f)}
+    if len(devices) > 1:
+        fns["two bodies on two devices (concurrent)"] = lambda: [one(a, b) for a, b in placed]
+    for fn in fns.values():
+        jax.block_until_ready(fn())
+    times = {k: [] for k in fns}
+    for _ in range(repeats):
+        for k, fn in fns.items():
+            t0 = time.perf_counter()
+            jax.block_until_ready(fn())
+            times[k].append(1e3 * (time.perf_counter() - t0))
+    p50 = {k: float(np.median(v)) for k, v in times.items()}
+    return {"model": DEFAULT_MODELS[name], "devices": len(devices), "step_p50_ms": p50,
+            "step_p99_ms": {k: float(np.percentile(v, 99)) for k, v in times.items()},
+            "speedup_vs_batched": {k: p50["two bodies, one batched graph"] / v for k, v in p50.items()}}
 
 
 # the bunny runs of session 10: traction, port and load-context features, 16 clusters with dense mixing, rest shift
@@ -183,23 +219,30 @@ def main(argv=None) -> int:
     parser.add_argument("--warmup", type=int, default=20, help="untimed first frames (default: %(default)s)")
     parser.add_argument("--scenes", default="beam,two-beams,bunny")
     parser.add_argument("--variant-repeats", type=int, default=60, help="calls per step variant")
+    parser.add_argument("--cores", type=int, default=None,
+                        help="CPU devices for scenes of several bodies, one body per core (default: all cores)")
     args = parser.parse_args(argv)
     if args.frames < 10 or args.warmup < 1:
         raise SystemExit(f"--frames must be ≥ 10 and --warmup ≥ 1, got {args.frames} and {args.warmup}")
+    from tignn_jax import scene as sc
+    devices = sc.cpu_devices(args.cores or os.cpu_count() or 1)   # before JAX's first operation
     machine = describe()
-    scenes, variants = {}, {}
+    machine["cpu_devices"] = len(devices)
+    scenes, variants, parallel = {}, {}, {}
     for name in [s for s in args.scenes.split(",") if s]:
         if name not in BUDGET_MS:
             raise SystemExit(f"unknown scene {name!r}; choose from {sorted(BUDGET_MS)}")
         print(f"scene {name}: {args.frames} frames after {args.warmup} warm-up frames ...", flush=True)
-        scenes[name] = run_scene(name, args.frames, args.warmup)
+        scenes[name] = run_scene(name, args.frames, args.warmup, devices)
         if scenes[name]["valid"]:
             variants[name] = step_variants(name, args.variant_repeats)
+            if name == "two-beams":
+                parallel[name] = concurrency(name, args.variant_repeats, devices)
         else:
             scenes[name]["untrained_model_step"] = untrained_step(name, args.variant_repeats)
     machine["load_average_1m_at_end"] = describe()["load_average_1m"]
     result = {"machine": machine, "frames": args.frames, "warmup": args.warmup, "scenes": scenes,
-              "step_variants": variants, "budgets_ms": {"simulation_p50": BUDGET_MS, "frame_p50": FRAME_BUDGET_MS}}
+              "step_variants": variants, "concurrency": parallel, "budgets_ms": {"simulation_p50": BUDGET_MS, "frame_p50": FRAME_BUDGET_MS}}
     RESULTS.mkdir(parents=True, exist_ok=True)
     (RESULTS / "realtime.json").write_text(json.dumps(result, indent=1))
     md = format_md(result)
@@ -215,7 +258,7 @@ def format_md(result: dict) -> str:
              f"{m['load_average_1m']} at start, {m['load_average_1m_at_end']} at end ({m['note']}). "
              f"{result['frames']} timed frames per scene after {result['warmup']} warm-up frames; 640×480.", "",
              "| scene | dynamics | nodes | forces p50 | step p50 | simulation p50 / p99 (budget) | render p50 | "
-             "frame p50 / p99 | fps | verdict |", "|---|---|---|---|---|---|---|---|---|---|"]
+             "frame p50 / p99 | fps | guard resets | verdict |", "|---|---|---|---|---|---|---|---|---|---|---|"]
     for name, s in result["scenes"].items():
         b = s["budget"]
         ok = s["valid"] and b["simulation_p50_ok"] and b["p99_ok"] and b["frame_p50_ok"]
@@ -226,7 +269,7 @@ def format_md(result: dict) -> str:
             f"| {name} | {s['dynamics']} | {s['nodes']} | {s['forces']['p50_ms']:.2f} | {s['step']['p50_ms']:.2f} | "
             f"{s['simulation']['p50_ms']:.2f} / {s['simulation']['p99_ms']:.2f} ({b['simulation_p50_ms']:.0f}) | "
             f"{s['render']['p50_ms']:.2f} | {s['frame']['p50_ms']:.2f} / {s['frame']['p99_ms']:.2f} | "
-            f"{b['fps_at_p50']:.1f} | {verdict} |")
+            f"{b['fps_at_p50']:.1f} | {s.get('guard_trips', '—')} | {verdict} |")
     for name, sc_ in result["scenes"].items():
         if "untrained_model_step" in sc_:
             u = sc_["untrained_model_step"]
@@ -248,6 +291,12 @@ def format_md(result: dict) -> str:
                 f"{t['max-degree slots']:.2f} ms | {t['assembled edge features']:.2f} ms | "
                 f"{t['shipped (rows)']:.2f} ms | {v['speedup_vs_straightforward']['shipped (rows)']:.2f}× | "
                 f"{t['assembled edge features'] / t['shipped (rows)']:.2f}× |")
+    for name, c in result.get("concurrency", {}).items():
+        t, r = c["step_p50_ms"], c["speedup_vs_batched"]
+        lines += ["", f"{name}: the two bodies' step ({c['model']}), {c['devices']} CPU devices (median of "
+                  "interleaved calls, same run; p99 in brackets): " +
+                  ", ".join(f"{k} {v:.2f} ms ({c['step_p99_ms'][k]:.2f}, {r[k]:.2f}× vs the batched graph)"
+                            for k, v in t.items()) + "."]
     return "\n".join(lines) + "\n"
 
 

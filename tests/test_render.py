@@ -222,6 +222,49 @@ def test_fingertip_press_pushes_the_body_down_and_frames_are_drawn():
     assert summary["frames"] == 9 and set(summary) >= {"forces", "step", "render", "write", "frame"}
 
 
+def test_bodies_on_their_own_devices_step_as_in_one_program():
+    # Scene.devices: each body steps on its own (virtual CPU) device, concurrently; the states are those of the
+    # serial loop, and the scene with a step over all bodies as well as devices is refused.
+    import os
+    import subprocess
+    import sys
+    import textwrap
+    from pathlib import Path
+
+    script = textwrap.dedent("""
+        import sys
+        import numpy as np
+        from tignn_jax import scene as sc
+        devices = sc.cpu_devices(2)
+        assert len(devices) == 2, devices
+        sys.path.insert(0, "tests")
+        from test_render import _demo_scene
+        scene, _ = _demo_scene(frames=6)
+        b = scene.bodies[0]
+        from tignn_jax import ar
+        beside = np.asarray(ar.model_matrix([-0.04, 0.0, 0.08], np.eye(3), 0.02))   # 10 cm further along z
+        two = scene._replace(bodies=(b, b._replace(model=beside)))
+        serial, _ = sc.run(two)
+        parallel, t = sc.run(two._replace(devices=devices))
+        for a, c in zip(serial, parallel):
+            np.testing.assert_allclose(np.asarray(a), np.asarray(c), rtol=1e-6, atol=1e-6)
+        assert np.abs(np.asarray(parallel[0])[:, :3] - b.q0).max() > 1e-3   # the pressed body moved
+        assert all(list(z.devices())[0] == devices[0] for z in parallel)
+        try:
+            sc.run(two._replace(devices=devices, step=lambda zs, fs: zs))
+        except ValueError as err:
+            assert "devices" in str(err)
+        else:
+            raise AssertionError("devices with a scene step was accepted")
+        print("DEVICES OK")
+    """)
+    env = dict(os.environ, JAX_PLATFORMS="cpu")
+    out = subprocess.run([sys.executable, "-c", script], env=env, capture_output=True, text=True, timeout=600,
+                         cwd=str(Path(__file__).resolve().parents[1]))
+    assert out.returncode == 0, out.stderr[-3000:]
+    assert "DEVICES OK" in out.stdout
+
+
 def test_track_json_lines_round_trip(tmp_path):
     # A user's tracker output (varying numbers of tips, empty frames) reads back as a NaN-padded array.
     path = tmp_path / "track.jsonl"

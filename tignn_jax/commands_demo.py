@@ -3,8 +3,10 @@
 Scenes:
 - ``two-beams``: the paper's configuration (``fem.scenes.two_beams_scene``): two copies of the 40x10x10 beam
   (shown 0.2 m long), the lower one A clamped at x = 0, the upper one B turned 90° about the vertical and lying
-  across A's free half with a gap of 10 (5 cm). The fingertip presses B's free end down onto A; both step in one
-  batched graph, each in its own model frame, and interact through ``ar.contact_forces``.
+  across A's free half with a gap of 10 (5 cm). The fingertip presses B's free end down onto A; each body steps
+  in its own model frame, and they interact through ``ar.contact_forces``. With two or more cores (``--cores``)
+  each beam steps on its own CPU device, concurrently (``Scene.devices``); with one, both step in one batched
+  graph.
 - ``beam``: beam A alone, pressed down at its free end.
 - ``bunny``: the Stanford bunny (10 cm tall) standing on the table, base clamped, pushed on its back with about
   the unit point load of the training cases.
@@ -17,11 +19,12 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import time
 from pathlib import Path
 
 BUNNY_PRESS_NODE = 917
-DEFAULT_MODELS = {"beam": "beam-abaqus", "two-beams": "beam-abaqus-small", "bunny": "bunny-linear"}  # two bodies: the small model
+DEFAULT_MODELS = {"beam": "beam-abaqus", "two-beams": "beam-abaqus", "bunny": "bunny-linear"}
 SCENES = ("two-beams", "beam", "bunny")
 
 
@@ -38,6 +41,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--model", default=None, help="shipped model name or path (default: per scene)")
     p.add_argument("--track", default=None, help="fingertip track, JSON lines (default: a synthetic press)")
     p.add_argument("--stand-in", action="store_true", help="use the stand-in dynamics even if a model exists")
+    p.add_argument("--cores", type=int, default=None,
+                   help="CPU cores to step bodies on concurrently, one body per core (default: all of this "
+                        "machine's; 1: all bodies in one program)")
     p.set_defaults(func=run)
 
 
@@ -48,7 +54,11 @@ def run(args) -> int:
 
     if args.frames < 2:
         raise SystemExit(f"--frames must be at least 2, got {args.frames}")
-    scene, dynamics = build_scene(args.scene, args.frames, args.model, args.stand_in)
+    cores = (os.cpu_count() or 1) if args.cores is None else args.cores
+    if cores < 1:
+        raise SystemExit(f"--cores must be at least 1, got {cores}")
+    devices = sc.cpu_devices(cores)   # before JAX's first operation: one CPU device per core
+    scene, dynamics = build_scene(args.scene, args.frames, args.model, args.stand_in, devices=devices)
     if args.track:
         scene = scene._replace(track=sc.load_track(args.track))
     out = Path(args.out)
@@ -79,8 +89,9 @@ def run(args) -> int:
     return 0
 
 
-def build_scene(name: str, frames: int, model: str | None = None, stand_in: bool = False):
-    """(Scene, dynamics description) for ``name`` in ``SCENES``."""
+def build_scene(name: str, frames: int, model: str | None = None, stand_in: bool = False, devices: tuple = ()):
+    """(Scene, dynamics description) for ``name`` in ``SCENES``. With two or more ``devices`` (``scene.
+    cpu_devices``) a scene of several bodies steps each on its own device (``Scene.devices``)."""
     import jax.numpy as jnp
     import numpy as np
 
@@ -139,6 +150,11 @@ def build_scene(name: str, frames: int, model: str | None = None, stand_in: bool
     scene = sc.Scene(bodies=bodies, camera=cam, background=sc.table_background(cam), track=track,
                      contact_radius=0.006, contact_stiffness=5e7, step=step_fn,
                      guard=getattr(step_fn, "guard", None))
+    body_step = getattr(step_fn, "body_step", None)
+    if len(devices) > 1 and len(bodies) > 1 and body_step is not None:
+        scene = scene._replace(bodies=tuple(b._replace(step_fn=body_step) for b in bodies), step=None,
+                               devices=tuple(devices))
+        dynamics += f" (bodies on {min(len(devices), len(bodies))} cores)"
     return scene, dynamics
 
 
@@ -164,6 +180,7 @@ def _dynamics(model_name, stand_in, q0, cells, edges, clamped, copies):
                     return tuple(jnp.split(fn(jnp.concatenate(zs), jnp.concatenate(forces)), copies))
 
                 step.guard = lambda zs: jnp.stack([guard(z) for z in zs])   # one flag per body
+                step.body_step = api.stepper(params) if copies > 1 else fn   # one body, for Scene.devices
                 return step, f"model {model_name}", mesh_q0.astype(np.float32), units
             print(f"model {model_name!r} was trained on another mesh; using the STAND-IN dynamics")
     single = stand_in_step(q0, cells, clamped)

@@ -100,7 +100,12 @@ class Scene(NamedTuple):
     been touched (all forces zero since the start, bodies in their initial state) the step is skipped;
     guard: optional ``zs -> bool`` or ``zs -> bool [bodies]`` (jit-able), True where a new state must not be
     shown (e.g. non-finite or outside the model's training envelope, see ``api.state_check``): the flagged
-    bodies (all bodies for a single bool) return to their initial state, and each counts as a guard trip.
+    bodies (all bodies for a single bool) return to their initial state, and each counts as a guard trip;
+    devices: where the bodies step, body k on ``devices[k % len(devices)]`` (e.g. the CPU devices of a process
+    that made one per core, see ``cpu_devices``): each body's ``step_fn`` is then jitted on its own and the
+    bodies' steps are dispatched together, so they run concurrently, one core each (XLA runs one program's
+    independent parts one after another on a single core); the states return to ``devices[0]`` for forces and
+    rendering. Empty (the default): all bodies step in one program on the default device.
     """
     bodies: tuple
     camera: Camera
@@ -113,6 +118,7 @@ class Scene(NamedTuple):
     colour_by: str = "stress"
     skip_rest: bool = True
     guard: Callable | None = None
+    devices: tuple = ()
 
 
 class Timings(NamedTuple):
@@ -251,10 +257,42 @@ def build(scene: Scene):
             return tuple(scene.step(zs, forces))
         return tuple(b.step_fn(z, f) for b, z, f in zip(scene.bodies, zs, forces))
 
+    if scene.devices:
+        step_fn = _concurrent_step(scene)
+
     positions, _ = _world_mesh(scene, tuple(jnp.asarray(b.z, jnp.float32) for b in scene.bodies))
     pixels, depth = ar.project(positions, vp, viewport)
     capacity = fragment_capacity(pixels, depth, _all_triangles(scene), cam.width, cam.height, headroom=1.5)
     return forces_fn, step_fn, make_render_fn(scene, capacity), capacity
+
+
+def cpu_devices(n: int) -> tuple:
+    """The local devices after asking JAX for ``n`` CPU devices (``jax_num_cpu_devices``; one per core is what
+    ``Scene.devices`` wants). That can only be set before JAX's first operation in the process; after it, or on
+    an accelerator, this returns the devices there already are (a one-device tuple leaves a scene serial)."""
+    if not isinstance(n, (int, np.integer)) or n < 1:
+        raise ValueError(f"n must be a positive integer, got {n!r}")
+    try:
+        jax.config.update("jax_num_cpu_devices", int(n))
+    except RuntimeError:   # the backend is already initialised: keep what it has
+        pass
+    return tuple(jax.local_devices())
+
+
+def _concurrent_step(scene: Scene):
+    """``step_fn(zs, forces) -> zs`` that steps body k on ``scene.devices[k % D]``: every body's step is
+    dispatched before any is awaited (JAX dispatch is asynchronous), then each state is moved back to
+    ``devices[0]``."""
+    devices = scene.devices
+    home = devices[0]
+    fns = [jax.jit(b.step_fn) for b in scene.bodies]
+    places = [devices[k % len(devices)] for k in range(len(scene.bodies))]
+
+    def step_fn(zs, forces):
+        out = [fn(jax.device_put(z, d), jax.device_put(f, d)) for fn, z, f, d in zip(fns, zs, forces, places)]
+        return tuple(jax.device_put(z, home) for z in out)
+
+    return step_fn
 
 
 def make_render_fn(scene: Scene, capacity: int):
@@ -408,6 +446,9 @@ def validate(scene: Scene) -> None:
         raise ValueError(f"track must be [frames, tips, 3] (u, v, depth_m), got shape {track.shape}")
     if not scene.bodies:
         raise ValueError("scene has no bodies")
+    if scene.devices and scene.step is not None:
+        raise ValueError("a scene with devices steps each body's step_fn on its device; it cannot also have a "
+                         "step over all bodies (scene.step)")
     for k, b in enumerate(scene.bodies):
         n = len(b.q0)
         if np.asarray(b.z).shape != (n, 12):
@@ -417,7 +458,7 @@ def validate(scene: Scene) -> None:
         tri = np.asarray(b.triangles)
         if tri.ndim != 2 or tri.shape[1] != 3 or tri.min() < 0 or tri.max() >= n:
             raise ValueError(f"bodies[{k}].triangles must be [T,3] indices below {n}")
-        if scene.step is None and not callable(b.step_fn):
+        if (scene.step is None or scene.devices) and not callable(b.step_fn):
             raise ValueError(f"bodies[{k}].step_fn must be callable (or give the scene a step), got {b.step_fn!r}")
         if not (b.tip_radius > 0 and b.vmax > 0):
             raise ValueError(f"bodies[{k}] needs tip_radius > 0 and vmax > 0, got {b.tip_radius}, {b.vmax}")
