@@ -172,7 +172,12 @@ def _run(scene, frames, write, warmup, gc_pause):
     frames = len(scene.track) if frames is None else int(frames)
     forces_fn, step_fn, render_fn, capacity = build(scene)
     max_capacity = 8 * scene.camera.width * scene.camera.height  # beyond this, drop fragments rather than grow
-    zs = tuple(jnp.asarray(b.z, jnp.float32) for b in scene.bodies)
+    # the initial states, placed as the step returns states (committed to devices[0] with Scene.devices), so that
+    # neither a guard's reset nor the first step changes the stages' argument placement (that would recompile them)
+    initial = tuple(jnp.asarray(b.z, jnp.float32) for b in scene.bodies)
+    if scene.devices:
+        initial = tuple(jax.device_put(z, scene.devices[0]) for z in initial)
+    zs = initial
     track = _pad_frames(scene.track, frames)  # host array: a device index per frame would compile per index
     times = {k: [] for k in ("forces", "step", "render", "write", "frame")}
     reallocations = 0
@@ -194,8 +199,7 @@ def _run(scene, frames, write, warmup, gc_pause):
             if guard_fn is not None:
                 flags = np.broadcast_to(np.asarray(guard_fn(zs), bool).reshape(-1), (len(zs),))
                 if flags.any():
-                    zs = tuple(jnp.asarray(b.z, jnp.float32) if bad else z
-                               for b, z, bad in zip(scene.bodies, zs, flags))
+                    zs = tuple(z0 if bad else z for z0, z, bad in zip(initial, zs, flags))
                     guard_trips += int(flags.sum())
         t2 = time.perf_counter()
         image, overflow = jax.block_until_ready(render_fn(zs, tips))
