@@ -153,6 +153,32 @@ def prior_step(norm, z, f, e, node_type, q0):
     return jnp.concatenate([h * v + e_u + h * dv, dv, e_s + h * apply_s(norm, v + dv)], axis=1)
 
 
+def prior_rate(norm, z, f, node_type, q0):
+    """Δt (J₀ z + B f) [N,12]: the rest linearisation's forward-Euler increment at z under f (u̇ = v,
+    M v̇ = f − K₀ u − α M v, σ̇ = S₀ v; zero in the clamped nodes' q and v rows). ``prior_step`` is
+    ``solve(prior_rate + e)`` with the products merged."""
+    h, alpha, free, m = _constants(norm, node_type, z.dtype)
+    u, v = (z[:, :3] - q0.astype(z.dtype)) * free, z[:, 3:6] * free
+    r_v = (h * (f - apply_k(norm, u)) / m - h * alpha * v) * free
+    return jnp.concatenate([h * v, r_v, h * apply_s(norm, v)], axis=1)
+
+
+def residual(norm, z, z_next, f, node_type, q0):
+    """e* [N,12]: the network increment with which a ``linear_prior`` step from z under f lands exactly on
+    z_next, W (z_next − z) − Δt (J₀ z + B f). Local (one product with K₀ and one with S₀), so a network can be
+    fitted to it without the solve: what the rest linearisation misses, in the W-method's coordinates."""
+    return forward(norm, z_next - z, node_type) - prior_rate(norm, z, f, node_type, q0)
+
+
+def residuals(norm: dict, z, f, node_type, q0) -> np.ndarray:
+    """`residual` of every transition of z [C,T+1,N,12] under f [C,T,N,3]: [C,T,N,12] float32."""
+    nt, x0 = jnp.asarray(node_type), jnp.asarray(q0, jnp.float32)
+    ops = {k: jnp.asarray(norm[k]) for k in KEYS + ("dt",)}
+    fn = jax.jit(jax.vmap(lambda a, b, g: residual(ops, a, b, g, nt, x0)))
+    z, f = np.asarray(z, np.float32), np.asarray(f, np.float32)
+    return np.stack([np.asarray(fn(jnp.asarray(c[:-1]), jnp.asarray(c[1:]), jnp.asarray(g))) for c, g in zip(z, f)])
+
+
 def increments(norm: dict, z, node_type) -> np.ndarray:
     """W (z[k+1] − z[k]) / 1 for every transition of z [C,T+1,N,12]: [C,T,N,12] float32, the per-frame
     increments a ``frame_solve`` model's forward-Euler part must produce (what its normalisation scales)."""

@@ -121,7 +121,8 @@ class ModelConfig(NamedTuple):
     non-local linear response (needs the rest linearisation in ``norm``, computed from the data file when
     training); linear_prior (needs frame_solve): F = J₀ z + B f + the network's GENERIC rate, so an untrained
     model is the FEM's linearised backward-Euler frame map and the network learns what the rest linearisation
-    misses."""
+    misses; correction_scale: with linear_prior, the initial scale of the decoder's output (the correction starts
+    this small, so training starts from the prior's map)."""
     hidden: int = 32
     mlp_layers: int = 2
     passes: int = 4
@@ -144,6 +145,7 @@ class ModelConfig(NamedTuple):
     port_hops: int = 0
     frame_solve: bool = False
     linear_prior: bool = False
+    correction_scale: float = 0.01
 
 
 SPRING_HIDDEN = 16     # width of elastic_port's stiffness MLP ψ
@@ -1052,4 +1054,4 @@ class Network(nn.Module):
             h = h + MLP(hid, hid, c.mlp_layers, c.activation)(jnp.concatenate(parts, axis=1))
         # with linear_prior the network is a correction: it starts small, so training starts from the prior's map
         return MLP(hid, 2 + N_L + N_M + int(c.force_port), c.mlp_layers, c.activation,
-                   out_scale=0.01 if c.linear_prior else 0.1, split=2)(h)
+                   out_scale=c.correction_scale if c.linear_prior else 0.1, split=2)(h)

@@ -53,7 +53,12 @@ class TrainConfig(NamedTuple):
     ``v_weight``: the squared errors of the velocity features count v_weight times in the loss's mean; the
     reported MSEs stay unweighted. ``val_reference``: how the validation rollout errors (and the score that
     selects the best model) are made relative, "snapshot" (the published measure) or "peak" (over each case's
-    largest true norm: for data whose velocities pass through zero, see ``evaluate.relative_errors``)."""
+    largest true norm: for data whose velocities pass through zero, see ``evaluate.relative_errors``).
+    ``residual_scale`` (with ``linear_prior``): the network's output scale in the velocity and stress rows is
+    the spread of the prior's residual (`framesolve.residual`, the increment with which the prior's step
+    reproduces the data) instead of the state's increments. On a stiff mesh that residual is a stiff force
+    (the bunny: 2000× the velocity increments, growing with the deformation), so pair it with a small
+    ``correction_scale``."""
     hidden: int = 24
     mlp_layers: int = 2
     passes: int = 3
@@ -76,6 +81,8 @@ class TrainConfig(NamedTuple):
     port_hops: int = 0
     frame_solve: bool = False
     linear_prior: bool = False
+    correction_scale: float = 0.01
+    residual_scale: bool = False
     lr: float = 3e-3
     lr_end: float = 2e-5
     weight_decay: float = 1e-6
@@ -276,6 +283,8 @@ def train(data: D.Dataset, cfg: TrainConfig, run_dir: str | Path, train_split="t
     (run_dir / "config.json").write_text(json.dumps(record_cfg, indent=1))
     rows = D.split_rows(data, train_split)
     val_rows = D.split_rows(data, val_split) if val_split else None
+    if cfg.residual_scale and not cfg.linear_prior:
+        raise ValueError("residual_scale scales a linear_prior model's correction: set linear_prior=true too")
     if cfg.linear_prior and not cfg.frame_solve:
         raise ValueError("linear_prior needs frame_solve (forward Euler on the stiff rest dynamics is unstable)")
     if cfg.frame_solve:
@@ -286,10 +295,18 @@ def train(data: D.Dataset, cfg: TrainConfig, run_dir: str | Path, train_split="t
         ops["dt"] = np.array([data.dt], np.float32)
         # the network's output scale: without the prior it must produce all of W Δz (whose stiff components are
         # orders of magnitude above the state's increments); with it, only a correction of the state's size
-        pseudo = None if cfg.linear_prior else FS.increments(ops, data.z[rows], data.node_type)
+        # residual_scale: the velocity and stress rows at the spread of what the prior misses (the increment with
+        # which its step reproduces the data, `framesolve.residual`: in the velocity rows a stiff force, orders
+        # of magnitude above the state's increments), the position rows at the state's (the residual is ~0 there)
+        if cfg.residual_scale and cfg.linear_prior:
+            pseudo = FS.residuals(ops, data.z[rows], data.f[rows], data.node_type, data.q0)
+        else:
+            pseudo = None if cfg.linear_prior else FS.increments(ops, data.z[rows], data.node_type)
         norm_np = D.normalization(data, rows, increments=pseudo)
         norm_np.update({k: np.asarray(v, np.float32) for k, v in ops.items()})
         norm_np["fs_dz_std"] = D.normalization(data, rows)["dz_std"]   # the state increments' scale (the loss's)
+        if cfg.residual_scale and cfg.linear_prior:
+            norm_np["dz_std"][:3] = norm_np["fs_dz_std"][:3]
     else:
         norm_np = D.normalization(data, rows)
     if parent is not None:   # the parent's scales are part of the function its weights compute: keep them
@@ -394,7 +411,7 @@ def train(data: D.Dataset, cfg: TrainConfig, run_dir: str | Path, train_split="t
 
 
 # model options that change how the weights are used but not their shapes: a warm start may switch them
-WEIGHT_FREE = ("exact_degeneracy", "kinematic_prior", "rest_equilibrium")
+WEIGHT_FREE = ("exact_degeneracy", "kinematic_prior", "rest_equilibrium", "correction_scale")
 
 
 def _parent(init_from, cfg: TrainConfig) -> dict:
