@@ -1,8 +1,9 @@
-"""Describe the machine a benchmark ran on (written next to every result)."""
+"""Describe the machine a benchmark ran on (written next to every result), and time variants alike."""
 from __future__ import annotations
 
 import os
 import platform
+import time
 
 
 def describe() -> dict:
@@ -21,3 +22,20 @@ def describe() -> dict:
     return {"cpu": cpu, "cores": os.cpu_count(), "python": platform.python_version(), "jax": jax.__version__,
             "backend": jax.default_backend(), "load_average_1m": round(load[0], 2),
             "note": "load_average_1m > cores means other processes shared the CPU during the run"}
+
+
+def interleaved_ms(fns: dict, repeats: int) -> dict:
+    """Milliseconds per call of each zero-argument function, ``repeats`` samples each ({name: [ms]}): each is
+    called once first (to compile), then the functions are called in turn, so a change of the machine's load
+    hits all variants alike. A function's result is awaited with ``jax.block_until_ready``."""
+    import jax
+
+    for fn in fns.values():
+        jax.block_until_ready(fn())
+    times = {k: [] for k in fns}
+    for _ in range(repeats):
+        for k, fn in fns.items():
+            t0 = time.perf_counter()
+            jax.block_until_ready(fn())
+            times[k].append(1e3 * (time.perf_counter() - t0))
+    return times

@@ -28,7 +28,6 @@ import argparse
 import json
 import os
 import sys
-import time
 from pathlib import Path
 
 import jax
@@ -36,7 +35,7 @@ import jax.numpy as jnp
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _machine import describe  # noqa: E402
+from _machine import describe, interleaved_ms  # noqa: E402
 
 RESULTS = Path(__file__).resolve().parent / "results"
 BUDGET_MS = {"beam": 9.0, "bunny": 11.0, "two-beams": 18.0}
@@ -104,14 +103,7 @@ def step_variants(name: str, repeats: int) -> dict:
         "assembled edge features": assembled_step(w, cfg, norm, nt, rows),
         "shipped (rows)": jax.jit(lambda z, f: M.step_state(w, cfg, norm, z, f, nt, rows)),
     }
-    for fn in fns.values():
-        jax.block_until_ready(fn(z, f))
-    times = {k: [] for k in fns}
-    for _ in range(repeats):
-        for k, fn in fns.items():   # interleaved, so load changes hit all variants alike
-            t0 = time.perf_counter()
-            jax.block_until_ready(fn(z, f))
-            times[k].append(1e3 * (time.perf_counter() - t0))
+    times = interleaved_ms({k: (lambda fn=fn: fn(z, f)) for k, fn in fns.items()}, repeats)
     out = {k: float(np.median(v)) for k, v in times.items()}
     base = out["straightforward (edge list)"]
     return {"step_p50_ms": out, "speedup_vs_straightforward": {k: base / v for k, v in out.items()},
@@ -140,14 +132,7 @@ def concurrency(name: str, repeats: int, devices: tuple) -> dict:
            "two bodies, two steps in one program": lambda: serial(z, z, f, f)}
     if len(devices) > 1:
         fns["two bodies on two devices (concurrent)"] = lambda: [one(a, b) for a, b in placed]
-    for fn in fns.values():
-        jax.block_until_ready(fn())
-    times = {k: [] for k in fns}
-    for _ in range(repeats):
-        for k, fn in fns.items():
-            t0 = time.perf_counter()
-            jax.block_until_ready(fn())
-            times[k].append(1e3 * (time.perf_counter() - t0))
+    times = interleaved_ms(fns, repeats)
     p50 = {k: float(np.median(v)) for k, v in times.items()}
     return {"model": DEFAULT_MODELS[name], "devices": len(devices), "step_p50_ms": p50,
             "step_p99_ms": {k: float(np.percentile(v, 99)) for k, v in times.items()},
@@ -200,14 +185,7 @@ def untrained_step(name: str, repeats: int, sizes=((16, 3), (24, 3))) -> dict:
         w = M.init_weights(jax.random.PRNGKey(0), cfg, norm, z, f, nt, topo_c)
         norm_c = M.with_rest(w, cfg, norm, nt, topo_c)
         fns["16x3 coarse (session 10)"] = jax.jit(lambda z, f: M.step_state(w, cfg, norm_c, z, f, nt, topo_c))
-    for fn in fns.values():
-        jax.block_until_ready(fn(z, f))
-    times = {k: [] for k in fns}
-    for _ in range(repeats):
-        for k, fn in fns.items():
-            t0 = time.perf_counter()
-            jax.block_until_ready(fn(z, f))
-            times[k].append(1e3 * (time.perf_counter() - t0))
+    times = interleaved_ms({k: (lambda fn=fn: fn(z, f)) for k, fn in fns.items()}, repeats)
     features = {k: getattr(base, k) for k in ("edge_velocity", "edge_strain", "node_position")}
     return {"nodes": n, "slots": list(topo.nbr.shape), "features": features,
             "step_p50_ms": {k: float(np.median(v)) for k, v in times.items()}}

@@ -27,7 +27,6 @@ from __future__ import annotations
 import argparse
 import json
 import sys
-import time
 from pathlib import Path
 
 import jax
@@ -35,22 +34,14 @@ import jax.numpy as jnp
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _machine import describe  # noqa: E402
+from _machine import describe, interleaved_ms  # noqa: E402
 
 RESULTS = Path(__file__).resolve().parent / "results"
 
 
 def interleaved(fns: dict, repeats: int) -> dict:
     """Median seconds of each zero-argument function (each called once first, to compile)."""
-    for fn in fns.values():
-        jax.block_until_ready(fn())
-    times = {k: [] for k in fns}
-    for _ in range(repeats):
-        for k, fn in fns.items():
-            t0 = time.perf_counter()
-            jax.block_until_ready(fn())
-            times[k].append(time.perf_counter() - t0)
-    return {k: float(np.median(v)) for k, v in times.items()}
+    return {k: 1e-3 * float(np.median(v)) for k, v in interleaved_ms(fns, repeats).items()}
 
 
 def fem_skips(repeats: int, frames: int) -> list:
