@@ -165,8 +165,11 @@ def prior_rate(norm, z, f, node_type, q0):
 
 def residual(norm, z, z_next, f, node_type, q0):
     """e* [N,12]: the network increment with which a ``linear_prior`` step from z under f lands exactly on
-    z_next, W (z_next − z) − Δt (J₀ z + B f). Local (one product with K₀ and one with S₀), so a network can be
-    fitted to it without the solve: what the rest linearisation misses, in the W-method's coordinates."""
+    z_next, W (z_next − z) − Δt (J₀ z + B f): what the rest linearisation misses, in the W-method's coordinates.
+    Local (one product with K₀ and one with S₀), but on a stiff mesh dominated by stiff components that the solve
+    all but removes (the bunny's patch loads: 2000× the velocity increments in the velocity rows, from small
+    errors of the displacement near the load), so it sets an output scale (``TrainConfig.residual_scale``) rather
+    than a one-step training target: fitted directly, it fitted nothing (README, bunny session 18)."""
     return forward(norm, z_next - z, node_type) - prior_rate(norm, z, f, node_type, q0)
 
 
