@@ -305,7 +305,8 @@ def test_demo_command_writes_gif_and_timings_and_labels_the_stand_in(tmp_path):
 
     parser = argparse.ArgumentParser()
     commands_demo.register(parser.add_subparsers())
-    args = parser.parse_args(["demo", "--scene", "two-beams", "--frames", "3", "--stand-in", "--out", str(tmp_path)])
+    args = parser.parse_args(["demo", "--scene", "two-beams", "--frames", "3", "--stand-in", "--cores", "1",
+                              "--out", str(tmp_path)])
     assert args.func(args) == 0
     gif = tmp_path / "two-beams_STAND-IN.gif"
     summary = json.loads((tmp_path / "two-beams_STAND-IN_timings.json").read_text())
