@@ -175,21 +175,25 @@ def residual(norm, z, z_next, f, node_type, q0):
 
 def residuals(norm: dict, z, f, node_type, q0) -> np.ndarray:
     """`residual` of every transition of z [C,T+1,N,12] under f [C,T,N,3]: [C,T,N,12] float32."""
-    nt, x0 = jnp.asarray(node_type), jnp.asarray(q0, jnp.float32)
-    ops = {k: jnp.asarray(norm[k]) for k in KEYS + ("dt",)}
-    fn = jax.jit(jax.vmap(lambda a, b, g: residual(ops, a, b, g, nt, x0)))
-    z, f = np.asarray(z, np.float32), np.asarray(f, np.float32)
-    return np.stack([np.asarray(fn(jnp.asarray(c[:-1]), jnp.asarray(c[1:]), jnp.asarray(g))) for c, g in zip(z, f)])
+    x0 = jnp.asarray(q0, jnp.float32)
+    return _per_transition(lambda ops, nt, a, b, g: residual(ops, a, b, g, nt, x0), norm, z, node_type, f)
 
 
 def increments(norm: dict, z, node_type) -> np.ndarray:
     """W (z[k+1] − z[k]) / 1 for every transition of z [C,T+1,N,12]: [C,T,N,12] float32, the per-frame
     increments a ``frame_solve`` model's forward-Euler part must produce (what its normalisation scales)."""
+    return _per_transition(lambda ops, nt, a, b, g: forward(ops, b - a, nt), norm, z, node_type)
+
+
+def _per_transition(fn, norm: dict, z, node_type, f=None) -> np.ndarray:
+    """fn(ops, node_type, z_k, z_{k+1}, f_k) [N,12] of every transition of z [C,T+1,N,12] (f [C,T,N,3], or zeros
+    where not given): [C,T,N,12] float32, one jitted call per case over its frames."""
     nt = jnp.asarray(node_type)
     ops = {k: jnp.asarray(norm[k]) for k in KEYS + ("dt",)}
-    fn = jax.jit(jax.vmap(lambda a, b: forward(ops, b - a, nt)))
+    step = jax.jit(jax.vmap(lambda a, b, g: fn(ops, nt, a, b, g)))
     z = np.asarray(z, np.float32)
-    return np.stack([np.asarray(fn(jnp.asarray(c[:-1]), jnp.asarray(c[1:]))) for c in z])
+    f = np.zeros(z[:, 1:, :, :3].shape, np.float32) if f is None else np.asarray(f, np.float32)
+    return np.stack([np.asarray(step(jnp.asarray(c[:-1]), jnp.asarray(c[1:]), jnp.asarray(g))) for c, g in zip(z, f)])
 
 
 def operators_cached(data_path: str | Path, cache: str | Path):

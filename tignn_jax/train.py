@@ -298,14 +298,14 @@ def train(data: D.Dataset, cfg: TrainConfig, run_dir: str | Path, train_split="t
         # residual_scale: the velocity and stress rows at the spread of what the prior misses (the increment with
         # which its step reproduces the data, `framesolve.residual`: in the velocity rows a stiff force, orders
         # of magnitude above the state's increments), the position rows at the state's (the residual is ~0 there)
-        if cfg.residual_scale and cfg.linear_prior:
+        if cfg.residual_scale:   # (checked above: with linear_prior)
             pseudo = FS.residuals(ops, data.z[rows], data.f[rows], data.node_type, data.q0)
         else:
             pseudo = None if cfg.linear_prior else FS.increments(ops, data.z[rows], data.node_type)
         norm_np = D.normalization(data, rows, increments=pseudo)
         norm_np.update({k: np.asarray(v, np.float32) for k, v in ops.items()})
         norm_np["fs_dz_std"] = D.normalization(data, rows)["dz_std"]   # the state increments' scale (the loss's)
-        if cfg.residual_scale and cfg.linear_prior:
+        if cfg.residual_scale:
             norm_np["dz_std"][:3] = norm_np["fs_dz_std"][:3]
     else:
         norm_np = D.normalization(data, rows)
