@@ -33,6 +33,44 @@ def test_pareto_front_rejects_mismatched_inputs():
         pareto.pareto_front([1.0, 2.0], [0.1])
 
 
+def test_pareto_front_over_several_errors_needs_domination_in_all():
+    # (time; u, v): b is cheaper and better in u than c but worse in v, so both stay; d is dominated by a
+    cost = [1.0, 2.0, 3.0, 1.5]
+    error = [[0.5, 0.5], [0.2, 0.9], [0.3, 0.1], [0.6, 0.6]]
+    assert pareto.pareto_front(cost, error).tolist() == [0, 1, 2]
+    assert pareto.pareto_front(cost, [e[0] for e in error]).tolist() == [0, 1]
+
+
+def test_linear_frame_settles_on_the_static_solution_of_the_rest_stiffness():
+    """The rest-linearised backward-Euler frame (the cheap FEM baseline) under a held load settles on
+    K₀ u = f (dense K₀ from the same linearisation, clamped rows removed), with 1 and 2 solves per frame."""
+    from fem import implicit
+
+    divisions = (5, 2, 2)
+    frame1, scene, _ = pareto.linear_frame(divisions, 1)
+    frame2, _, _ = pareto.linear_frame(divisions, 2)
+    lin = pareto._LINEAR[divisions]
+    n = len(scene.points)
+    k = np.zeros((n, n, 3, 3))
+    k[lin.k_rows, lin.k_cols] = lin.k_blocks
+    k = k.transpose(0, 2, 1, 3).reshape(3 * n, 3 * n)
+    free = np.repeat(np.asarray(scene.node_type) == 0, 3)
+    f = np.zeros((n, 3))
+    f[np.asarray(scene.points)[:, 0] > 40.0 - 1e-6, 2] = -100.0   # u ~ 0.1: far above float32 rounding of q
+    u_static = np.zeros(3 * n)
+    u_static[free] = np.linalg.solve(k[np.ix_(free, free)], f.reshape(-1)[free])
+    fj = jnp.asarray(f, jnp.float32)
+    for frame in (frame1, frame2):
+        z = jnp.concatenate([jnp.asarray(scene.points, jnp.float32), jnp.zeros((n, 9))], 1)
+        for _ in range(400):
+            z = frame(z, fj, fj)
+        u = np.asarray(z[:, :3]) - scene.points
+        assert np.linalg.norm(u.reshape(-1) - u_static) < 1e-3 * np.linalg.norm(u_static)
+        # at rest: the motion per frame is at float32 rounding of the positions (~40 × 6e-8 per step)
+        assert float(jnp.abs(z[:, 3:6]).max()) * 0.05 < 2e-3 * np.abs(u_static).max()
+    assert isinstance(lin, implicit.RestLinearization)
+
+
 @pytest.mark.parametrize("divisions", [(10, 3, 3), (14, 4, 4)])
 def test_trilinear_interpolation_reproduces_a_linear_field_exactly(divisions):
     # trilinear shape functions contain the linear polynomials: a homogeneous deformation is transferred exactly
