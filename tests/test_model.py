@@ -1049,3 +1049,27 @@ def test_guarded_stepper_never_returns_non_finite_or_out_of_envelope_states(toy)
         api.guarded_stepper(params, policy="freeze")
     with pytest.raises(ValueError, match="tolerance"):
         api.guarded_stepper(params, tolerance=-1.0)
+
+
+def test_heun_step_is_the_mean_of_the_state_and_two_euler_steps(toy):
+    """The explicit trapezoidal rule z + ½(Δw(z) + Δw(z + Δw(z))) equals ½(z + Euler(Euler(z))); clamped nodes
+    keep their position and velocity; the option saves, loads and steps; bad combinations are clear errors."""
+    w, _, norm, z, f, nt, topo = _args(toy)
+    heun = CONFIG._replace(integrator="heun")
+    euler = lambda x: M.step_state(w, CONFIG, norm, x, f, nt, topo)
+    z_h = M.step_state(w, heun, norm, z, f, nt, topo)
+    np.testing.assert_allclose(np.asarray(z_h), np.asarray(0.5 * (z + euler(euler(z)))), rtol=1e-5, atol=1e-6)
+    assert float(jnp.abs(z_h - euler(z)).max()) > 1e-4 * float(jnp.abs(euler(z) - z).max())   # not Euler
+    clamped = np.asarray(toy["nt"]) != 0
+    np.testing.assert_array_equal(np.asarray(z_h)[clamped, :6], np.asarray(z)[clamped, :6])
+    data = toy["data"]
+    params = api.make_params(heun, {k: np.asarray(v) for k, v in toy["norm"].items()}, w, data.q0, data.edges,
+                             data.node_type)
+    with pytest.raises(ValueError, match="integrator must be one of"):
+        api.make_params(CONFIG._replace(integrator="rk4"), toy["norm"], w, data.q0, data.edges, data.node_type)
+    with pytest.raises(ValueError, match="the W-method is the step's integrator"):
+        M.check_integrator(CONFIG._replace(integrator="heun", frame_solve=True))
+    graph = G.rest_graph(data.q0, data.edges, data.node_type)
+    graph = graph._replace(nodes={**graph.nodes, "z": z})
+    np.testing.assert_allclose(np.asarray(api.step(params, graph, f).nodes["z"]), np.asarray(z_h), rtol=1e-6,
+                               atol=1e-6)

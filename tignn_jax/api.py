@@ -243,6 +243,7 @@ def load_pretrained(name: str = "beam-abaqus"):
 def make_params(config: M.ModelConfig, norm: dict, weights, q0, edges, node_type) -> dict:
     """Bundle a model: architecture, normalisation, weights and its mesh."""
     edges = np.asarray(edges)
+    M.check_integrator(config)
     if config.linear_prior and not config.frame_solve:
         raise ValueError("linear_prior needs frame_solve (forward Euler on the stiff rest dynamics is unstable)")
     if config.frame_solve:

@@ -122,7 +122,10 @@ class ModelConfig(NamedTuple):
     training); linear_prior (needs frame_solve): F = J₀ z + B f + the network's GENERIC rate, so an untrained
     model is the FEM's linearised backward-Euler frame map and the network learns what the rest linearisation
     misses; correction_scale: with linear_prior, the initial scale of the decoder's output (the correction starts
-    this small, so training starts from the prior's map)."""
+    this small, so training starts from the prior's map). integrator: how a step answers the GENERIC rate F(z)
+    without ``frame_solve``: "euler" (forward Euler, z + Δt F(z), the paper's) or "heun" (the explicit trapezoidal
+    rule, z + Δt/2 (F(z) + F(z + Δt F(z))): two network evaluations per step, second order); a model must be
+    trained with the integrator it is used with (training steps with it too)."""
     hidden: int = 32
     mlp_layers: int = 2
     passes: int = 4
@@ -146,6 +149,18 @@ class ModelConfig(NamedTuple):
     frame_solve: bool = False
     linear_prior: bool = False
     correction_scale: float = 0.01
+    integrator: str = "euler"
+
+
+INTEGRATORS = ("euler", "heun")
+
+
+def check_integrator(config: ModelConfig) -> None:
+    """A clear error for an unknown integrator or one combined with ``frame_solve`` (its own integrator)."""
+    if config.integrator not in INTEGRATORS:
+        raise ValueError(f"integrator must be one of {INTEGRATORS}, got {config.integrator!r}")
+    if config.integrator != "euler" and config.frame_solve:
+        raise ValueError(f"integrator={config.integrator!r} with frame_solve: the W-method is the step's integrator")
 
 
 SPRING_HIDDEN = 16     # width of elastic_port's stiffness MLP ψ
@@ -167,9 +182,12 @@ class Rates(NamedTuple):
 
 
 def step_state(weights, config: ModelConfig, norm: dict, z, f, node_type, topo):
-    """One step (forward Euler, or the W-method of ``frame_solve``): z [N,12], f [N,3] (force during the step),
-    node_type [N] → z_next [N,12]."""
+    """One step (forward Euler or Heun, see ``ModelConfig.integrator``, or the W-method of ``frame_solve``):
+    z [N,12], f [N,3] (force during the step), node_type [N] → z_next [N,12]."""
     dw, _, _, _ = _generic(weights, config, norm, z, f, node_type, topo)
+    if config.integrator == "heun":
+        dw2, _, _, _ = _generic(weights, config, norm, z + dw * state_scale(norm), f, node_type, topo)
+        dw = 0.5 * (dw + dw2)
     return z + increment(config, norm, dw, z, f, node_type, topo)
 
 

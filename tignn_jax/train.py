@@ -82,6 +82,7 @@ class TrainConfig(NamedTuple):
     frame_solve: bool = False
     linear_prior: bool = False
     correction_scale: float = 0.01
+    integrator: str = "euler"
     residual_scale: bool = False
     lr: float = 3e-3
     lr_end: float = 2e-5
@@ -196,6 +197,11 @@ def loss_fn(weights, batch: Batch, key, norm, cfg: TrainConfig, node_type, topo)
     def one_step(z_in, xs):
         f_j, z_true, rel_j = xs
         rt = jax.vmap(lambda z, f: M.rates(weights, cfg.model, norm, z, f, node_type, topo))(z_in, f_j)
+        if cfg.model.integrator == "heun":   # the step the model will be used with: Heun's two rates
+            rt2 = jax.vmap(lambda z, f: M.rates(weights, cfg.model, norm, z, f, node_type, topo))(
+                z_in + rt.dw * s, f_j)
+            rt = rt._replace(dw=0.5 * (rt.dw + rt2.dw), deg_l=jnp.concatenate([rt.deg_l, rt2.deg_l], axis=1),
+                             deg_m=jnp.concatenate([rt.deg_m, rt2.deg_m], axis=1))
         dw = dw_bounded(rt.dw)
         z_next = z_in + (step_of(dw, z_in, f_j) if cfg.frame_solve else dw * s)
         sq = ((z_next - z_true) / state_unit) ** 2 * keep
@@ -285,6 +291,7 @@ def train(data: D.Dataset, cfg: TrainConfig, run_dir: str | Path, train_split="t
     val_rows = D.split_rows(data, val_split) if val_split else None
     if cfg.residual_scale and not cfg.linear_prior:
         raise ValueError("residual_scale scales a linear_prior model's correction: set linear_prior=true too")
+    M.check_integrator(cfg.model)
     if cfg.linear_prior and not cfg.frame_solve:
         raise ValueError("linear_prior needs frame_solve (forward Euler on the stiff rest dynamics is unstable)")
     if cfg.frame_solve:
