@@ -701,6 +701,8 @@ def plot(path, points, front, result) -> None:
         seen.add(p["kind"])
         offset, ha = {"shipped": ((-6, 8), "right"), "shipped-bf16": ((6, -10), "left")}.get(p["kind"],
                                                                                         ((4, 3), "left"))
+        if p["kind"] == "fem-linear" and p.get("n_sub", 1) > 1:   # beside its 1-solve twin: label below
+            offset = (4, -11)
         ax.annotate(p["name"].replace("learned ", "").replace("FEM ", ""), (p["ms"], p["u"]), fontsize=7,
                     xytext=offset, textcoords="offset points", ha=ha)
     fx = [points[i]["ms"] for i in front]
