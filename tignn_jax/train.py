@@ -418,7 +418,7 @@ def train(data: D.Dataset, cfg: TrainConfig, run_dir: str | Path, train_split="t
 
 
 # model options that change how the weights are used but not their shapes: a warm start may switch them
-WEIGHT_FREE = ("exact_degeneracy", "kinematic_prior", "rest_equilibrium", "correction_scale")
+WEIGHT_FREE = ("exact_degeneracy", "kinematic_prior", "rest_equilibrium", "correction_scale", "integrator")
 
 
 def _parent(init_from, cfg: TrainConfig) -> dict:
