@@ -27,8 +27,9 @@ Writes benchmarks/results/pareto.{json,md,png}; trained models and cached errors
         python benchmarks/pareto.py [--quick] [--times-only] [--train-only] [--train-minutes 65]
 
 --times-only re-measures every time and reuses the cached errors (runs/pareto/, else those in the committed
-pareto.json; models and FEM variants at hand without errors are run, as that needs no training); --quick is a small smoke setting (one case, writes runs/pareto/quick/); --train-only trains the
-subset (resumable: finished configurations are skipped) and stops.
+pareto.json; models and FEM variants at hand without errors are run, as that needs no training); --quick is
+a small smoke setting (one case, writes runs/pareto/quick/); --train-only trains the subset (resumable:
+finished configurations are skipped) and stops; --train-heun trains the Heun sizes first.
 """
 from __future__ import annotations
 
@@ -55,6 +56,7 @@ WIDTHS = (16, 24, 32, 64, 128)
 PASSES = (2, 3, 5, 10)
 TRAINED = ((16, 3), (24, 2), (24, 3), (24, 5), (32, 3), (64, 3))
 HEUN = ((24, 2),)   # trained with the Heun integrator (two rates per step), same recipe, seed and epochs
+LEARNED = tuple((c, "euler") for c in TRAINED) + tuple((c, "heun") for c in HEUN)   # ((hidden, passes), integrator)
 # FEM variants: (name, elements along x, y, z, density factor)
 FEM_VARIANTS = (("FEM 20×5×5 (reference mesh)", (20, 5, 5), 1.0),
                 ("FEM 20×5×5, mass ×4", (20, 5, 5), 4.0),
@@ -147,6 +149,11 @@ def load_data():
     return D.load(path)
 
 
+def point_key(hidden: int, passes: int, integrator: str = "euler") -> str:
+    """The name of a learned size in the caches and step times: '24x2', or '24x2 heun' for another integrator."""
+    return f"{hidden}x{passes}" + ("" if integrator == "euler" else f" {integrator}")
+
+
 def run_dir(hidden: int, passes: int, integrator: str = "euler") -> Path:
     return RUNS / (f"h{hidden}_p{passes}" + ("" if integrator == "euler" else f"_{integrator}"))
 
@@ -157,14 +164,20 @@ def train_heun(data, epochs: int, log=print) -> None:
     from tignn_jax import train as T
 
     for hidden, passes in HEUN:
-        rd = run_dir(hidden, passes, "heun")
-        if (rd / "done.json").exists():
-            continue
-        cfg = T.CONFIGS["beam"]._replace(hidden=hidden, passes=passes, epochs=epochs, integrator="heun")
-        t0 = time.time()
-        T.train(data, cfg, rd, train_split="train", val_split="val", progress=False, log=log)
-        (rd / "done.json").write_text(json.dumps({"epochs": epochs, "wall_s_last_session": time.time() - t0,
-                                                  "load_average_1m": round(os.getloadavg()[0], 2)}))
+        _train_run(data, T.CONFIGS["beam"]._replace(hidden=hidden, passes=passes, epochs=epochs, integrator="heun"),
+                   run_dir(hidden, passes, "heun"), log)
+
+
+def _train_run(data, cfg, rd: Path, log=print) -> None:
+    """One equal-budget run of the subset into ``rd`` (skipped when its done.json exists; resumes otherwise)."""
+    from tignn_jax import train as T
+
+    if (rd / "done.json").exists():
+        return
+    t0 = time.time()
+    T.train(data, cfg, rd, train_split="train", val_split="val", progress=False, log=log)
+    (rd / "done.json").write_text(json.dumps({"epochs": cfg.epochs, "wall_s_last_session": time.time() - t0,
+                                              "load_average_1m": round(os.getloadavg()[0], 2)}))
 
 
 def train_step_seconds(data, configs, repeats: int = 6) -> dict:
@@ -228,14 +241,8 @@ def train_subset(data, configs, minutes: float, log=print) -> dict:
     log(f"training plan: {plan['epochs']} epochs each, estimated {plan['estimated_minutes']:.0f} min; "
         f"per-step s {plan['train_step_s']}")
     for hidden, passes in plan["configs"]:
-        rd = run_dir(hidden, passes)
-        if (rd / "done.json").exists():
-            continue
-        cfg = T.CONFIGS["beam"]._replace(hidden=hidden, passes=passes, epochs=plan["epochs"])
-        t0 = time.time()
-        T.train(data, cfg, rd, train_split="train", val_split="val", progress=False, log=log)
-        (rd / "done.json").write_text(json.dumps({"epochs": plan["epochs"], "wall_s_last_session": time.time() - t0,
-                                                  "load_average_1m": round(os.getloadavg()[0], 2)}))
+        _train_run(data, T.CONFIGS["beam"]._replace(hidden=hidden, passes=passes, epochs=plan["epochs"]),
+                   run_dir(hidden, passes), log)
     return plan
 
 
@@ -324,8 +331,7 @@ def learned_step_fns(data, sizes, shipped_params):
     for hidden, passes, integrator in [(h, p, "euler") for h, p in sizes] + [(h, p, "heun") for h, p in HEUN]:
         cfg = M.ModelConfig(hidden=hidden, passes=passes, integrator=integrator)
         w = M.init_weights(jax.random.PRNGKey(0), cfg, norm, z, f, nt, topo)
-        name = f"{hidden}x{passes}" + ("" if integrator == "euler" else f" {integrator}")
-        fns[name] = jax.jit(lambda z, f, w=w, cfg=cfg: M.step_state(w, cfg, norm, z, f, nt, topo))
+        fns[point_key(hidden, passes, integrator)] = jax.jit(lambda z, f, w=w, cfg=cfg: M.step_state(w, cfg, norm, z, f, nt, topo))
     fns[SHIPPED] = api.stepper(shipped_params)
     cfg = api._config(shipped_params)
     w16 = cast_weights(shipped_params["weights"], jnp.bfloat16)
@@ -403,14 +409,8 @@ def fem_frame_time(divisions, density_factor, sim_id: int, min_repeats: int = 5,
     if w is not None:
         f = np.einsum("pn,tpd->tnd", w, f)
     loads = Loads(nodal=jnp.asarray(f, jnp.float32))
-    jax.block_until_ready(simulate(problem, scene.material, loads, on_inversion="ignore").q)
-    times, start = [], time.perf_counter()
-    while len(times) < max_repeats and (len(times) < min_repeats or time.perf_counter() - start < min_seconds):
-        t0 = time.perf_counter()
-        jax.block_until_ready(simulate(problem, scene.material, loads, on_inversion="ignore").q)
-        times.append(1e3 * (time.perf_counter() - t0))
-    return {"p50_ms": float(np.median(times)), "p90_ms": float(np.percentile(times, 90)), "repeats": len(times),
-            "n_sub": problem.config.n_sub, "load_average_1m": round(os.getloadavg()[0], 2)}
+    run = lambda: simulate(problem, scene.material, loads, on_inversion="ignore").q
+    return {**_median_frame_ms(run, min_repeats, min_seconds, max_repeats), "n_sub": problem.config.n_sub}
 
 
 _LINEAR = {}
@@ -491,6 +491,8 @@ def implicit_errors(divisions, n_sub, data, rows) -> dict:
 
 
 def _median_frame_ms(fn, min_repeats: int = 5, min_seconds: float = 3.0, max_repeats: int = 200) -> dict:
+    """Wall time [ms] of ``fn()`` after a compiling call: at least ``min_repeats`` calls and ``min_seconds``,
+    at most ``max_repeats``; median, 90th percentile and the load average."""
     jax.block_until_ready(fn())
     times, start = [], time.perf_counter()
     while len(times) < max_repeats and (len(times) < min_repeats or time.perf_counter() - start < min_seconds):
@@ -575,8 +577,8 @@ def main(argv=None) -> int:
     # errors (cached)
     shipped, _ = api.load_pretrained(SHIPPED)
     learned = {SHIPPED: (shipped, None), SHIPPED + " bf16": (shipped, jnp.bfloat16)}
-    for (h, p), integrator in [(c, "euler") for c in TRAINED] + [(c, "heun") for c in HEUN]:
-        key = f"{h}x{p}" + ("" if integrator == "euler" else f" {integrator}")
+    for (h, p), integrator in LEARNED:
+        key = point_key(h, p, integrator)
         path = run_dir(h, p, integrator) / "best" / "model.npz"
         if key not in cache and (run_dir(h, p, integrator) / "done.json").exists() and path.exists():
             learned[key] = (api.load_model(path), None)
@@ -657,8 +659,8 @@ def build_points(cache, step_times, fem_times, variants, shipped, solvers=()) ->
                            "hidden": cfg["hidden"], "passes": cfg["passes"], "params": n_shipped,
                            "epochs": shipped.get("info", {}).get("train_config", {}).get("epochs"),
                            "ms": step_times[name]["p50_ms"], **cache[name]})
-    for (h, p), integrator in [(c, "euler") for c in TRAINED] + [(c, "heun") for c in HEUN]:
-        key = f"{h}x{p}" + ("" if integrator == "euler" else f" {integrator}")
+    for (h, p), integrator in LEARNED:
+        key = point_key(h, p, integrator)
         if key in cache and key in step_times:
             info = cache[key].get("train_info", {})
             points.append({"name": f"learned {key}", "kind": "learned", "hidden": h, "passes": p,
