@@ -59,14 +59,61 @@ def beam_scene(density: float = BEAM_DENSITY, damping: float = BEAM_DAMPING, pro
                  damping, load_interp)
 
 
-def beam_reference_forces(scene: Scene, sim_ids) -> np.ndarray:
-    """Nodal forces [len(sim_ids), 20, N, 3] of reference cases (1..52): 5000·(k+1) per load node in frame k."""
-    out = np.zeros((len(sim_ids), scene.n_frames, len(scene.points), 3))
+def beam_reference_forces(scene: Scene, sim_ids, after: int = 0, mode: str = "hold") -> np.ndarray:
+    """Nodal forces [len(sim_ids), T + after, N, 3] of reference cases (1..52), T = scene.n_frames (20 in the
+    data): 5000·(k+1) per load node in frame k < T (the reference ramp), then for ``after`` more frames the final
+    load held (``mode="hold"``) or none (``"release"``): the reference cases continued past their horizon."""
+    if mode not in ("hold", "release"):
+        raise ValueError(f"mode must be 'hold' or 'release', got {mode!r}")
+    if not (isinstance(after, (int, np.integer)) and after >= 0):
+        raise ValueError(f"after must be a non-negative integer, got {after!r}")
     ramp = BEAM_FORCE_STEP * np.arange(1, scene.n_frames + 1)
+    scale = np.concatenate([ramp, np.full(after, ramp[-1] if mode == "hold" else 0.0)])
+    out = np.zeros((len(sim_ids), len(scale), len(scene.points), 3))
     for c, sid in enumerate(sim_ids):
         nodes, direction = beam_reference_load(scene.points, int(sid))
-        out[c][:, nodes] = ramp[:, None, None] * direction
+        out[c][:, nodes] = scale[:, None, None] * direction
     return out
+
+
+# The 52 reference cases load four faces, 13 positions each (sims 13g+1 .. 13g+13 on face g); face g is face 0
+# (y = 10, load along −y) under the isometry x ↦ R x + c of BEAM_FACE_MAPS[g]: faces z = 10 (−z), y = 0 (+y),
+# z = 0 (+z). The beam and its mesh are symmetric under these maps, so a case on face 0 gives the other three.
+BEAM_FACE_GROUP = 13
+BEAM_FACE_MAPS = (
+    (np.eye(3), np.zeros(3)),
+    (np.array([[1.0, 0, 0], [0, 0, 1], [0, 1, 0]]), np.zeros(3)),
+    (np.diag([1.0, -1, 1]), np.array([0.0, 10, 0])),
+    (np.array([[1.0, 0, 0], [0, 0, 1], [0, -1, 0]]), np.array([0.0, 0, 10])),
+)
+_VOIGT = ((0, 0), (1, 1), (2, 2), (0, 1), (0, 2), (1, 2))   # the data format's stress order 11 22 33 12 13 23
+
+
+def mirror_case(z, f, points, rot, shift):
+    """A case's states z [..., N, 12] (q, v, σ) and forces f [..., N, 3] mapped by the isometry x ↦ rot·x + shift
+    of a mesh onto itself: node i's values move to the node at rot·X_i + shift, q is mapped, v and f rotate,
+    and the stress tensor becomes rot·S·rotᵀ. Raises ValueError when the map does not take the mesh onto itself."""
+    points = np.asarray(points, np.float64)
+    rot, shift = np.asarray(rot, np.float64), np.asarray(shift, np.float64)
+    if rot.shape != (3, 3) or not np.allclose(rot @ rot.T, np.eye(3), atol=1e-12):
+        raise ValueError(f"rot must be an orthogonal 3x3 matrix, got {rot.tolist()}")
+    target = points @ rot.T + shift
+    dist = np.linalg.norm(target[:, None, :] - points[None, :, :], axis=-1)
+    perm = dist.argmin(axis=1)                                    # node i → node perm[i]
+    tol = 1e-6 * max(1.0, float(np.abs(points).max()))
+    if dist[np.arange(len(points)), perm].max() > tol or len(np.unique(perm)) != len(points):
+        raise ValueError(f"x -> rot x + {shift.tolist()} does not map the mesh onto itself")
+    z, f = np.asarray(z, np.float64), np.asarray(f, np.float64)
+    s = np.zeros(z.shape[:-1] + (3, 3))
+    for k, (a, b) in enumerate(_VOIGT):
+        s[..., a, b] = s[..., b, a] = z[..., 6 + k]
+    s = np.einsum("ia,...ab,jb->...ij", rot, s, rot)
+    mapped = np.concatenate([z[..., :3] @ rot.T + shift, z[..., 3:6] @ rot.T,
+                             np.stack([s[..., a, b] for a, b in _VOIGT], axis=-1)], axis=-1)
+    z_out, f_out = np.empty_like(mapped), np.empty_like(f)
+    z_out[..., perm, :] = mapped
+    f_out[..., perm, :] = f @ rot.T
+    return z_out, f_out
 
 
 BUNNY_SCALE = 5.0      # the committed mesh is 1/5 of the scan's own units; the scene uses the scan's units

@@ -32,6 +32,54 @@ def test_reference_forces_equal_the_abaqus_forces():
     np.testing.assert_allclose(ours, ref["f"], rtol=0, atol=1e-3)
 
 
+def test_reference_forces_continue_past_the_ramp():
+    """after=K: the 20-frame ramp unchanged, then K frames of the final load (hold) or none (release)."""
+    sc = scenes.beam_scene()
+    ramp = scenes.beam_reference_forces(sc, [3, 30])
+    hold = scenes.beam_reference_forces(sc, [3, 30], after=5, mode="hold")
+    release = scenes.beam_reference_forces(sc, [3, 30], after=5, mode="release")
+    assert hold.shape == (2, 25, 756, 3) and release.shape == hold.shape
+    np.testing.assert_array_equal(hold[:, :20], ramp)
+    np.testing.assert_array_equal(release[:, :20], ramp)
+    np.testing.assert_array_equal(hold[:, 20:], np.repeat(ramp[:, -1:], 5, axis=1))
+    assert not release[:, 20:].any() and ramp[:, -1].any()
+    with pytest.raises(ValueError, match="'push'"):
+        scenes.beam_reference_forces(sc, [3], after=5, mode="push")
+    with pytest.raises(ValueError, match="-1"):
+        scenes.beam_reference_forces(sc, [3], after=-1)
+
+
+def test_face_maps_take_each_reference_case_to_its_images():
+    """The isometry of face g maps the loads of sim s (face 0) onto those of sim 13g + s exactly, and the rest
+    state onto itself (q = X, v = 0, σ = 0 at the permuted nodes); a map that is no symmetry of the mesh raises."""
+    sc = scenes.beam_scene()
+    f = scenes.beam_reference_forces(sc, np.arange(1, 14))
+    rest = np.concatenate([sc.points, np.zeros((756, 9))], axis=1)
+    for g, (rot, shift) in enumerate(scenes.BEAM_FACE_MAPS):
+        z_m, f_m = scenes.mirror_case(np.broadcast_to(rest, (13, 756, 12)), f, sc.points, rot, shift)
+        np.testing.assert_allclose(f_m, scenes.beam_reference_forces(sc, np.arange(13 * g + 1, 13 * g + 14)),
+                                   atol=1e-9)
+        np.testing.assert_allclose(z_m, np.broadcast_to(rest, z_m.shape), atol=1e-12)
+    with pytest.raises(ValueError, match="does not map the mesh"):
+        scenes.mirror_case(rest, f[0], sc.points, np.diag([-1.0, 1, 1]), np.zeros(3))   # x -> -x: off the mesh
+    with pytest.raises(ValueError, match="orthogonal"):
+        scenes.mirror_case(rest, f[0], sc.points, 2 * np.eye(3), np.zeros(3))
+
+
+@pytest.mark.skipif(not REFERENCE.exists(), reason="reference data ../shared/data/abaqus_beam.npz not present")
+def test_face_maps_reproduce_the_abaqus_cases():
+    """The four face groups of the reference data are exact images: mapping sims 1..13 by the face maps
+    reproduces sims 14..52 (q, v, σ relative L2 ≤ 1e-6, forces exactly)."""
+    ref = np.load(REFERENCE)
+    q0 = ref["q0"].astype(np.float64)
+    for g, (rot, shift) in enumerate(scenes.BEAM_FACE_MAPS[1:], start=1):
+        z_m, f_m = scenes.mirror_case(ref["z"][:13], ref["f"][:13], q0, rot, shift)
+        truth = ref["z"][13 * g:13 * g + 13].astype(np.float64)
+        for a, b in ((0, 3), (3, 6), (6, 12)):
+            assert np.linalg.norm(z_m[..., a:b] - truth[..., a:b]) <= 1e-6 * np.linalg.norm(truth[..., a:b])
+        np.testing.assert_array_equal(f_m, ref["f"][13 * g:13 * g + 13])
+
+
 def test_fingertip_cases_are_patches_pushing_inwards():
     """Patches of 1–6 free surface nodes, direction within 30° of the inward normal, peak ≤ the reference max."""
     sc = scenes.beam_scene()
