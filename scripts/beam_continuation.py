@@ -7,14 +7,15 @@ of face 0 (sims 1..13) for 20 + K frames: the reference ramp, then the final loa
 1..13) or no load (``release``, ids 14..26); resumable, shareable by two processes (``--worker k/2``).
 ``merge`` maps those runs onto the other three faces (`fem.scenes.BEAM_FACE_MAPS`: the four face groups of
 the reference data are exact mirror images), cuts each run into 20-frame windows (21 states) starting at
-``--first`` every ``--stride`` frames, and appends the windows to a copy of a reference-format data set as new
+``--first`` every ``--stride`` frames (``--modes hold``: the held runs only), and appends the windows to a copy of a reference-format data set as new
 cases (ids after the last); a window joins the split of the reference case it continues.
 
     python scripts/beam_continuation.py generate --after 20 --out data/beam_cont.npz [--worker 0/2]
     python scripts/beam_continuation.py merge --base ../shared/data/abaqus_beam.npz --cont data/beam_cont.npz \
         --out data/abaqus_beam_long.npz
 
-The merged file holds the Abaqus data: keep it out of git (data/ is ignored).
+The merged file holds the Abaqus data: keep it out of git (data/ is ignored). What training on such files
+did to the learned beam's long rollouts: README, row "stability with held-load training".
 """
 from __future__ import annotations
 
@@ -55,6 +56,8 @@ def merge(args) -> None:
     for g, (rot, shift) in enumerate(BEAM_FACE_MAPS):
         zg, fg = mirror_case(zc, fc, q0, rot, shift)
         for c in range(len(zc)):
+            if MODES[c // BEAM_FACE_GROUP] not in args.modes.split(","):
+                continue
             for s in starts:
                 z_new.append(zg[c, s:s + frames + 1])
                 f_new.append(fg[c, s:s + frames])
@@ -80,16 +83,17 @@ def merge(args) -> None:
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     sub = p.add_subparsers(dest="cmd", required=True)
-    g = sub.add_parser("generate")
-    g.add_argument("--after", type=int, default=40)
-    g.add_argument("--out", required=True)
-    g.add_argument("--worker", default="0/1")
-    g.add_argument("--batch-size", type=int, default=8)
-    g.add_argument("--no-progress", action="store_true")
-    m = sub.add_parser("merge")
-    m.add_argument("--base", required=True)
-    m.add_argument("--cont", required=True)
-    m.add_argument("--out", required=True)
+    g = sub.add_parser("generate", help="FEM runs of face 0's cases continued past the ramp (resumable)")
+    g.add_argument("--after", type=int, default=20, help="frames after the 20-frame ramp (default: %(default)s)")
+    g.add_argument("--out", required=True, help="output .npz (finished cases are kept in OUT.parts/)")
+    g.add_argument("--worker", default="0/1", help="k/n: run every n-th case from k, one process per core")
+    g.add_argument("--batch-size", type=int, default=8, help="cases per vmapped batch (default: %(default)s)")
+    g.add_argument("--no-progress", action="store_true", help="no progress bar")
+    m = sub.add_parser("merge", help="mirror the runs onto the four faces, window them, append them to --base")
+    m.add_argument("--base", required=True, help="reference-format data set (e.g. ../shared/data/abaqus_beam.npz)")
+    m.add_argument("--cont", required=True, help="the generate step's output")
+    m.add_argument("--out", required=True, help="merged .npz")
+    m.add_argument("--modes", default="hold,release", help="which continuations to keep (default: %(default)s)")
     m.add_argument("--first", type=int, default=10, help="first window's start frame (default: %(default)s)")
     m.add_argument("--stride", type=int, default=10, help="frames between window starts (default: %(default)s)")
     a = p.parse_args()
