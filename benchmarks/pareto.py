@@ -414,13 +414,22 @@ def fem_frame_time(divisions, density_factor, sim_id: int, min_repeats: int = 5,
 
 
 _LINEAR = {}
+_LINEAR_FRAMES = {}
 
 
 def linear_frame(divisions, n_solves: int):
     """(frame, scene, W): a jitted (z [Nc,12], f_prev, f [Nc,3]) → z after one 0.05 s frame of the rest-linearised
     backward-Euler FEM on the ``divisions`` mesh, in ``n_solves`` sub-steps (the load ramped linearly from f_prev
     to f within the frame, as the FEM's reference runs; each sub-step at its end's load); one
-    `fem.implicit.rest_linearization` per mesh (cached: ~1 min on the reference mesh)."""
+    `fem.implicit.rest_linearization` per mesh and one dense inverse per (mesh, sub-steps), both cached (the
+    errors and the timing share them; the linearisation takes ~1 min on the reference mesh)."""
+    key = (tuple(divisions), int(n_solves))
+    if key not in _LINEAR_FRAMES:
+        _LINEAR_FRAMES[key] = _build_linear_frame(divisions, n_solves)
+    return _LINEAR_FRAMES[key]
+
+
+def _build_linear_frame(divisions, n_solves: int):
     from fem import implicit
     from tignn_jax import framesolve as FS
 

@@ -62,6 +62,8 @@ def test_face_maps_take_each_reference_case_to_its_images():
         np.testing.assert_allclose(z_m, np.broadcast_to(rest, z_m.shape), atol=1e-12)
     with pytest.raises(ValueError, match="does not map the mesh"):
         scenes.mirror_case(rest, f[0], sc.points, np.diag([-1.0, 1, 1]), np.zeros(3))   # x -> -x: off the mesh
+    with pytest.raises(ValueError, match=r"\[\.\.\., 756, 12\]"):
+        scenes.mirror_case(rest[:, :6], f[0], sc.points, *scenes.BEAM_FACE_MAPS[1])
     with pytest.raises(ValueError, match="orthogonal"):
         scenes.mirror_case(rest, f[0], sc.points, 2 * np.eye(3), np.zeros(3))
 
