@@ -199,7 +199,7 @@ def loss_fn(weights, batch: Batch, key, norm, cfg: TrainConfig, node_type, topo)
         rates_of = jax.vmap(lambda z, f: M.rates(weights, cfg.model, norm, z, f, node_type, topo))
         rt = rates_of(z_in, f_j)
         if cfg.model.integrator == "heun":   # the step the model will be used with: Heun's two rates
-            rt2 = rates_of(z_in + rt.dw * s, f_j)
+            rt2 = rates_of(z_in + dw_bounded(rt.dw) * s, f_j)   # the mid-stage bounded like the step (bptt)
             rt = rt._replace(dw=0.5 * (rt.dw + rt2.dw), deg_l=jnp.concatenate([rt.deg_l, rt2.deg_l], axis=1),
                              deg_m=jnp.concatenate([rt.deg_m, rt2.deg_m], axis=1))
         dw = dw_bounded(rt.dw)
