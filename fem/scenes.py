@@ -59,12 +59,15 @@ def beam_scene(density: float = BEAM_DENSITY, damping: float = BEAM_DAMPING, pro
                  damping, load_interp)
 
 
+BEAM_CONTINUATIONS = ("hold", "release")   # what follows the reference ramp (beam_reference_forces' mode)
+
+
 def beam_reference_forces(scene: Scene, sim_ids, after: int = 0, mode: str = "hold") -> np.ndarray:
     """Nodal forces [len(sim_ids), T + after, N, 3] of reference cases (1..52), T = scene.n_frames (20 in the
     data): 5000·(k+1) per load node in frame k < T (the reference ramp), then for ``after`` more frames the final
     load held (``mode="hold"``) or none (``"release"``): the reference cases continued past their horizon."""
-    if mode not in ("hold", "release"):
-        raise ValueError(f"mode must be 'hold' or 'release', got {mode!r}")
+    if mode not in BEAM_CONTINUATIONS:
+        raise ValueError(f"mode must be one of {BEAM_CONTINUATIONS}, got {mode!r}")
     if not (isinstance(after, (int, np.integer)) and after >= 0):
         raise ValueError(f"after must be a non-negative integer, got {after!r}")
     ramp = BEAM_FORCE_STEP * np.arange(1, scene.n_frames + 1)

@@ -7,8 +7,9 @@ of face 0 (sims 1..13) for 20 + K frames: the reference ramp, then the final loa
 1..13) or no load (``release``, ids 14..26); resumable, shareable by two processes (``--worker k/2``).
 ``merge`` maps those runs onto the other three faces (`fem.scenes.BEAM_FACE_MAPS`: the four face groups of
 the reference data are exact mirror images), cuts each run into 20-frame windows (21 states) starting at
-``--first`` every ``--stride`` frames (``--modes hold``: the held runs only), and appends the windows to a copy of a reference-format data set as new
-cases (ids after the last); a window joins the split of the reference case it continues.
+``--first`` every ``--stride`` frames (``--modes hold``: the held runs only), and appends the windows to a
+copy of a reference-format data set as new cases (ids after the last); a window joins the split of the
+reference case it continues.
 
     python scripts/beam_continuation.py generate --after 20 --out data/beam_cont.npz [--worker 0/2]
     python scripts/beam_continuation.py merge --base ../shared/data/abaqus_beam.npz --cont data/beam_cont.npz \
@@ -25,15 +26,16 @@ from pathlib import Path
 
 import numpy as np
 
-MODES = ("hold", "release")
+
 def generate(args) -> None:
     from fem import scenes
     from fem.generate import run_cases
 
     scene = scenes.beam_scene()
-    ids = np.arange(1, 14)      # face 0: the other faces are its mirror images (merge)
-    forces = np.concatenate([scenes.beam_reference_forces(scene, ids, args.after, m) for m in MODES])
-    scene = scene._replace(n_frames=20 + args.after)
+    ids = np.arange(1, scenes.BEAM_FACE_GROUP + 1)      # face 0: the other faces are its mirror images (merge)
+    forces = np.concatenate([scenes.beam_reference_forces(scene, ids, args.after, m)
+                             for m in scenes.BEAM_CONTINUATIONS])
+    scene = scene._replace(n_frames=scene.n_frames + args.after)
     problem = scenes.setup_scene(scene)
     k, n = (int(x) for x in args.worker.split("/"))
     run_cases(scene, problem, forces, Path(args.out), batch_size=args.batch_size, worker=(k, n),
@@ -43,8 +45,12 @@ def generate(args) -> None:
 
 
 def merge(args) -> None:
-    from fem.scenes import BEAM_FACE_GROUP, BEAM_FACE_MAPS, mirror_case
+    from fem.scenes import BEAM_CONTINUATIONS, BEAM_FACE_GROUP, BEAM_FACE_MAPS, mirror_case
 
+    keep = args.modes.split(",")
+    unknown = [m for m in keep if m not in BEAM_CONTINUATIONS]
+    if unknown:
+        raise SystemExit(f"--modes: unknown {unknown}; choose from {BEAM_CONTINUATIONS}")
     base, cont = np.load(args.base), np.load(args.cont)
     n_ref = len(base["sim_id"])
     frames = base["f"].shape[1]
@@ -56,13 +62,14 @@ def merge(args) -> None:
     for g, (rot, shift) in enumerate(BEAM_FACE_MAPS):
         zg, fg = mirror_case(zc, fc, q0, rot, shift)
         for c in range(len(zc)):
-            if MODES[c // BEAM_FACE_GROUP] not in args.modes.split(","):
+            kind = BEAM_CONTINUATIONS[c // BEAM_FACE_GROUP]
+            if kind not in keep:
                 continue
             for s in starts:
                 z_new.append(zg[c, s:s + frames + 1])
                 f_new.append(fg[c, s:s + frames])
                 src.append(g * BEAM_FACE_GROUP + c % BEAM_FACE_GROUP + 1)
-                mode.append(MODES[c // BEAM_FACE_GROUP])
+                mode.append(kind)
     ids = np.arange(n_ref + 1, n_ref + len(z_new) + 1, dtype=np.int32)
     src = np.asarray(src)
     out = {k: base[k] for k in base.files}
