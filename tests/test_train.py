@@ -423,3 +423,43 @@ def test_heun_training_scores_the_heun_step_and_trains(toy, tmp_path):
     initial = T.train(toy, cfg._replace(epochs=12), tmp_path / "init", stop_after_epoch=0, **QUIET)
     assert _mean_loss(trained, toy, cfg) < 0.7 * _mean_loss(initial, toy, cfg)
     assert trained["config"]["integrator"] == "heun"
+
+
+def test_stability_probe_finds_the_largest_eigenvalue_of_the_rest_step(toy):
+    # Power iteration with stability_term's finite-difference probe converges to the spectral radius of the
+    # step's Jacobian at rest (the dense Jacobian by reverse mode, its eigenvalues by numpy).
+    cfg = TINY._replace(stability_weight=1.0, stability_eps=1e-4)
+    topo = M.topology(toy.edges[0], toy.edges[1], len(toy.q0))
+    rows = D.split_rows(toy, "train")
+    norm = {k: jnp.asarray(v) for k, v in D.normalization(toy, rows).items()}
+    node_type = jnp.asarray(toy.node_type, jnp.int32)
+    weights = M.init_weights(jax.random.PRNGKey(3), cfg.model, norm, jnp.asarray(toy.z[0, 0]),
+                             jnp.asarray(toy.f[0, 0]), node_type, topo)
+    z_rest = T.rest_state(toy.q0)
+    probe = T.initial_probes(0, len(toy.q0))
+    f0 = jnp.zeros((len(toy.q0), 3))
+    term = jax.jit(lambda p: T.stability_term(weights, p, norm, cfg, node_type, topo, z_rest[None], f0[None]))
+    growths = []
+    for _ in range(300):
+        drift, growth, probe = term(probe)
+        growths.append(float(growth[0]))
+    std = norm["z_std"]
+    step = lambda x: (M.step_state(weights, cfg.model, norm, z_rest + x * std, f0, node_type, topo) / std).ravel()
+    jac = np.asarray(jax.jacrev(step)(jnp.zeros_like(z_rest))).reshape(z_rest.size, z_rest.size)
+    rho = np.max(np.abs(np.linalg.eigvals(jac.astype(np.float64))))
+    estimate = np.exp(np.mean(np.log(growths[-100:])))   # geometric mean: also for a complex pair
+    assert abs(estimate / rho - 1) < 0.03, (estimate, rho)
+    moved = M.step_state(weights, cfg.model, norm, z_rest, f0, node_type, topo) - z_rest
+    keep = ~((toy.node_type != 0)[:, None] & (np.arange(12) < 6)[None, :])
+    expected = np.sum((np.asarray(moved) / np.asarray(norm["dz_std"])) ** 2 * keep) / keep.sum()
+    np.testing.assert_allclose(float(drift), expected, rtol=1e-4)
+
+
+def test_stability_training_logs_the_rest_growth_and_resumes(toy, tmp_path):
+    cfg = TINY._replace(stability_weight=1.0, stability_bound=0.5, stability_data=True)
+    whole = T.train(toy, cfg, tmp_path / "whole", **QUIET)
+    T.train(toy, cfg, tmp_path / "split", stop_after_epoch=2, **QUIET)
+    np.testing.assert_array_equal(_flat(whole), _flat(T.train(toy, cfg, tmp_path / "split", **QUIET)))
+    lines = [json.loads(x) for x in (tmp_path / "whole" / "metrics.jsonl").read_text().splitlines()]
+    assert all(np.isfinite(x["rest_growth"]) and np.isfinite(x["data_growth"]) and x["rest_drift"] >= 0
+               for x in lines)

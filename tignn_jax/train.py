@@ -58,7 +58,13 @@ class TrainConfig(NamedTuple):
     the spread of the prior's residual (`framesolve.residual`, the increment with which the prior's step
     reproduces the data) instead of the state's increments. On a stiff mesh that residual is a stiff force
     (the bunny: 2000× the velocity increments, growing with the deformation), so pair it with a small
-    ``correction_scale``."""
+    ``correction_scale``.
+    ``stability_weight`` > 0 adds the rest-state stability term (``stability_term``): the unloaded body at rest
+    must stay at rest (squared drift of one step, in increment stds) and the step's linearisation there must
+    not amplify: the growth ‖J x‖ of a probe x that follows J's dominant mode by one power iteration per
+    training step is penalised above ``stability_bound`` (per step); ``stability_eps`` is the probe's
+    finite-difference size (rms per state entry, in state stds). ``stability_data``: a second probe does the
+    same at each batch's first input state under its force (the true, damped step contracts there too)."""
     hidden: int = 24
     mlp_layers: int = 2
     passes: int = 3
@@ -101,6 +107,10 @@ class TrainConfig(NamedTuple):
     eval_every: int = 2
     ckpt_every: int = 2
     val_reference: str = "snapshot"
+    stability_weight: float = 0.0
+    stability_bound: float = 0.9
+    stability_eps: float = 1e-3
+    stability_data: bool = False
 
     @property
     def model(self) -> M.ModelConfig:
@@ -233,6 +243,41 @@ def loss_fn(weights, batch: Batch, key, norm, cfg: TrainConfig, node_type, topo)
     return loss, metrics
 
 
+def rest_state(q0) -> jax.Array:
+    """[N,12] the unloaded body at rest: q = q0, v = 0, σ = 0."""
+    q0 = jnp.asarray(q0, jnp.float32)
+    return jnp.concatenate([q0, jnp.zeros((q0.shape[0], M.STATE_DIM - 3), q0.dtype)], axis=1)
+
+
+def stability_term(weights, probes, norm, cfg: TrainConfig, node_type, topo, z_anchor, f_anchor):
+    """(drift, growth [A], next probes [A,N,12]) of the model's step at A anchor states; anchor 0 is the rest
+    state under zero force.
+
+    drift: the mean squared one-step change of anchor 0 in increment stds (the truth is 0: an unloaded body at
+    rest stays there; clamped nodes' q, v excluded). growth: ‖J_a x_a‖ for each unit probe x_a [N,12] in state
+    stds, J_a the step's Jacobian at anchor a, by a finite difference of size ``stability_eps`` per entry (the
+    step has custom VJPs, so no forward-mode JVP). A probe renormalised to J x each training step is a power
+    iteration: its growth tends to J's largest eigenvalue modulus, the factor by which a small disturbance of
+    the anchor state grows per step (> 1: the learned step is unstable there; the true, damped one is not)."""
+    norm = M.with_rest(weights, cfg.model, norm, node_type, topo)
+    std = norm["z_std"]
+    h = cfg.stability_eps * np.sqrt(probes[0].size)
+    step = jax.vmap(lambda z, f: M.step_state(weights, cfg.model, norm, z, f, node_type, topo))
+    nxt = step(jnp.concatenate([z_anchor, z_anchor + h * probes * std]), jnp.concatenate([f_anchor, f_anchor]))
+    base, moved = jnp.split(nxt, 2)
+    keep = ~((node_type != 0)[:, None] & (jnp.arange(M.STATE_DIM) < 6)[None, :])
+    drift = jnp.sum(((base[0] - z_anchor[0]) / norm["dz_std"]) ** 2 * keep) / jnp.sum(keep)
+    jx = (moved - base) / (h * std)
+    growth = jnp.sqrt(jnp.sum(jx ** 2, axis=(1, 2)))
+    return drift, growth, jax.lax.stop_gradient(jx / jnp.maximum(growth, 1e-12)[:, None, None])
+
+
+def initial_probes(seed: int, n_nodes: int, count: int = 1) -> jax.Array:
+    """[count,N,12] unit random starts for ``stability_term``'s power iterations."""
+    x = jax.random.normal(jax.random.fold_in(jax.random.PRNGKey(seed), 1), (count, n_nodes, M.STATE_DIM))
+    return x / jnp.linalg.norm(x, axis=(1, 2), keepdims=True)
+
+
 def make_train_step(cfg: TrainConfig, total_steps: int, norm, node_type, topo):
     """``(state, batch) -> (state, metrics)``, jit-compiled once per (cfg, total_steps, shapes); the noise
     key is derived from the step count."""
@@ -243,8 +288,23 @@ def make_train_step(cfg: TrainConfig, total_steps: int, norm, node_type, topo):
 def _train_step(state, batch, norm, node_type, topo, cfg, total_steps):
     optimizer = make_optimizer(cfg, total_steps)
     key = jax.random.fold_in(jax.random.PRNGKey(cfg.seed), state["step"])
-    (_, metrics), grads = jax.value_and_grad(loss_fn, has_aux=True)(
-        state["weights"], batch, key, norm, cfg, node_type, topo)
+
+    def total(weights):
+        loss, metrics = loss_fn(weights, batch, key, norm, cfg, node_type, topo)
+        if cfg.stability_weight <= 0:
+            return loss, (metrics, None)
+        z_a, f_a = state["z_rest"][None], jnp.zeros((1, state["z_rest"].shape[0], 3), state["z_rest"].dtype)
+        if cfg.stability_data:   # the batch's first (noise-free) input state under its force
+            f_first = batch.f[0, 0] if batch.f.ndim == 4 else batch.f[0]
+            z_a, f_a = jnp.concatenate([z_a, batch.z[:1]]), jnp.concatenate([f_a, f_first[None]])
+        drift, growth, probe = stability_term(weights, state["probe"], norm, cfg, node_type, topo, z_a, f_a)
+        loss = loss + cfg.stability_weight * (drift + jnp.sum(jax.nn.relu(growth - cfg.stability_bound) ** 2))
+        extra = {"rest_drift": drift, "rest_growth": growth[0]}
+        if cfg.stability_data:
+            extra["data_growth"] = growth[1]
+        return loss, ({**metrics, "loss": loss, **extra}, probe)
+
+    (_, (metrics, probe)), grads = jax.value_and_grad(total, has_aux=True)(state["weights"])
     updates, opt_state = optimizer.update(grads, state["opt_state"], state["weights"])
     weights = optax.apply_updates(state["weights"], updates)
     # a batch whose loss or gradient is not finite (an unrolled rollout that blew up) leaves the weights and the
@@ -255,7 +315,10 @@ def _train_step(state, batch, norm, node_type, topo, cfg, total_steps):
     weights, opt_state = keep(weights, state["weights"]), keep(opt_state, state["opt_state"])
     metrics = {k: jnp.where(finite, v, 0.0) for k, v in metrics.items()}
     metrics["skipped"] = 1.0 - finite.astype(jnp.float32)
-    return {"step": state["step"] + 1, "weights": weights, "opt_state": opt_state}, metrics
+    new = {**state, "step": state["step"] + 1, "weights": weights, "opt_state": opt_state}
+    if probe is not None:
+        new["probe"] = jnp.where(jnp.all(jnp.isfinite(probe)), probe, state["probe"])
+    return new, metrics
 
 
 def data_mesh(devices=None) -> Mesh:
@@ -349,6 +412,9 @@ def train(data: D.Dataset, cfg: TrainConfig, run_dir: str | Path, train_split="t
     if parent is not None:
         weights = jax.tree.map(lambda a, b: jnp.asarray(b, a.dtype), weights, parent["weights"])
     state = {"step": jnp.zeros((), jnp.int32), "weights": weights, "opt_state": optimizer.init(weights)}
+    if cfg.stability_weight > 0:   # the power iteration's probe is part of the state (a resume reproduces it)
+        state.update(probe=initial_probes(cfg.seed, len(data.node_type), 1 + int(cfg.stability_data)),
+                     z_rest=rest_state(data.q0))
     manager = ocp.CheckpointManager(run_dir / "checkpoints", options=ocp.CheckpointManagerOptions(
         max_to_keep=2, enable_async_checkpointing=False))
     start_epoch = 0
