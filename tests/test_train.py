@@ -463,3 +463,25 @@ def test_stability_training_logs_the_rest_growth_and_resumes(toy, tmp_path):
     lines = [json.loads(x) for x in (tmp_path / "whole" / "metrics.jsonl").read_text().splitlines()]
     assert all(np.isfinite(x["rest_growth"]) and np.isfinite(x["data_growth"]) and x["rest_drift"] >= 0
                for x in lines)
+
+
+def test_sigma_noise_sets_the_stress_features_own_noise_level(toy):
+    # noise 0.1 on q, v and sigma_noise 1.0 on σ (× the increment std) is the noise-free loss of the batch
+    # perturbed by hand with the same draw.
+    rows = D.split_rows(toy, "train")
+    norm = {k: jnp.asarray(v) for k, v in D.normalization(toy, rows).items()}
+    topo = M.topology(toy.edges[0], toy.edges[1], len(toy.q0))
+    node_type = jnp.asarray(toy.node_type, jnp.int32)
+    cfg = TINY._replace(noise=0.1, sigma_noise=1.0)
+    weights = M.init_weights(jax.random.PRNGKey(0), cfg.model, norm, jnp.asarray(toy.z[0, 0]),
+                             jnp.asarray(toy.f[0, 0]), node_type, topo)
+    batch = T.Batch(jnp.asarray(toy.z[rows[:2], 1]), jnp.asarray(toy.f[rows[:2], 1]), jnp.asarray(toy.z[rows[:2], 2]))
+    key = jax.random.PRNGKey(5)
+    keep = ~((toy.node_type != 0)[:, None] & (np.arange(12) < 6)[None, :])
+    level = np.array([0.1] * 6 + [1.0] * 6, np.float32)
+    by_hand = batch._replace(z=batch.z + jax.random.normal(key, batch.z.shape) * (level * norm["dz_std"]) * keep)
+    loss, _ = _jit_loss(weights, batch, key, norm, cfg, node_type, topo)
+    expected, _ = _jit_loss(weights, by_hand, key, norm, cfg._replace(noise=0.0, sigma_noise=None), node_type, topo)
+    np.testing.assert_allclose(float(loss), float(expected), rtol=1e-5)
+    plain, _ = _jit_loss(weights, batch, key, norm, cfg._replace(sigma_noise=None), node_type, topo)
+    assert float(plain) != float(loss)

@@ -47,7 +47,7 @@ def _train(args) -> int:
         key, _, value = item.partition("=")
         if key not in cfg._fields:
             raise SystemExit(f"--set {item!r}: unknown field; fields are {cfg._fields}")
-        kind = type(getattr(cfg, key))
+        kind = float if getattr(cfg, key) is None else type(getattr(cfg, key))   # None: an optional level
         cfg = cfg._replace(**{key: value.lower() in ("1", "true", "yes") if kind is bool else kind(value)})
     data = D.load(args.data)
     frame_ops = None

@@ -64,7 +64,10 @@ class TrainConfig(NamedTuple):
     not amplify: the growth ‖J x‖ of a probe x that follows J's dominant mode by one power iteration per
     training step is penalised above ``stability_bound`` (per step); ``stability_eps`` is the probe's
     finite-difference size (rms per state entry, in state stds). ``stability_data``: a second probe does the
-    same at each batch's first input state under its force (the true, damped step contracts there too)."""
+    same at each batch's first input state under its force (the true, damped step contracts there too).
+    ``sigma_noise``: the stress features' input-noise level (same units as ``noise``, which then applies to q
+    and v only). The target stays the true next state, so a larger level teaches the step to pull a stored
+    stress that has drifted from the one the positions imply back to it, instead of carrying the drift on."""
     hidden: int = 24
     mlp_layers: int = 2
     passes: int = 3
@@ -111,6 +114,7 @@ class TrainConfig(NamedTuple):
     stability_bound: float = 0.9
     stability_eps: float = 1e-3
     stability_data: bool = False
+    sigma_noise: float | None = None
 
     @property
     def model(self) -> M.ModelConfig:
@@ -186,7 +190,10 @@ def loss_fn(weights, batch: Batch, key, norm, cfg: TrainConfig, node_type, topo)
     keep = ~((node_type != 0)[:, None] & (jnp.arange(M.STATE_DIM) < 6)[None, :])
     keep = keep.astype(batch.z.dtype)
     f_seq, z_seq = (batch.f, batch.z_next) if batch.f.ndim == 4 else (batch.f[:, None], batch.z_next[:, None])
-    z_in = batch.z + jax.random.normal(key, batch.z.shape, batch.z.dtype) * (cfg.noise * c) * keep
+    level = jnp.full(M.STATE_DIM, cfg.noise, batch.z.dtype)
+    if cfg.sigma_noise is not None:   # the stress features' own level (see TrainConfig)
+        level = level.at[6:].set(cfg.sigma_noise)
+    z_in = batch.z + jax.random.normal(key, batch.z.shape, batch.z.dtype) * (level * c) * keep
     to_unit = s / c
     denom = batch.z.shape[0] * jnp.sum(keep, axis=0)
     n_steps = f_seq.shape[1]
