@@ -1073,3 +1073,23 @@ def test_heun_step_is_the_mean_of_the_state_and_two_euler_steps(toy):
     graph = graph._replace(nodes={**graph.nodes, "z": z})
     np.testing.assert_allclose(np.asarray(api.step(params, graph, f).nodes["z"]), np.asarray(z_h), rtol=1e-6,
                                atol=1e-6)
+
+
+def test_step_growth_is_the_spectral_radius_of_the_step_jacobian(toy):
+    # The finite-difference power iteration of api.step_growth against the eigenvalues of the dense Jacobian of
+    # the step (reverse mode) in state-std units, at a mid-rollout state; and its input checks.
+    params, data = toy["params"], toy["data"]
+    z, f = np.asarray(data.z[0, 2]), np.asarray(data.f[0, 2])
+    out = api.step_growth(params, z, f, iterations=300, eps=1e-3)
+    fn, std = api.stepper(params), params["norm"]["z_std"]
+    step = lambda x: (fn(jnp.asarray(z) + x * std, jnp.asarray(f)) / std).ravel()
+    jac = np.asarray(jax.jacrev(step)(jnp.zeros(z.shape)), np.float64).reshape(z.size, z.size)
+    rho = np.max(np.abs(np.linalg.eigvals(jac)))
+    assert abs(out["growth"] / rho - 1) < 0.03, (out["growth"], rho)
+    assert out["mode"].shape == z.shape and abs(out["feature_share"].sum() - 1) < 1e-6
+    with pytest.raises(ValueError, match=r"z and forces must be \[16, 12\] and \[16, 3\]"):
+        api.step_growth(params, z[:-1], f)
+    with pytest.raises(ValueError, match="iterations must be an integer >= 3, got 2"):
+        api.step_growth(params, z, f, iterations=2)
+    with pytest.raises(ValueError, match="must be finite"):
+        api.step_growth(params, np.full_like(z, np.nan), f)
