@@ -455,14 +455,26 @@ def test_stability_probe_finds_the_largest_eigenvalue_of_the_rest_step(toy):
     np.testing.assert_allclose(float(drift), expected, rtol=1e-4)
 
 
-def test_stability_training_logs_the_rest_growth_and_resumes(toy, tmp_path):
-    cfg = TINY._replace(stability_weight=1.0, stability_bound=0.5, stability_data=True)
+@pytest.mark.parametrize("where", [dict(stability_data=True), dict(stability_anchors=2)])
+def test_stability_training_logs_the_rest_growth_and_resumes(toy, tmp_path, where):
+    cfg = TINY._replace(stability_weight=1.0, stability_bound=0.5, **where)
     whole = T.train(toy, cfg, tmp_path / "whole", **QUIET)
     T.train(toy, cfg, tmp_path / "split", stop_after_epoch=2, **QUIET)
     np.testing.assert_array_equal(_flat(whole), _flat(T.train(toy, cfg, tmp_path / "split", **QUIET)))
     lines = [json.loads(x) for x in (tmp_path / "whole" / "metrics.jsonl").read_text().splitlines()]
     assert all(np.isfinite(x["rest_growth"]) and np.isfinite(x["data_growth"]) and x["rest_drift"] >= 0
                for x in lines)
+
+
+def test_stability_anchors_are_training_states_and_are_checked(toy):
+    rows = D.split_rows(toy, "train")
+    z, f = T.stability_anchor_states(toy, rows, 2)
+    np.testing.assert_array_equal(np.asarray(z[1]), toy.z[rows[0], toy.f.shape[1] - 1])
+    np.testing.assert_array_equal(np.asarray(f[0]), toy.f[rows[0], toy.f.shape[1] // 2])
+    with pytest.raises(ValueError, match="even number >= 2, got 3"):
+        T.stability_anchor_states(toy, rows, 3)
+    with pytest.raises(ValueError, match="needs 50 training cases"):
+        T.stability_anchor_states(toy, rows, 100)
 
 
 def test_sigma_noise_sets_the_stress_features_own_noise_level(toy):

@@ -64,7 +64,11 @@ class TrainConfig(NamedTuple):
     not amplify: the growth ‖J x‖ of a probe x that follows J's dominant mode by one power iteration per
     training step is penalised above ``stability_bound`` (per step); ``stability_eps`` is the probe's
     finite-difference size (rms per state entry, in state stds). ``stability_data``: a second probe does the
-    same at each batch's first input state under its force (the true, damped step contracts there too).
+    same at each batch's first input state under its force (the true, damped step contracts there too; one
+    iteration per changing state does not converge to its dominant mode, so prefer ``stability_anchors``).
+    ``stability_anchors`` = A > 0: A fixed training states (frames T/2 and T−1 of A/2 training cases spread over
+    the split, under their forces), each with its own persistent probe; every training step iterates the
+    rest probe and one anchor's in turn, so each anchor's power iteration advances once per A steps.
     ``sigma_noise``: the stress features' input-noise level (same units as ``noise``, which then applies to q
     and v only). The target stays the true next state, so a larger level teaches the step to pull a stored
     stress that has drifted from the one the positions imply back to it, instead of carrying the drift on."""
@@ -114,6 +118,7 @@ class TrainConfig(NamedTuple):
     stability_bound: float = 0.9
     stability_eps: float = 1e-3
     stability_data: bool = False
+    stability_anchors: int = 0
     sigma_noise: float | None = None
 
     @property
@@ -279,6 +284,20 @@ def stability_term(weights, probes, norm, cfg: TrainConfig, node_type, topo, z_a
     return drift, growth, jax.lax.stop_gradient(jx / jnp.maximum(growth, 1e-12)[:, None, None])
 
 
+def stability_anchor_states(data: D.Dataset, rows, count: int):
+    """(z [A,N,12], f [A,N,3]): frames T/2 and T−1 of ``count``/2 training cases spread evenly over ``rows``."""
+    if count < 2 or count % 2:
+        raise ValueError(f"stability_anchors must be an even number >= 2, got {count}")
+    rows = np.asarray(rows)
+    if count // 2 > len(rows):
+        raise ValueError(f"stability_anchors={count} needs {count // 2} training cases, the split has {len(rows)}")
+    cases = rows[np.linspace(0, len(rows) - 1, count // 2).round().astype(int)]
+    frames = data.f.shape[1]
+    pick = [(r, k) for r in cases for k in (frames // 2, frames - 1)]
+    return (jnp.asarray(np.stack([data.z[r, k] for r, k in pick]), jnp.float32),
+            jnp.asarray(np.stack([data.f[r, k] for r, k in pick]), jnp.float32))
+
+
 def initial_probes(seed: int, n_nodes: int, count: int = 1) -> jax.Array:
     """[count,N,12] unit random starts for ``stability_term``'s power iterations."""
     x = jax.random.normal(jax.random.fold_in(jax.random.PRNGKey(seed), 1), (count, n_nodes, M.STATE_DIM))
@@ -301,13 +320,21 @@ def _train_step(state, batch, norm, node_type, topo, cfg, total_steps):
         if cfg.stability_weight <= 0:
             return loss, (metrics, None)
         z_a, f_a = state["z_rest"][None], jnp.zeros((1, state["z_rest"].shape[0], 3), state["z_rest"].dtype)
+        probes, slots = state["probe"], jnp.arange(state["probe"].shape[0])
         if cfg.stability_data:   # the batch's first (noise-free) input state under its force
             f_first = batch.f[0, 0] if batch.f.ndim == 4 else batch.f[0]
             z_a, f_a = jnp.concatenate([z_a, batch.z[:1]]), jnp.concatenate([f_a, f_first[None]])
-        drift, growth, probe = stability_term(weights, state["probe"], norm, cfg, node_type, topo, z_a, f_a)
+        if cfg.stability_anchors:   # the rest probe and anchor (step mod A), in turn
+            a = state["step"] % cfg.stability_anchors
+            z_a = jnp.concatenate([z_a, state["anchor_z"][a][None]])
+            f_a = jnp.concatenate([f_a, state["anchor_f"][a][None]])
+            slots = jnp.array([0, 1]) + jnp.array([0, a])
+            probes = probes[slots]
+        drift, growth, probe = stability_term(weights, probes, norm, cfg, node_type, topo, z_a, f_a)
+        probe = state["probe"].at[slots].set(probe)
         loss = loss + cfg.stability_weight * (drift + jnp.sum(jax.nn.relu(growth - cfg.stability_bound) ** 2))
         extra = {"rest_drift": drift, "rest_growth": growth[0]}
-        if cfg.stability_data:
+        if cfg.stability_data or cfg.stability_anchors:
             extra["data_growth"] = growth[1]
         return loss, ({**metrics, "loss": loss, **extra}, probe)
 
@@ -420,8 +447,12 @@ def train(data: D.Dataset, cfg: TrainConfig, run_dir: str | Path, train_split="t
         weights = jax.tree.map(lambda a, b: jnp.asarray(b, a.dtype), weights, parent["weights"])
     state = {"step": jnp.zeros((), jnp.int32), "weights": weights, "opt_state": optimizer.init(weights)}
     if cfg.stability_weight > 0:   # the power iteration's probe is part of the state (a resume reproduces it)
-        state.update(probe=initial_probes(cfg.seed, len(data.node_type), 1 + int(cfg.stability_data)),
-                     z_rest=rest_state(data.q0))
+        if cfg.stability_data and cfg.stability_anchors:
+            raise ValueError("stability_data and stability_anchors are alternatives: set one")
+        n_probes = 1 + int(cfg.stability_data) + int(cfg.stability_anchors)
+        state.update(probe=initial_probes(cfg.seed, len(data.node_type), n_probes), z_rest=rest_state(data.q0))
+        if cfg.stability_anchors:
+            state.update(zip(("anchor_z", "anchor_f"), stability_anchor_states(data, rows, cfg.stability_anchors)))
     manager = ocp.CheckpointManager(run_dir / "checkpoints", options=ocp.CheckpointManagerOptions(
         max_to_keep=2, enable_async_checkpointing=False))
     start_epoch = 0
