@@ -140,7 +140,8 @@ def state_guard(params: dict, bound: float = 8.0, tolerance: float = 1.5):
 def step_growth(params: dict, z, forces, iterations: int = 150, eps: float = 1e-2, seed: int = 0) -> dict:
     """How much the learned step amplifies a small disturbance of the state ``z`` [N,12] under ``forces``
     [N,3]: the largest eigenvalue modulus of the step's Jacobian there, by power iteration on finite
-    differences (the step has custom VJPs, so no forward-mode JVP), in the training split's state stds.
+    differences (the step has custom VJPs, so no forward-mode JVP), in the training split's state stds, over the
+    state entries that evolve (the clamped nodes' q and v are prescribed, so they are left out).
 
     A value above 1 means the learned step is linearly unstable at that state: a disturbance along the
     returned mode grows by that factor per step however small it starts (the true, damped dynamics contracts).
@@ -160,12 +161,15 @@ def step_growth(params: dict, z, forces, iterations: int = 150, eps: float = 1e-
         raise ValueError("z and forces must be finite")
     fn, std = stepper(params), params["norm"]["z_std"]
     z, forces = jnp.asarray(z), jnp.asarray(forces)
+    # clamped nodes' q, v are prescribed, not state (a disturbance there would stay: eigenvalue 1)
+    free = jnp.asarray(~((params["mesh"]["node_type"] != 0)[:, None] & (np.arange(M.STATE_DIM) < 6)[None, :]),
+                       z.dtype)
     base = fn(z, forces)
-    x = jax.random.normal(jax.random.PRNGKey(seed), z.shape)
+    x = jax.random.normal(jax.random.PRNGKey(seed), z.shape) * free
     x = x / jnp.linalg.norm(x)
     history = []
     for _ in range(iterations):
-        y = (fn(z + eps * x * std, forces) - base) / (eps * std)
+        y = (fn(z + eps * x * std, forces) - base) / (eps * std) * free
         ratio = float(jnp.linalg.norm(y))
         history.append(ratio)
         if not ratio > 0 or not np.isfinite(ratio):

@@ -267,19 +267,22 @@ def stability_term(weights, probes, norm, cfg: TrainConfig, node_type, topo, z_a
 
     drift: the mean squared one-step change of anchor 0 in increment stds (the truth is 0: an unloaded body at
     rest stays there; clamped nodes' q, v excluded). growth: ‖J_a x_a‖ for each unit probe x_a [N,12] in state
-    stds, J_a the step's Jacobian at anchor a, by a finite difference of size ``stability_eps`` per entry (the
+    stds, J_a the step's Jacobian at anchor a restricted to the free entries (clamped q, v are prescribed), by a finite difference of size ``stability_eps`` per entry (the
     step has custom VJPs, so no forward-mode JVP). A probe renormalised to J x each training step is a power
     iteration: its growth tends to J's largest eigenvalue modulus, the factor by which a small disturbance of
     the anchor state grows per step (> 1: the learned step is unstable there; the true, damped one is not)."""
     norm = M.with_rest(weights, cfg.model, norm, node_type, topo)
     std = norm["z_std"]
+    # clamped nodes' q, v are prescribed, not state: a disturbance there stays as it is (eigenvalue 1 whatever
+    # the network), so the probes live on the other entries
+    keep = (~((node_type != 0)[:, None] & (jnp.arange(M.STATE_DIM) < 6)[None, :])).astype(probes.dtype)
+    probes = probes * keep
     h = cfg.stability_eps * np.sqrt(probes[0].size)
     step = jax.vmap(lambda z, f: M.step_state(weights, cfg.model, norm, z, f, node_type, topo))
     nxt = step(jnp.concatenate([z_anchor, z_anchor + h * probes * std]), jnp.concatenate([f_anchor, f_anchor]))
     base, moved = jnp.split(nxt, 2)
-    keep = ~((node_type != 0)[:, None] & (jnp.arange(M.STATE_DIM) < 6)[None, :])
     drift = jnp.sum(((base[0] - z_anchor[0]) / norm["dz_std"]) ** 2 * keep) / jnp.sum(keep)
-    jx = (moved - base) / (h * std)
+    jx = (moved - base) / (h * std) * keep
     growth = jnp.sqrt(jnp.sum(jx ** 2, axis=(1, 2)))
     return drift, growth, jax.lax.stop_gradient(jx / jnp.maximum(growth, 1e-12)[:, None, None])
 
