@@ -162,8 +162,7 @@ def step_growth(params: dict, z, forces, iterations: int = 150, eps: float = 1e-
     fn, std = stepper(params), params["norm"]["z_std"]
     z, forces = jnp.asarray(z), jnp.asarray(forces)
     # clamped nodes' q, v are prescribed, not state (a disturbance there would stay: eigenvalue 1)
-    free = jnp.asarray(~((params["mesh"]["node_type"] != 0)[:, None] & (np.arange(M.STATE_DIM) < 6)[None, :]),
-                       z.dtype)
+    free = (~M.prescribed(params["mesh"]["node_type"])).astype(z.dtype)
     base = fn(z, forces)
     x = jax.random.normal(jax.random.PRNGKey(seed), z.shape) * free
     x = x / jnp.linalg.norm(x)

@@ -576,9 +576,13 @@ def _generic(weights, config, norm, z, f, node_type, topo):
         if config.port_hops:
             f = spread_forces(weights, f, topo, config.port_hops, norm.get("spread_edges"))
         dw = dw + force_term(port, f, norm)
-    clamped = (node_type != 0)[:, None] & (jnp.arange(STATE_DIM) < 6)[None, :]
-    dw = jnp.where(clamped, 0.0, dw)
+    dw = jnp.where(prescribed(node_type), 0.0, dw)
     return dw, g_e, g_s, (l_mat, m_mat)
+
+
+def prescribed(node_type):
+    """[N,12] bool: the state entries that are prescribed rather than evolved, the clamped nodes' q and v."""
+    return (jnp.asarray(node_type) != 0)[:, None] & (jnp.arange(STATE_DIM) < 6)[None, :]
 
 
 def _potentials_and_grads(weights, config, norm, z, f, node_type, topo):

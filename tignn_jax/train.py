@@ -192,8 +192,7 @@ def loss_fn(weights, batch: Batch, key, norm, cfg: TrainConfig, node_type, topo)
     own current state, and the losses are averaged over the steps)."""
     c, s = norm["dz_std"], M.state_scale(norm)
     norm = M.with_rest(weights, cfg.model, norm, node_type, topo)   # once per batch, not per sample
-    keep = ~((node_type != 0)[:, None] & (jnp.arange(M.STATE_DIM) < 6)[None, :])
-    keep = keep.astype(batch.z.dtype)
+    keep = (~M.prescribed(node_type)).astype(batch.z.dtype)
     f_seq, z_seq = (batch.f, batch.z_next) if batch.f.ndim == 4 else (batch.f[:, None], batch.z_next[:, None])
     level = jnp.full(M.STATE_DIM, cfg.noise, batch.z.dtype)
     if cfg.sigma_noise is not None:   # the stress features' own level (see TrainConfig)
@@ -267,15 +266,16 @@ def stability_term(weights, probes, norm, cfg: TrainConfig, node_type, topo, z_a
 
     drift: the mean squared one-step change of anchor 0 in increment stds (the truth is 0: an unloaded body at
     rest stays there; clamped nodes' q, v excluded). growth: ‖J_a x_a‖ for each unit probe x_a [N,12] in state
-    stds, J_a the step's Jacobian at anchor a restricted to the free entries (clamped q, v are prescribed), by a finite difference of size ``stability_eps`` per entry (the
-    step has custom VJPs, so no forward-mode JVP). A probe renormalised to J x each training step is a power
+    stds, J_a the step's Jacobian at anchor a restricted to the evolved entries (clamped q, v are prescribed),
+    by a finite difference of size ``stability_eps`` per entry (the step has custom VJPs, so no forward-mode
+    JVP). A probe renormalised to J x each training step is a power
     iteration: its growth tends to J's largest eigenvalue modulus, the factor by which a small disturbance of
     the anchor state grows per step (> 1: the learned step is unstable there; the true, damped one is not)."""
     norm = M.with_rest(weights, cfg.model, norm, node_type, topo)
     std = norm["z_std"]
     # clamped nodes' q, v are prescribed, not state: a disturbance there stays as it is (eigenvalue 1 whatever
     # the network), so the probes live on the other entries
-    keep = (~((node_type != 0)[:, None] & (jnp.arange(M.STATE_DIM) < 6)[None, :])).astype(probes.dtype)
+    keep = (~M.prescribed(node_type)).astype(probes.dtype)
     probes = probes * keep
     h = cfg.stability_eps * np.sqrt(probes[0].size)
     step = jax.vmap(lambda z, f: M.step_state(weights, cfg.model, norm, z, f, node_type, topo))
@@ -331,7 +331,7 @@ def _train_step(state, batch, norm, node_type, topo, cfg, total_steps):
             a = state["step"] % cfg.stability_anchors
             z_a = jnp.concatenate([z_a, state["anchor_z"][a][None]])
             f_a = jnp.concatenate([f_a, state["anchor_f"][a][None]])
-            slots = jnp.array([0, 1]) + jnp.array([0, a])
+            slots = jnp.stack([0, 1 + a])
             probes = probes[slots]
         drift, growth, probe = stability_term(weights, probes, norm, cfg, node_type, topo, z_a, f_a)
         probe = state["probe"].at[slots].set(probe)
@@ -449,6 +449,9 @@ def train(data: D.Dataset, cfg: TrainConfig, run_dir: str | Path, train_split="t
     if parent is not None:
         weights = jax.tree.map(lambda a, b: jnp.asarray(b, a.dtype), weights, parent["weights"])
     state = {"step": jnp.zeros((), jnp.int32), "weights": weights, "opt_state": optimizer.init(weights)}
+    if (cfg.stability_data or cfg.stability_anchors) and cfg.stability_weight <= 0:
+        raise ValueError(f"stability_data / stability_anchors={cfg.stability_anchors} need stability_weight > 0, "
+                         f"got {cfg.stability_weight}")
     if cfg.stability_weight > 0:   # the power iteration's probe is part of the state (a resume reproduces it)
         if cfg.stability_data and cfg.stability_anchors:
             raise ValueError("stability_data and stability_anchors are alternatives: set one")
