@@ -34,11 +34,15 @@ def from_state(z, edges, node_type) -> jraph.GraphsTuple:
         n_node=jnp.array([n], jnp.int32), n_edge=jnp.array([edges.shape[1]], jnp.int32), globals=None)
 
 
+def rest_state(q0) -> np.ndarray:
+    """[N,12] float32: the state of a body at rest, q = q0, v = 0, sigma = 0."""
+    q0 = np.asarray(q0, np.float32)
+    return np.concatenate([q0, np.zeros((q0.shape[0], STATE_DIM - 3), np.float32)], axis=1)
+
+
 def rest_graph(q0, edges, node_type) -> jraph.GraphsTuple:
     """The graph of a body at rest: q = q0, v = 0, sigma = 0."""
-    q0 = np.asarray(q0, np.float32)
-    z = np.concatenate([q0, np.zeros((q0.shape[0], STATE_DIM - 3), np.float32)], axis=1)
-    return from_state(z, edges, node_type)
+    return from_state(rest_state(q0), edges, node_type)
 
 
 def from_data(data: Dataset, row: int = 0, frame: int = 0) -> jraph.GraphsTuple:
