@@ -13,6 +13,7 @@ import pytest
 
 from tignn_jax import api
 from tignn_jax import data as D
+from tignn_jax import graph as G
 from tignn_jax import model as M
 from tignn_jax import train as T
 
@@ -435,7 +436,7 @@ def test_stability_probe_finds_the_largest_eigenvalue_of_the_rest_step(toy):
     node_type = jnp.asarray(toy.node_type, jnp.int32)
     weights = M.init_weights(jax.random.PRNGKey(3), cfg.model, norm, jnp.asarray(toy.z[0, 0]),
                              jnp.asarray(toy.f[0, 0]), node_type, topo)
-    z_rest = T.rest_state(toy.q0)
+    z_rest = jnp.asarray(G.rest_state(toy.q0))
     probe = T.initial_probes(0, len(toy.q0))
     f0 = jnp.zeros((len(toy.q0), 3))
     term = jax.jit(lambda p: T.stability_term(weights, p, norm, cfg, node_type, topo, z_rest[None], f0[None]))

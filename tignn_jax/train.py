@@ -36,6 +36,7 @@ from tignn_jax import api
 from tignn_jax import data as D
 from tignn_jax import evaluate as EV
 from tignn_jax import framesolve as FS
+from tignn_jax import graph as G
 from tignn_jax import model as M
 
 
@@ -254,12 +255,6 @@ def loss_fn(weights, batch: Batch, key, norm, cfg: TrainConfig, node_type, topo)
     return loss, metrics
 
 
-def rest_state(q0) -> jax.Array:
-    """[N,12] the unloaded body at rest: q = q0, v = 0, σ = 0."""
-    q0 = jnp.asarray(q0, jnp.float32)
-    return jnp.concatenate([q0, jnp.zeros((q0.shape[0], M.STATE_DIM - 3), q0.dtype)], axis=1)
-
-
 def stability_term(weights, probes, norm, cfg: TrainConfig, node_type, topo, z_anchor, f_anchor):
     """(drift, growth [A], next probes [A,N,12]) of the model's step at A anchor states; anchor 0 is the rest
     state under zero force.
@@ -307,14 +302,32 @@ def initial_probes(seed: int, n_nodes: int, count: int = 1) -> jax.Array:
     return x / jnp.linalg.norm(x, axis=(1, 2), keepdims=True)
 
 
-def make_train_step(cfg: TrainConfig, total_steps: int, norm, node_type, topo):
+def make_train_step(cfg: TrainConfig, total_steps: int, norm, node_type, topo, anchors=None):
     """``(state, batch) -> (state, metrics)``, jit-compiled once per (cfg, total_steps, shapes); the noise
-    key is derived from the step count."""
-    return lambda state, batch: _train_step(state, batch, norm, node_type, topo, cfg=cfg, total_steps=total_steps)
+    key is derived from the step count. ``anchors``: the stability term's fixed states (``stability_anchors``
+    of ``stability_states``; with ``stability_weight`` > 0 at least the rest state)."""
+    return lambda state, batch: _train_step(state, batch, norm, node_type, topo, anchors, cfg=cfg,
+                                            total_steps=total_steps)
+
+
+def stability_states(data: D.Dataset, rows, cfg: TrainConfig) -> dict | None:
+    """The stability term's fixed states (None without it): ``rest`` [N,12] and, with ``stability_anchors``,
+    ``z`` [A,N,12] and ``f`` [A,N,3] (``stability_anchor_states``)."""
+    if (cfg.stability_data or cfg.stability_anchors) and cfg.stability_weight <= 0:
+        raise ValueError(f"stability_data / stability_anchors={cfg.stability_anchors} need stability_weight > 0, "
+                         f"got {cfg.stability_weight}")
+    if cfg.stability_weight <= 0:
+        return None
+    if cfg.stability_data and cfg.stability_anchors:
+        raise ValueError("stability_data and stability_anchors are alternatives: set one")
+    states = {"rest": jnp.asarray(G.rest_state(data.q0))}
+    if cfg.stability_anchors:
+        states.update(zip(("z", "f"), stability_anchor_states(data, rows, cfg.stability_anchors)))
+    return states
 
 
 @partial(jax.jit, static_argnames=("cfg", "total_steps"))
-def _train_step(state, batch, norm, node_type, topo, cfg, total_steps):
+def _train_step(state, batch, norm, node_type, topo, anchors, cfg, total_steps):
     optimizer = make_optimizer(cfg, total_steps)
     key = jax.random.fold_in(jax.random.PRNGKey(cfg.seed), state["step"])
 
@@ -322,15 +335,16 @@ def _train_step(state, batch, norm, node_type, topo, cfg, total_steps):
         loss, metrics = loss_fn(weights, batch, key, norm, cfg, node_type, topo)
         if cfg.stability_weight <= 0:
             return loss, (metrics, None)
-        z_a, f_a = state["z_rest"][None], jnp.zeros((1, state["z_rest"].shape[0], 3), state["z_rest"].dtype)
+        rest = anchors["rest"]
+        z_a, f_a = rest[None], jnp.zeros((1, rest.shape[0], 3), rest.dtype)
         probes, slots = state["probe"], jnp.arange(state["probe"].shape[0])
         if cfg.stability_data:   # the batch's first (noise-free) input state under its force
             f_first = batch.f[0, 0] if batch.f.ndim == 4 else batch.f[0]
             z_a, f_a = jnp.concatenate([z_a, batch.z[:1]]), jnp.concatenate([f_a, f_first[None]])
         if cfg.stability_anchors:   # the rest probe and anchor (step mod A), in turn
             a = state["step"] % cfg.stability_anchors
-            z_a = jnp.concatenate([z_a, state["anchor_z"][a][None]])
-            f_a = jnp.concatenate([f_a, state["anchor_f"][a][None]])
+            z_a = jnp.concatenate([z_a, anchors["z"][a][None]])
+            f_a = jnp.concatenate([f_a, anchors["f"][a][None]])
             slots = jnp.stack([0, 1 + a])
             probes = probes[slots]
         drift, growth, probe = stability_term(weights, probes, norm, cfg, node_type, topo, z_a, f_a)
@@ -352,7 +366,7 @@ def _train_step(state, batch, norm, node_type, topo, cfg, total_steps):
     weights, opt_state = keep(weights, state["weights"]), keep(opt_state, state["opt_state"])
     metrics = {k: jnp.where(finite, v, 0.0) for k, v in metrics.items()}
     metrics["skipped"] = 1.0 - finite.astype(jnp.float32)
-    new = {**state, "step": state["step"] + 1, "weights": weights, "opt_state": opt_state}
+    new = {"step": state["step"] + 1, "weights": weights, "opt_state": opt_state}
     if probe is not None:
         new["probe"] = jnp.where(jnp.all(jnp.isfinite(probe)), probe, state["probe"])
     return new, metrics
@@ -437,6 +451,7 @@ def train(data: D.Dataset, cfg: TrainConfig, run_dir: str | Path, train_split="t
         raise ValueError(f"batch_size {bs} exceeds the {n_samples} training transitions")
     total_steps = cfg.epochs * steps_per_epoch
     optimizer = make_optimizer(cfg, total_steps)
+    anchors = stability_states(data, rows, cfg)
 
     mesh = data_mesh(devices)
     if bs % mesh.size:
@@ -449,16 +464,9 @@ def train(data: D.Dataset, cfg: TrainConfig, run_dir: str | Path, train_split="t
     if parent is not None:
         weights = jax.tree.map(lambda a, b: jnp.asarray(b, a.dtype), weights, parent["weights"])
     state = {"step": jnp.zeros((), jnp.int32), "weights": weights, "opt_state": optimizer.init(weights)}
-    if (cfg.stability_data or cfg.stability_anchors) and cfg.stability_weight <= 0:
-        raise ValueError(f"stability_data / stability_anchors={cfg.stability_anchors} need stability_weight > 0, "
-                         f"got {cfg.stability_weight}")
-    if cfg.stability_weight > 0:   # the power iteration's probe is part of the state (a resume reproduces it)
-        if cfg.stability_data and cfg.stability_anchors:
-            raise ValueError("stability_data and stability_anchors are alternatives: set one")
+    if anchors is not None:   # the power iterations' probes are part of the state (a resume reproduces them)
         n_probes = 1 + int(cfg.stability_data) + int(cfg.stability_anchors)
-        state.update(probe=initial_probes(cfg.seed, len(data.node_type), n_probes), z_rest=rest_state(data.q0))
-        if cfg.stability_anchors:
-            state.update(zip(("anchor_z", "anchor_f"), stability_anchor_states(data, rows, cfg.stability_anchors)))
+        state["probe"] = initial_probes(cfg.seed, len(data.node_type), n_probes)
     manager = ocp.CheckpointManager(run_dir / "checkpoints", options=ocp.CheckpointManagerOptions(
         max_to_keep=2, enable_async_checkpointing=False))
     start_epoch = 0
@@ -471,7 +479,7 @@ def train(data: D.Dataset, cfg: TrainConfig, run_dir: str | Path, train_split="t
         log(f"resumed from epoch {start_epoch} (step {int(state['step'])})")
     _truncate_log(run_dir / "metrics.jsonl", start_epoch)
     state = jax.device_put(state, replicated)
-    train_step = make_train_step(cfg, total_steps, norm, node_type, topo)
+    train_step = make_train_step(cfg, total_steps, norm, node_type, topo, anchors)
 
     z_train, f_train = data.z[rows], data.f[rows]
     w_train = case_weights(data, rows, cfg.case_weight) if cfg.case_weight > 0 else None
