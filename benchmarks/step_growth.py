@@ -44,21 +44,21 @@ def scene_of(params) -> str:
 
 
 def anchors(params, scene_name: str, hold: int = 20):
-    """[(label, z, f)] rest, ramp end and hold +``hold`` along the model's own rollout under the stability
-    benchmark's constant loading (the states as far as they are finite)."""
+    """([(label, z, f)], frame Δt): rest, ramp end and hold +``hold`` along the model's own rollout under the
+    stability benchmark's constant loading (the states as far as they are finite)."""
     import jax.numpy as jnp
     from stability import loadings
     from tignn_jax import api
 
+    from tignn_jax import graph as G
+
     info = params.get("info", {})
-    _, loads = loadings(scene_name, 200, density=info.get("fem_density"),
-                        load_radius=float(info.get("fem_load_radius", 0.0)))
+    scene, loads = loadings(scene_name, 200, density=info.get("fem_density"),
+                            load_radius=float(info.get("fem_load_radius", 0.0)))
     forces = loads["constant"]
     ramp = int(np.argmax(np.all(forces[1:] == forces[:-1], axis=(1, 2)))) + 1   # first step of the held load
-    n = len(params["mesh"]["node_type"])
-    q0 = np.asarray(params["mesh"]["q0"], np.float32)
-    rest = np.concatenate([q0, np.zeros((n, 9), np.float32)], axis=1)
-    out = [("rest", rest, np.zeros((n, 3), np.float32))]
+    rest = G.rest_state(params["mesh"]["q0"])
+    out = [("rest", rest, np.zeros((len(rest), 3), np.float32))]
     fn = api.stepper(params)
     z = jnp.asarray(rest)
     for k in range(ramp + hold):
@@ -67,28 +67,22 @@ def anchors(params, scene_name: str, hold: int = 20):
         z = fn(z, jnp.asarray(forces[k], jnp.float32))
     if np.all(np.isfinite(np.asarray(z))):
         out.append((f"hold +{hold} (step {ramp + hold})", np.asarray(z), forces[ramp + hold].astype(np.float32)))
-    return out
+    return out, scene.frame_dt
 
 
 def leading_eigenvalues(params, z, f, k: int = 6) -> list:
-    """The k eigenvalues of the step's Jacobian (state-std units) of largest modulus, by ARPACK on the same
-    finite differences as ``step_growth``."""
-    import jax.numpy as jnp
+    """The k eigenvalues of the step's Jacobian (state-std units, prescribed entries left out) of largest
+    modulus, by ARPACK on ``tignn_jax.step_jacobian``, the finite differences ``step_growth`` iterates."""
     from scipy.sparse.linalg import LinearOperator, eigs
     from tignn_jax import api
 
-    fn, std = api.stepper(params), params["norm"]["z_std"]
-    z, f = jnp.asarray(z), jnp.asarray(f)
-    base = fn(z, f)
-    shape, eps = z.shape, 1e-2
+    jac = api.step_jacobian(params, z, f)
+    shape = np.shape(z)
 
     def matvec(x):
-        x = np.real(np.asarray(x)).reshape(shape)
-        size = float(np.linalg.norm(x)) or 1.0
-        y = (fn(z + eps * jnp.asarray(x / size, jnp.float32) * std, f) - base) / (eps * std)
-        return np.asarray(y, np.float64).ravel() * size
+        return np.asarray(jac(np.real(np.asarray(x)).reshape(shape)), np.float64).ravel()
 
-    op = LinearOperator((z.size, z.size), matvec=matvec, dtype=np.float64)
+    op = LinearOperator((np.size(z), np.size(z)), matvec=matvec, dtype=np.float64)
     vals = eigs(op, k=k, which="LM", ncv=max(3 * k, 20), tol=1e-4, return_eigenvectors=False)
     return sorted(vals, key=lambda v: -abs(v))
 
@@ -120,8 +114,7 @@ def main():
     for i, name in enumerate([m for m in args.models.split(",") if m]):
         params, _ = api.load_pretrained(name)
         scene = scene_of(params)
-        dt = 0.05
-        states = anchors(params, scene)
+        states, dt = anchors(params, scene)
         if scene == "beam" and reference is not None:
             test = D.split_rows(reference, "test")
             growths = [api.step_growth(params, reference.z[r, 19], reference.f[r, 19],

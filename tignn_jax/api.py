@@ -137,19 +137,11 @@ def state_guard(params: dict, bound: float = 8.0, tolerance: float = 1.5):
     return fn
 
 
-def step_growth(params: dict, z, forces, iterations: int = 150, eps: float = 1e-2, seed: int = 0) -> dict:
-    """How much the learned step amplifies a small disturbance of the state ``z`` [N,12] under ``forces``
-    [N,3]: the largest eigenvalue modulus of the step's Jacobian there, by power iteration on finite
-    differences (the step has custom VJPs, so no forward-mode JVP), in the training split's state stds, over the
-    state entries that evolve (the clamped nodes' q and v are prescribed, so they are left out).
-
-    A value above 1 means the learned step is linearly unstable at that state: a disturbance along the
-    returned mode grows by that factor per step however small it starts (the true, damped dynamics contracts).
-    Returns {"growth": the geometric mean of the last third of the iterations' ratios (also right for a complex
-    pair), "history": [iterations] the ratios, "mode": [N,12] the last unit direction, "feature_share": [12]
-    its squared weight per state feature, "top_node": the node where it is largest}."""
-    if not isinstance(iterations, (int, np.integer)) or iterations < 3:
-        raise ValueError(f"iterations must be an integer >= 3, got {iterations!r}")
+def step_jacobian(params: dict, z, forces, eps: float = 1e-2):
+    """``x -> J x``: the learned step's Jacobian at the state ``z`` [N,12] under ``forces`` [N,3] applied to
+    x [N,12], both in the training split's state stds, by a finite difference of size ``eps`` along x/‖x‖ (the
+    step has custom VJPs, so no forward-mode JVP). The prescribed entries (clamped q, v) are left out of x and
+    of J x: a disturbance there would stay as it is, eigenvalue 1 whatever the network."""
     if not (isinstance(eps, (int, float)) and eps > 0):
         raise ValueError(f"eps must be a positive number, got {eps!r}")
     n = len(params["mesh"]["node_type"])
@@ -161,14 +153,39 @@ def step_growth(params: dict, z, forces, iterations: int = 150, eps: float = 1e-
         raise ValueError("z and forces must be finite")
     fn, std = stepper(params), params["norm"]["z_std"]
     z, forces = jnp.asarray(z), jnp.asarray(forces)
-    # clamped nodes' q, v are prescribed, not state (a disturbance there would stay: eigenvalue 1)
     free = (~M.prescribed(params["mesh"]["node_type"])).astype(z.dtype)
     base = fn(z, forces)
-    x = jax.random.normal(jax.random.PRNGKey(seed), z.shape) * free
+
+    def matvec(x):
+        x = jnp.asarray(x, z.dtype) * free
+        size = jnp.linalg.norm(x)
+        size = jnp.where(size > 0, size, 1.0)
+        return (fn(z + eps * (x / size) * std, forces) - base) / (eps * std) * free * size
+
+    return matvec
+
+
+def step_growth(params: dict, z, forces, iterations: int = 150, eps: float = 1e-2, seed: int = 0) -> dict:
+    """How much the learned step amplifies a small disturbance of the state ``z`` [N,12] under ``forces``
+    [N,3]: the largest eigenvalue modulus of the step's Jacobian there, by power iteration on finite
+    differences, in the training split's state stds, over the state entries that evolve (the clamped nodes' q
+    and v are prescribed, so they are left out).
+
+    The Jacobian is ``step_jacobian``'s. A value above 1 means the learned step is linearly unstable at that
+    state: a disturbance along the
+    returned mode grows by that factor per step however small it starts (the true, damped dynamics contracts).
+    Returns {"growth": the geometric mean of the last third of the iterations' ratios (also right for a complex
+    pair), "history": [iterations] the ratios, "mode": [N,12] the last unit direction, "feature_share": [12]
+    its squared weight per state feature, "top_node": the node where it is largest}."""
+    if not isinstance(iterations, (int, np.integer)) or iterations < 3:
+        raise ValueError(f"iterations must be an integer >= 3, got {iterations!r}")
+    jac = step_jacobian(params, z, forces, eps)
+    free = ~M.prescribed(params["mesh"]["node_type"])
+    x = jax.random.normal(jax.random.PRNGKey(seed), free.shape) * free
     x = x / jnp.linalg.norm(x)
     history = []
     for _ in range(iterations):
-        y = (fn(z + eps * x * std, forces) - base) / (eps * std) * free
+        y = jac(x)
         ratio = float(jnp.linalg.norm(y))
         history.append(ratio)
         if not ratio > 0 or not np.isfinite(ratio):
