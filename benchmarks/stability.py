@@ -51,6 +51,7 @@ from _machine import describe  # noqa: E402
 RESULTS = Path(__file__).resolve().parent / "results"
 SCENARIOS = ("release", "constant", "fingertip", "3x load", "noise")
 COLUMNS = ("q1", "q2", "q3", "v1", "v2", "v3", "σ11", "σ22", "σ33", "σ12", "σ13", "σ23")
+FALLBACK_HOLD = 30   # api.fallback_stepper: steps a flagged body stays on the rest-linearised FEM
 BUNNY_RISE = 10   # the bunny data's loads rise over 10 frames (tignn generate bunny --rise-frames 10)
 
 
@@ -128,6 +129,10 @@ def model_runs(name: str, model: str, steps: int, fem_steps: int) -> dict:
     hops = hop_distances(np.stack([np.asarray(graph.senders), np.asarray(graph.receivers)]),
                          len(q0))   # [N, N] graph distances (756 or 1330 nodes: small)
     guarded = {p: api.guarded_stepper(params, policy=p) for p in api.GUARD_POLICIES}
+    if not cfg.frame_solve:   # the rest-linearised FEM of the same scene as the fallback (a linear model is its own)
+        from tignn_jax import framesolve as FS
+        linear, _ = FS.linear_model(params, scene, info.get("fem_damping"))
+        guarded["fallback"] = api.fallback_stepper(params, linear, hold=FALLBACK_HOLD)
 
     def roll(fn, z, s, f_seq, key):
         """States [steps+1, N, 12] and per-step flags of ``fn(z, f) -> (z, flagged)`` under the loads; the
@@ -150,8 +155,15 @@ def model_runs(name: str, model: str, steps: int, fem_steps: int) -> dict:
         over = np.where(~(err[1:] <= 0.10))[0]
         return int(over[0] + 1) if len(over) else None
 
-    def guarded_run(policy, s, z, f_seq, uf):   # the same loads (and noise) through api.guarded_stepper
-        zs, flags = roll(guarded[policy], z, s, f_seq, jax.random.PRNGKey(1))
+    def guarded_run(policy, s, z, f_seq, uf):   # the same loads (and noise) through the guarded steppers
+        fn = guarded[policy]
+        if policy == "fallback":                 # it carries each body's steps left on the fallback
+            left = [jnp.zeros(1, jnp.int32)]
+
+            def fn(z_, f_, inner=fn):
+                z_, flagged, left[0] = inner(z_, f_, left[0])
+                return z_, flagged
+        zs, flags = roll(fn, z, s, f_seq, jax.random.PRNGKey(1))
         err = u_error(zs, uf)
         return {"nan_or_inf": int(np.size(zs) - np.count_nonzero(np.isfinite(zs))),
                 "flagged_steps": int(sum(flags)), "first_flagged_step": flags.index(True) + 1 if any(flags) else None,
@@ -203,7 +215,7 @@ def model_runs(name: str, model: str, steps: int, fem_steps: int) -> dict:
             "first_step_state_flagged": flagged[0] if flagged else None,
             "first_step_non_finite": nonfinite[0] if nonfinite else None,
             "leaves_envelope_by": leaves,
-            "guarded": {p: guarded_run(p, s, z, f_seq, uf) for p in api.GUARD_POLICIES},
+            "guarded": {p: guarded_run(p, s, z, f_seq, uf) for p in guarded},
             "series": {"u_max": u.tolist(), "v_max": v.tolist(), "u_error": err.tolist(),
                        "E": e_s[:, 0].tolist(), "S": e_s[:, 1].tolist()}}
     return out
@@ -343,7 +355,10 @@ def main(argv=None) -> int:
                 f"{run['first_step_state_flagged']} / {run['first_step_non_finite']} | {_leaves_text(run)} |")
     lines += ["", "The same loads through `api.guarded_stepper` (a step whose state leaves 1.5× the training "
               "envelope, or is non-finite, is replaced: `clip` clips it into the envelope, `reset` puts the body "
-              "back at rest; a safeguard, not physics):", "",
+              "back at rest; a safeguard, not physics) and `api.fallback_stepper` (`fallback`: such a body is "
+              "handed to the scene's rest-linearised backward-Euler FEM, `framesolve.linear_model`, with its "
+              f"stress set to S₀u, for that step and the next {FALLBACK_HOLD}; not learned, but physically "
+              "consistent and unconditionally stable; the steps flagged count the hand-overs):", "",
               "| scene | loading | policy | NaN/Inf | steps flagged (first) | max u model | u error at FEM horizon | "
               "first step u error > 10 % |", "|---|---|---|---|---|---|---|---|"]
     for name, r in models.items():

@@ -269,3 +269,63 @@ def test_exact_force_correction_is_the_ceiling_the_bunny_benchmark_measures(bar_
     assert small["exact force", "u"] < 0.6 * small["prior", "u"]
     assert small["exact force", "sigma"] > 10 * small["prior", "sigma"]
     assert large["exact force", "u"] > large["prior", "u"]
+
+
+def test_fallback_stepper_hands_flagged_bodies_to_the_rest_linearised_fem(bar_data):
+    """`framesolve.linear_model` is the scene's linearised backward-Euler step (as the zero-network model built
+    from the data file). `api.fallback_stepper` returns the network's step where nothing is flagged; a body
+    whose network step leaves the envelope is stepped instead by that linear step from its state with σ = S₀u,
+    and stays on it for ``hold`` more steps (the network not used), then the network resumes; the other body
+    keeps its network step. Bad use is a clear error."""
+    data, _, norm = _ops(bar_data)
+    rows = np.arange(len(data.sim_id))
+    norm_np = D.normalization(data, rows)
+    config = M.ModelConfig(hidden=8, passes=1)
+    nt = jnp.asarray(data.node_type, jnp.int32)
+    topo = M.model_topology(config, data.edges[0], data.edges[1], len(data.node_type), data.q0)
+    w = M.init_weights(jax.random.PRNGKey(0), config, {k: jnp.asarray(v) for k, v in norm_np.items()},
+                       jnp.asarray(data.z[0, 0]), jnp.asarray(data.f[0, 0]), nt, topo)
+    net = api.make_params(config, norm_np, w, data.q0, data.edges, data.node_type)
+    linear, info = FS.linear_model(net, _scene())
+    assert info["fem_damping"] == ALPHA and "not learned" in info["kind"]
+    reference = _zero_model(data, {**norm_np, **{k: np.asarray(v) for k, v in norm.items()}},
+                            M.ModelConfig(hidden=8, passes=1, frame_solve=True, linear_prior=True))
+    z, f = jnp.asarray(data.z[0, 2]), jnp.asarray(data.f[0, 2])
+    lin_step = api.stepper(linear)
+    np.testing.assert_allclose(np.asarray(lin_step(z, f)), np.asarray(api.stepper(reference)(z, f)),
+                               rtol=1e-4, atol=1e-6 * float(jnp.abs(z).max()))
+    plain = api.stepper(net, 2)
+    hold = 2
+    fn = api.fallback_stepper(net, linear, copies=2, hold=hold)
+    wild = np.array(data.z[0, 2], np.float32)
+    wild[:, 3:] = norm_np["z_mean"][3:] + 50.0 * norm_np["z_dev_max"][3:] * norm_np["z_std"][3:]
+    zz, ff = jnp.concatenate([z, jnp.asarray(wild)]), jnp.concatenate([f, f])
+    n = len(data.q0)
+    out, flagged, left = fn(zz, ff, jnp.zeros(2, jnp.int32))
+    assert flagged.tolist() == [False, True] and left.tolist() == [0, hold]
+    np.testing.assert_allclose(np.asarray(out[:n]), np.asarray(plain(zz, ff)[:n]), rtol=1e-6, atol=1e-6)
+    free = (data.node_type == 0)[:, None]
+    u = np.where(free, wild[:, :3] - data.q0, 0.0)
+    start = np.concatenate([wild[:, :6], np.asarray(FS.apply_s(linear["norm"], jnp.asarray(u, jnp.float32)))], 1)
+    expected = np.asarray(lin_step(jnp.asarray(start), f))
+    np.testing.assert_allclose(np.asarray(out[n:]), expected, rtol=1e-5, atol=1e-5 * np.abs(expected).max())
+    for k in range(hold):   # the flagged body stays on the linear step, the other on the network's
+        prev = out
+        out, flagged, left = fn(prev, ff, left)
+        assert not flagged.any() and left.tolist() == [0, hold - 1 - k]
+        np.testing.assert_allclose(np.asarray(out[n:]), np.asarray(lin_step(prev[n:], f)), rtol=1e-5,
+                                   atol=1e-5 * float(jnp.abs(prev[n:]).max()))
+    # then the network resumes: an in-envelope state with no steps left takes the network's step
+    out, flagged, left = fn(jnp.concatenate([z, z]), ff, left)
+    assert not flagged.any() and left.tolist() == [0, 0]
+    np.testing.assert_allclose(np.asarray(out[n:]), np.asarray(plain(zz, ff)[:n]), rtol=1e-6, atol=1e-6)
+    with pytest.raises(ValueError, match="rest-linearised"):
+        api.fallback_stepper(net, net)
+    with pytest.raises(ValueError, match="another mesh"):
+        api.fallback_stepper(net, {**linear, "mesh": {**linear["mesh"], "q0": linear["mesh"]["q0"] + 1.0}})
+    with pytest.raises(ValueError, match="hold"):
+        api.fallback_stepper(net, linear, hold=-1)
+    with pytest.raises(ValueError, match="left"):
+        fn(zz, ff, jnp.zeros(3, jnp.int32))
+    with pytest.raises(ValueError, match="not on the"):
+        FS.linear_model(net, _scene()._replace(points=_scene().points * 2.0))

@@ -70,10 +70,11 @@ def test_a_flagged_run_says_which_state_component_left_the_envelope_and_where(be
 
 
 def test_guarded_rollouts_stay_finite_and_match_unflagged_plain_runs(beam_runs):
-    # Through api.guarded_stepper every policy's rollout is finite; where the plain rollout never left the
-    # envelope, no step is flagged and the guarded rollout's error against the FEM is the plain one's.
+    # Through api.guarded_stepper (every policy) and api.fallback_stepper the rollouts are finite; where the
+    # plain rollout never left the envelope, no step is flagged and the guarded rollout's error against the FEM
+    # is the plain one's.
     for name, run in beam_runs["runs"].items():
-        assert set(run["guarded"]) == set(api.GUARD_POLICIES)
+        assert set(run["guarded"]) == set(api.GUARD_POLICIES) | {"fallback"}
         for policy, g in run["guarded"].items():
             assert g["nan_or_inf"] == 0, (name, policy)
             assert len(g["u_error"]) == len(run["series"]["u_error"])
