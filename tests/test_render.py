@@ -406,6 +406,38 @@ def test_guard_with_one_flag_per_body_resets_only_the_flagged_body():
     assert t.guard_trips > 0
 
 
+def test_guard_hands_flagged_bodies_to_their_fallback_for_the_hold():
+    # Two bodies whose step goes bad once touched; the second has a fallback (here: a step that moves every
+    # node by one unit in x and marks σ11 with the restart flag). A flagged body is stepped by its fallback from
+    # its previous state (restart True at the hand-over, False after) for fallback_hold more frames, then its
+    # step resumes and is flagged again; the body without a fallback is reset. One trip per hand-over or reset.
+    scene, _ = _demo_scene(frames=6)
+    body = scene.bodies[0]
+    bad = body._replace(step_fn=lambda z, f: z * jnp.nan)
+
+    def fallback(z, f, restart):
+        return z.at[:, 0].add(1.0).at[:, 6].set(jnp.where(restart, 7.0, 0.0))
+
+    guard = lambda zs: jnp.stack([~jnp.all(jnp.isfinite(z)) for z in zs])
+    hold = 2
+    run = scene._replace(bodies=(bad, bad), guard=guard, fallback=(None, jax.jit(fallback)), fallback_hold=hold)
+    zs, t = sc.run(run, frames=7)
+    np.testing.assert_array_equal(np.asarray(zs[0]), body.z)                      # reset
+    z1 = np.asarray(zs[1])
+    assert np.all(np.isfinite(z1))
+    steps = round(float(np.mean(z1[:, 0] - body.q0[:, 0])))   # one unit per fallback step
+    touched = steps   # every touched frame was a fallback frame: a hand-over then the hold, repeated
+    assert touched >= hold + 1
+    hand_overs = -(-touched // (hold + 1))
+    assert t.guard_trips == hand_overs + touched   # the reset body trips on every touched frame
+    last_restart = (touched - 1) % (hold + 1) == 0
+    assert np.all(z1[:, 6] == (7.0 if last_restart else 0.0))
+    with pytest.raises(ValueError, match="fallback"):
+        sc.run(scene._replace(fallback=(None, None)))
+    with pytest.raises(ValueError, match="fallback_hold"):
+        sc.run(scene._replace(fallback_hold=-1))
+
+
 def test_loop_pauses_garbage_collection_and_restores_it():
     # The loop runs with automatic collection off (young-generation collections between frames instead) and
     # gives the same states as with it on; the caller's setting comes back, also after an error.

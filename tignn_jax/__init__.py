@@ -3,7 +3,8 @@ __version__ = "0.1.0"
 
 _LAZY = {name: "tignn_jax.api" for name in
          ("step", "rollout", "load_pretrained", "stepper", "force_check", "state_check", "state_guard",
-          "guarded_stepper", "fallback_stepper", "step_growth")}
+          "guarded_stepper", "fallback_stepper", "fallback_step",
+          "step_growth")}
 
 
 def __getattr__(name):

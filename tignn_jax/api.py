@@ -261,6 +261,21 @@ def guarded_stepper(params: dict, copies: int = 1, policy: str = "reset", tolera
     return fn
 
 
+def fallback_step(params: dict, fallback: dict):
+    """One body's fallback step for loops that keep their own bookkeeping (``scene.run``): ``z_next = fn(z,
+    forces, restart)`` is the rest-linearised backward-Euler step of ``fallback`` (see ``fallback_stepper``)
+    from z [N,12], after setting the stress to S₀u where ``restart`` (a bool scalar, traced: one compilation) is
+    True, as a hand-over from the learned model does. Checks that ``fallback`` is a rest-linearised model of
+    ``params``' mesh."""
+    linear, consistent = _fallback_parts(params, fallback)
+
+    @jax.jit
+    def fn(z, forces, restart):
+        return linear(jnp.where(restart, consistent(z), z), forces)
+
+    return fn
+
+
 def fallback_stepper(params: dict, fallback: dict, copies: int = 1, hold: int = 30, tolerance: float = 1.5,
                      bound: float = 8.0):
     """A guarded step that hands a body to a physically consistent, unconditionally stable step when the learned
@@ -269,9 +284,8 @@ def fallback_stepper(params: dict, fallback: dict, copies: int = 1, hold: int = 
     to spend on the fallback.
 
     ``fallback`` is a rest-linearised FEM model of the same mesh (a ``frame_solve`` + ``linear_prior`` model,
-    e.g. ``load_pretrained("beam-linear")``, built by ``scripts/make_linear_model.py``); only its rest
-    linearisation is used (backward Euler on u̇ = v, M v̇ = f − K₀u − αMv, σ̇ = S₀v; its network is not run).
-    Per body and step:
+    e.g. ``load_pretrained("beam-linear")``, built by ``framesolve.linear_model``); only its rest linearisation
+    is used (backward Euler on u̇ = v, M v̇ = f − K₀u − αMv, σ̇ = S₀v; its network is not run). Per body and step:
 
     * ``left > 0``: the fallback steps the body and ``left`` counts down; the network is not evaluated for it
       (nor at all while every body is on the fallback);
@@ -291,30 +305,10 @@ def fallback_stepper(params: dict, fallback: dict, copies: int = 1, hold: int = 
         raise ValueError(f"tolerance must be positive, got {tolerance!r}")
     if not bound > 0:
         raise ValueError(f"bound must be positive, got {bound!r}")
-    fb_config = _config(fallback)
-    if not (fb_config.frame_solve and fb_config.linear_prior):
-        raise ValueError("fallback must be a rest-linearised model (frame_solve and linear_prior, e.g. "
-                         f"'beam-linear'), got one with frame_solve={fb_config.frame_solve}, "
-                         f"linear_prior={fb_config.linear_prior}")
-    mesh, fb_mesh = params["mesh"], fallback["mesh"]
-    for key in ("node_type", "senders", "receivers"):
-        if not np.array_equal(np.asarray(mesh[key]), np.asarray(fb_mesh[key])):
-            raise ValueError(f"the fallback is on another mesh than the model: its {key} differ")
-    q0_np = np.asarray(mesh["q0"], np.float32)
-    if not np.allclose(q0_np, np.asarray(fb_mesh["q0"], np.float32), atol=1e-5 * np.abs(q0_np).max()):
-        raise ValueError("the fallback is on another mesh than the model: its rest positions q0 differ")
+    linear, consistent = _fallback_parts(params, fallback)
     step = stepper(params, copies)     # validates copies
-    copies, n = int(copies), len(q0_np)
-    norm = FS.with_inverse(fallback["norm"], fb_mesh["node_type"])
-    node_type, x0 = jnp.asarray(mesh["node_type"], jnp.int32), jnp.asarray(q0_np)
-    free = (node_type == 0)[:, None]
+    copies, n = int(copies), len(params["mesh"]["q0"])
     flag = jax.vmap(state_guard(params, bound=bound, tolerance=tolerance))
-
-    def linear(z, f):                   # one body's rest-linearised backward-Euler step
-        return z + FS.prior_step(norm, z, f, jnp.zeros_like(z), node_type, x0)
-
-    def consistent(z):                  # σ = S₀u: the fallback's stress of the body's displacement
-        return z.at[:, 6:].set(FS.apply_s(norm, jnp.where(free, z[:, :3] - x0, 0.0)))
 
     @jax.jit
     def fn(z, forces, left):
@@ -333,6 +327,35 @@ def fallback_stepper(params: dict, fallback: dict, copies: int = 1, hold: int = 
         return out.reshape(copies * n, M.STATE_DIM), flagged, left
 
     return fn
+
+
+def _fallback_parts(params: dict, fallback: dict):
+    """(linear(z, f), consistent(z)) for one body of ``params``' mesh: ``fallback``'s rest-linearised
+    backward-Euler step (its network not run) and the state with σ = S₀u; ValueError where ``fallback`` is not
+    a rest-linearised model of that mesh."""
+    fb_config = _config(fallback)
+    if not (fb_config.frame_solve and fb_config.linear_prior):
+        raise ValueError("fallback must be a rest-linearised model (frame_solve and linear_prior, e.g. "
+                         f"'beam-linear'), got one with frame_solve={fb_config.frame_solve}, "
+                         f"linear_prior={fb_config.linear_prior}")
+    mesh, fb_mesh = params["mesh"], fallback["mesh"]
+    for key in ("node_type", "senders", "receivers"):
+        if not np.array_equal(np.asarray(mesh[key]), np.asarray(fb_mesh[key])):
+            raise ValueError(f"the fallback is on another mesh than the model: its {key} differ")
+    q0 = np.asarray(mesh["q0"], np.float32)
+    if not np.allclose(q0, np.asarray(fb_mesh["q0"], np.float32), atol=1e-5 * np.abs(q0).max()):
+        raise ValueError("the fallback is on another mesh than the model: its rest positions q0 differ")
+    norm = FS.with_inverse(fallback["norm"], fb_mesh["node_type"])
+    node_type, x0 = jnp.asarray(mesh["node_type"], jnp.int32), jnp.asarray(q0)
+    free = (node_type == 0)[:, None]
+
+    def linear(z, f):
+        return z + FS.prior_step(norm, z, f, jnp.zeros_like(z), node_type, x0)
+
+    def consistent(z):
+        return z.at[:, 6:].set(FS.apply_s(norm, jnp.where(free, z[:, :3] - x0, 0.0)))
+
+    return linear, consistent
 
 
 def _envelope_arrays(params):

@@ -25,6 +25,9 @@ from pathlib import Path
 
 BUNNY_PRESS_NODE = 917
 DEFAULT_MODELS = {"beam": "beam-abaqus", "two-beams": "beam-abaqus", "bunny": "bunny-linear"}
+# the rest-linearised FEM a learned model's body is handed to when it leaves its training envelope
+# (api.fallback_step); models without one are reset to rest instead
+FALLBACKS = {"beam-abaqus": "beam-linear", "beam-abaqus-small": "beam-linear"}
 SCENES = ("two-beams", "beam", "bunny")
 
 
@@ -73,6 +76,7 @@ def run(args) -> int:
     t0 = time.perf_counter()
     imageio.mimsave(gif, frames, duration=1 / 30, loop=0)
     summary = {"scene": args.scene, "dynamics": dynamics, "image": [scene.camera.width, scene.camera.height],
+               "guard": "fallback" if scene.fallback else "reset",
                **timings.summary(), "gif_encode_s": time.perf_counter() - t0,
                "note": "write = handing the frame to the writer (kept in memory); the GIF is encoded after the loop"}
     (out / f"{args.scene}{suffix}_timings.json").write_text(json.dumps(summary, indent=2))
@@ -81,8 +85,10 @@ def run(args) -> int:
         print(f"{k:8s} {summary[k]['p50_ms']:8.2f} {summary[k]['p99_ms']:8.2f}")
     print(f"{summary['fps_at_p50']:.1f} frames per second at the median frame time")
     if summary.get("guard_trips"):
+        after = (f"handed to the rest-linearised FEM for {scene.fallback_hold} frames each time (api.fallback_step)"
+                 if scene.fallback else "reset to rest each time")
         print(f"WARNING: a body's state left the model's training envelope {summary['guard_trips']} times "
-              "(api.state_check); that body was reset to rest each time")
+              f"(api.state_check); that body was {after}")
     print(f"wrote {gif}, {out / f'{args.scene}{suffix}_timings.json'} and the fingertip track {track_path}")
     if suffix:
         print("NOTE: no shipped model was used: the motion comes from the STAND-IN spring dynamics.")
@@ -149,7 +155,9 @@ def build_scene(name: str, frames: int, model: str | None = None, stand_in: bool
     track = sc.press_track(cam, world_point, world_normal, frames, approach=0.03, press=0.012)
     scene = sc.Scene(bodies=bodies, camera=cam, background=sc.table_background(cam), track=track,
                      contact_radius=0.006, contact_stiffness=5e7, step=step_fn,
-                     guard=getattr(step_fn, "guard", None))
+                     guard=getattr(step_fn, "guard", None),
+                     fallback=(getattr(step_fn, "fallback", None),) * len(bodies)
+                     if getattr(step_fn, "fallback", None) is not None else ())
     body_step = getattr(step_fn, "body_step", None)
     if len(devices) > 1 and len(bodies) > 1 and body_step is not None:
         scene = scene._replace(bodies=tuple(b._replace(step_fn=body_step) for b in bodies), step=None,
@@ -181,7 +189,12 @@ def _dynamics(model_name, stand_in, q0, cells, edges, clamped, copies):
 
                 step.guard = lambda zs: jnp.stack([guard(z) for z in zs])   # one flag per body
                 step.body_step = api.stepper(params) if copies > 1 else fn   # one body, for Scene.devices
-                return step, f"model {model_name}", mesh_q0.astype(np.float32), units
+                if model_name in FALLBACKS:
+                    linear, _ = api.load_pretrained(FALLBACKS[model_name])
+                    step.fallback = api.fallback_step(params, linear)
+                described = f"model {model_name}" + (f" (fallback {FALLBACKS[model_name]})"
+                                                     if model_name in FALLBACKS else "")
+                return step, described, mesh_q0.astype(np.float32), units
             print(f"model {model_name!r} was trained on another mesh; using the STAND-IN dynamics")
     single = stand_in_step(q0, cells, clamped)
     return (lambda zs, forces: tuple(single(z, f) for z, f in zip(zs, forces))), \

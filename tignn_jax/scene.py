@@ -100,7 +100,12 @@ class Scene(NamedTuple):
     been touched (all forces zero since the start, bodies in their initial state) the step is skipped;
     guard: optional ``zs -> bool`` or ``zs -> bool [bodies]`` (jit-able), True where a new state must not be
     shown (e.g. non-finite or outside the model's training envelope, see ``api.state_check``): the flagged
-    bodies (all bodies for a single bool) return to their initial state, and each counts as a guard trip;
+    bodies (all bodies for a single bool) return to their initial state, or, where ``fallback`` gives the body
+    one, are handed to it, and each counts as a guard trip;
+    fallback: per body, None or a jitted ``(z, forces, restart) -> z`` (``api.fallback_step``: the rest-linearised
+    FEM, starting from σ = S₀u where ``restart``) that steps a flagged body from its previous state instead, and
+    keeps stepping it for ``fallback_hold`` more frames (the body's learned step and guard then ignored), after
+    which the learned step resumes (empty: every flagged body is reset);
     devices: where the bodies step, body k on ``devices[k % len(devices)]`` (e.g. the CPU devices of a process
     that made one per core, see ``cpu_devices``): each body's ``step_fn`` is then jitted on its own and the
     bodies' steps are dispatched together, so they run concurrently, one core each (XLA runs one program's
@@ -119,6 +124,8 @@ class Scene(NamedTuple):
     skip_rest: bool = True
     guard: Callable | None = None
     devices: tuple = ()
+    fallback: tuple = ()
+    fallback_hold: int = 30
 
 
 class Timings(NamedTuple):
@@ -188,6 +195,11 @@ def _run(scene, frames, write, warmup, gc_pause):
     touched = not (scene.skip_rest and at_rest)
     if not touched:   # compile the step now, so the first touch does not stall a frame
         jax.block_until_ready(step_fn(zs, forces_fn(zs, track[0])))
+    fallback = tuple(scene.fallback) + (None,) * (len(zs) - len(scene.fallback))
+    left = np.zeros(len(zs), np.int64)   # frames each body still spends on its fallback
+    for fb, z, f in zip(fallback, zs, forces_fn(zs, track[0])):   # compiled now, not at the first hand-over
+        if fb is not None:
+            jax.block_until_ready(fb(z, f, jnp.asarray(True)))
     for i in range(frames):
         tips = track[i]
         t0 = time.perf_counter()
@@ -195,12 +207,18 @@ def _run(scene, frames, write, warmup, gc_pause):
         t1 = time.perf_counter()
         touched = touched or any(bool(jnp.any(f != 0)) for f in forces)
         if touched:   # bodies at rest and untouched stay as they are: no step
-            zs = jax.block_until_ready(step_fn(zs, forces))
-            if guard_fn is not None:
-                flags = np.broadcast_to(np.asarray(guard_fn(zs), bool).reshape(-1), (len(zs),))
-                if flags.any():
-                    zs = tuple(z0 if bad else z for z0, z, bad in zip(initial, zs, flags))
-                    guard_trips += int(flags.sum())
+            prev, on = zs, left > 0
+            zs = prev if on.all() else jax.block_until_ready(step_fn(zs, forces))
+            flags = np.zeros(len(zs), bool)
+            if guard_fn is not None and not on.all():
+                flags = np.broadcast_to(np.asarray(guard_fn(zs), bool).reshape(-1), (len(zs),)) & ~on
+                guard_trips += int(flags.sum())
+            if flags.any() or on.any():
+                zs = tuple(fb(p, f, jnp.asarray(bad)) if fb is not None and (bad or busy) else z0 if bad else z
+                           for fb, p, f, z0, z, bad, busy in zip(fallback, prev, forces, initial, zs, flags, on))
+                zs = jax.block_until_ready(zs)
+            has = np.array([fb is not None for fb in fallback])
+            left = np.where(flags & has, scene.fallback_hold, np.maximum(left - 1, 0))
         t2 = time.perf_counter()
         image, overflow = jax.block_until_ready(render_fn(zs, tips))
         if bool(overflow) and capacity < max_capacity:  # rare: a body came much nearer the camera
@@ -453,6 +471,11 @@ def validate(scene: Scene) -> None:
     if scene.devices and scene.step is not None:
         raise ValueError("a scene with devices steps each body's step_fn on its device; it cannot also have a "
                          "step over all bodies (scene.step)")
+    if len(scene.fallback) > len(scene.bodies) or not all(fb is None or callable(fb) for fb in scene.fallback):
+        raise ValueError(f"fallback must give each of the {len(scene.bodies)} bodies None or a callable, got "
+                         f"{scene.fallback!r}")
+    if not isinstance(scene.fallback_hold, (int, np.integer)) or scene.fallback_hold < 0:
+        raise ValueError(f"fallback_hold must be a non-negative integer, got {scene.fallback_hold!r}")
     for k, b in enumerate(scene.bodies):
         n = len(b.q0)
         if np.asarray(b.z).shape != (n, 12):
