@@ -200,6 +200,8 @@ def _run(scene, frames, write, warmup, gc_pause):
     for fb, z, f in zip(fallback, zs, forces_fn(zs, track[0])):   # compiled now, not at the first hand-over
         if fb is not None:
             jax.block_until_ready(fb(z, f, jnp.asarray(True)))
+    if guard_fn is not None:   # likewise the guard, before its first touched frame
+        jax.block_until_ready(guard_fn(zs))
     for i in range(frames):
         tips = track[i]
         t0 = time.perf_counter()
@@ -214,7 +216,7 @@ def _run(scene, frames, write, warmup, gc_pause):
                 flags = np.broadcast_to(np.asarray(guard_fn(zs), bool).reshape(-1), (len(zs),)) & ~on
                 guard_trips += int(flags.sum())
             if flags.any() or on.any():
-                zs = tuple(fb(p, f, jnp.asarray(bad)) if fb is not None and (bad or busy) else z0 if bad else z
+                zs = tuple(fb(p, f, jnp.asarray(bool(bad))) if fb is not None and (bad or busy) else z0 if bad else z
                            for fb, p, f, z0, z, bad, busy in zip(fallback, prev, forces, initial, zs, flags, on))
                 zs = jax.block_until_ready(zs)
             has = np.array([fb is not None for fb in fallback])
