@@ -267,13 +267,7 @@ def fallback_step(params: dict, fallback: dict):
     from z [N,12], after setting the stress to S₀u where ``restart`` (a bool scalar, traced: one compilation) is
     True, as a hand-over from the learned model does. Checks that ``fallback`` is a rest-linearised model of
     ``params``' mesh."""
-    linear, consistent = _fallback_parts(params, fallback)
-
-    @jax.jit
-    def fn(z, forces, restart):
-        return linear(jnp.where(restart, consistent(z), z), forces)
-
-    return fn
+    return jax.jit(_handover(params, fallback))
 
 
 def fallback_stepper(params: dict, fallback: dict, copies: int = 1, hold: int = 30, tolerance: float = 1.5,
@@ -305,7 +299,7 @@ def fallback_stepper(params: dict, fallback: dict, copies: int = 1, hold: int = 
         raise ValueError(f"tolerance must be positive, got {tolerance!r}")
     if not bound > 0:
         raise ValueError(f"bound must be positive, got {bound!r}")
-    linear, consistent = _fallback_parts(params, fallback)
+    handover = jax.vmap(_handover(params, fallback))
     step = stepper(params, copies)     # validates copies
     copies, n = int(copies), len(params["mesh"]["q0"])
     flag = jax.vmap(state_guard(params, bound=bound, tolerance=tolerance))
@@ -320,8 +314,7 @@ def fallback_stepper(params: dict, fallback: dict, copies: int = 1, hold: int = 
                            lambda: step(z, forces).reshape(copies, n, M.STATE_DIM))
         flagged = flag(nxt) & ~on_fallback
         use = on_fallback | flagged
-        start = jnp.where(flagged[:, None, None], jax.vmap(consistent)(bodies), bodies)
-        safe = jax.lax.cond(jnp.any(use), lambda: jax.vmap(linear)(start, loads), lambda: bodies)
+        safe = jax.lax.cond(jnp.any(use), lambda: handover(bodies, loads, flagged), lambda: bodies)
         out = jnp.where(use[:, None, None], safe, nxt)
         left = jnp.where(flagged, hold, jnp.maximum(left - 1, 0)).astype(jnp.int32)
         return out.reshape(copies * n, M.STATE_DIM), flagged, left
@@ -329,10 +322,10 @@ def fallback_stepper(params: dict, fallback: dict, copies: int = 1, hold: int = 
     return fn
 
 
-def _fallback_parts(params: dict, fallback: dict):
-    """(linear(z, f), consistent(z)) for one body of ``params``' mesh: ``fallback``'s rest-linearised
-    backward-Euler step (its network not run) and the state with σ = S₀u; ValueError where ``fallback`` is not
-    a rest-linearised model of that mesh."""
+def _handover(params: dict, fallback: dict):
+    """``fn(z, f, restart) -> z_next`` for one body of ``params``' mesh: ``fallback``'s rest-linearised
+    backward-Euler step (its network not run) from z, or, where ``restart``, from z with σ = S₀u; ValueError
+    where ``fallback`` is not a rest-linearised model of that mesh."""
     fb_config = _config(fallback)
     if not (fb_config.frame_solve and fb_config.linear_prior):
         raise ValueError("fallback must be a rest-linearised model (frame_solve and linear_prior, e.g. "
@@ -355,7 +348,10 @@ def _fallback_parts(params: dict, fallback: dict):
     def consistent(z):
         return z.at[:, 6:].set(FS.apply_s(norm, jnp.where(free, z[:, :3] - x0, 0.0)))
 
-    return linear, consistent
+    def fn(z, f, restart):
+        return linear(jnp.where(restart, consistent(z), z), f)
+
+    return fn
 
 
 def _envelope_arrays(params):

@@ -197,6 +197,7 @@ def _run(scene, frames, write, warmup, gc_pause):
         jax.block_until_ready(step_fn(zs, forces_fn(zs, track[0])))
     fallback = tuple(scene.fallback) + (None,) * (len(zs) - len(scene.fallback))
     left = np.zeros(len(zs), np.int64)   # frames each body still spends on its fallback
+    has_fallback = np.array([fb is not None for fb in fallback])
     for fb, z, f in zip(fallback, zs, forces_fn(zs, track[0])):   # compiled now, not at the first hand-over
         if fb is not None:
             jax.block_until_ready(fb(z, f, jnp.asarray(True)))
@@ -219,8 +220,7 @@ def _run(scene, frames, write, warmup, gc_pause):
                 zs = tuple(fb(p, f, jnp.asarray(bool(bad))) if fb is not None and (bad or busy) else z0 if bad else z
                            for fb, p, f, z0, z, bad, busy in zip(fallback, prev, forces, initial, zs, flags, on))
                 zs = jax.block_until_ready(zs)
-            has = np.array([fb is not None for fb in fallback])
-            left = np.where(flags & has, scene.fallback_hold, np.maximum(left - 1, 0))
+            left = np.where(flags & has_fallback, scene.fallback_hold, np.maximum(left - 1, 0))
         t2 = time.perf_counter()
         image, overflow = jax.block_until_ready(render_fn(zs, tips))
         if bool(overflow) and capacity < max_capacity:  # rare: a body came much nearer the camera
