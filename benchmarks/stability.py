@@ -133,6 +133,13 @@ def model_runs(name: str, model: str, steps: int, fem_steps: int) -> dict:
         from tignn_jax import framesolve as FS
         linear, _ = FS.linear_model(params, scene, info.get("fem_damping"))
         guarded["fallback"] = api.fallback_stepper(params, linear, hold=FALLBACK_HOLD)
+        from tignn_jax import data as D
+        if "fem_damping" not in info and D.reference_path().exists():   # trained on the reference data:
+            ref = D.load(D.reference_path())                           # calibrate on its train split
+            rows = D.split_rows(ref, "train")
+            bound = api.consistency_bound(params, linear, ref.z[rows, :-1], ref.f[rows])
+            guarded["fallback+consistency"] = api.fallback_stepper(params, linear, hold=FALLBACK_HOLD,
+                                                                   consistency=bound)
 
     def roll(fn, z, s, f_seq, key):
         """States [steps+1, N, 12] and per-step flags of ``fn(z, f) -> (z, flagged)`` under the loads; the
@@ -157,7 +164,7 @@ def model_runs(name: str, model: str, steps: int, fem_steps: int) -> dict:
 
     def guarded_run(policy, s, z, f_seq, uf):   # the same loads (and noise) through the guarded steppers
         fn = guarded[policy]
-        if policy == "fallback":                 # it carries each body's steps left on the fallback
+        if policy.startswith("fallback"):        # it carries each body's steps left on the fallback
             left = [jnp.zeros(1, jnp.int32)]
 
             def fn(z_, f_, inner=fn):
@@ -358,7 +365,10 @@ def main(argv=None) -> int:
               "back at rest; a safeguard, not physics) and `api.fallback_stepper` (`fallback`: such a body is "
               "handed to the scene's rest-linearised backward-Euler FEM, `framesolve.linear_model`, with its "
               f"stress set to S₀u, for that step and the next {FALLBACK_HOLD}; not learned, but physically "
-              "consistent and unconditionally stable; the steps flagged count the hand-overs):", "",
+              "consistent and unconditionally stable; the steps flagged count the hand-overs; "
+              "`fallback+consistency`, for models trained on the reference data: also where the network's step "
+              "departs from the linear one by more than 1.5× its largest departure on the train split, "
+              "`api.consistency_bound`):", "",
               "| scene | loading | policy | NaN/Inf | steps flagged (first) | max u model | u error at FEM horizon | "
               "first step u error > 10 % |", "|---|---|---|---|---|---|---|---|"]
     for name, r in models.items():

@@ -329,3 +329,38 @@ def test_fallback_stepper_hands_flagged_bodies_to_the_rest_linearised_fem(bar_da
         fn(zz, ff, jnp.zeros(3, jnp.int32))
     with pytest.raises(ValueError, match="not on the"):
         FS.linear_model(net, _scene()._replace(points=_scene().points * 2.0))
+
+
+def test_consistency_bound_flags_a_step_that_departs_from_the_linear_one(bar_data):
+    """`api.consistency_bound` is the largest departure (per component, in stds, free nodes) of the learned step
+    from the linear one over the given transitions; with it, `fallback_stepper` leaves those transitions to the
+    network (tolerance ≥ 1) and hands over a step that departs further, here a network whose bound was measured
+    ten times tighter than its departures. Bad bounds and shapes are clear errors."""
+    data, _, _ = _ops(bar_data)
+    norm_np = D.normalization(data, np.arange(len(data.sim_id)))
+    config = M.ModelConfig(hidden=8, passes=1)
+    nt = jnp.asarray(data.node_type, jnp.int32)
+    topo = M.model_topology(config, data.edges[0], data.edges[1], len(data.node_type), data.q0)
+    w = M.init_weights(jax.random.PRNGKey(0), config, {k: jnp.asarray(v) for k, v in norm_np.items()},
+                       jnp.asarray(data.z[0, 0]), jnp.asarray(data.f[0, 0]), nt, topo)
+    net = api.make_params(config, norm_np, w, data.q0, data.edges, data.node_type)
+    linear, _ = FS.linear_model(net, _scene())
+    z, f = data.z[:2, :-1], data.f[:2]
+    bound = api.consistency_bound(net, linear, z, f)
+    assert bound.shape == (12,) and np.all(bound > 0)
+    free = data.node_type == 0
+    a, b = jnp.asarray(z[1, 3]), jnp.asarray(f[1, 3])
+    d = np.abs(np.asarray(api.stepper(net)(a, b)) - np.asarray(api.stepper(linear)(a, b))) / norm_np["z_std"]
+    assert np.all(d[free].max(axis=0) <= bound * (1 + 1e-4) + 1e-6)
+    left = jnp.zeros(1, jnp.int32)
+    loose = api.fallback_stepper(net, linear, tolerance=1e6, consistency=bound)
+    assert not bool(loose(a, b, left)[1][0])
+    calibrated = api.fallback_stepper(net, linear, tolerance=1.5, consistency=bound)
+    np.testing.assert_allclose(np.asarray(calibrated(a, b, left)[0]), np.asarray(loose(a, b, left)[0]), atol=1e-6)
+    tight = api.fallback_stepper(net, linear, tolerance=1e6, consistency=bound / 1e7)
+    out, flagged, left_next = tight(a, b, left)
+    assert bool(flagged[0]) and int(left_next[0]) == 30
+    with pytest.raises(ValueError, match="consistency"):
+        api.fallback_stepper(net, linear, consistency=-bound)
+    with pytest.raises(ValueError, match="forces"):
+        api.consistency_bound(net, linear, z, f[:, :-1])

@@ -72,12 +72,16 @@ def test_a_flagged_run_says_which_state_component_left_the_envelope_and_where(be
 def test_guarded_rollouts_stay_finite_and_match_unflagged_plain_runs(beam_runs):
     # Through api.guarded_stepper (every policy) and api.fallback_stepper the rollouts are finite; where the
     # plain rollout never left the envelope, no step is flagged and the guarded rollout's error against the FEM
-    # is the plain one's.
+    # is the plain one's (the consistency trigger also flags a step that departs from the linear one while the
+    # state is still inside the envelope, e.g. at the release: it is checked for finiteness only).
     for name, run in beam_runs["runs"].items():
-        assert set(run["guarded"]) == set(api.GUARD_POLICIES) | {"fallback"}
+        assert set(api.GUARD_POLICIES) | {"fallback"} <= set(run["guarded"]) <= \
+            set(api.GUARD_POLICIES) | {"fallback", "fallback+consistency"}   # the latter with the reference data
         for policy, g in run["guarded"].items():
             assert g["nan_or_inf"] == 0, (name, policy)
             assert len(g["u_error"]) == len(run["series"]["u_error"])
+            if policy == "fallback+consistency":
+                continue
             if run["first_step_state_flagged"] is None and name != "noise":   # noise: another random draw
                 assert g["flagged_steps"] == 0, (name, policy)
                 np.testing.assert_allclose(g["u_error"], run["series"]["u_error"], rtol=1e-5, atol=1e-7)

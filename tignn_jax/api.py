@@ -270,8 +270,29 @@ def fallback_step(params: dict, fallback: dict):
     return jax.jit(_handover(params, fallback))
 
 
+def consistency_bound(params: dict, fallback: dict, z, forces) -> np.ndarray:
+    """[12]: per state component, the largest departure of the learned step from ``fallback``'s rest-linearised
+    step over the transitions from states z [..., N, 12] under forces [..., N, 3] (free nodes; in training
+    standard deviations, floored at 1e-6): the calibration of ``fallback_stepper(..., consistency=...)``, e.g.
+    over a model's training split (``data.z[rows, :-1]``, ``data.f[rows]``)."""
+    z, forces = np.asarray(z, np.float32), np.asarray(forces, np.float32)
+    n = len(params["mesh"]["q0"])
+    if z.shape[-2:] != (n, M.STATE_DIM) or forces.shape != z.shape[:-1] + (3,):
+        raise ValueError(f"z must be [..., {n}, {M.STATE_DIM}] and forces [..., {n}, 3] of the same transitions, "
+                         f"got {z.shape} and {forces.shape}")
+    handover, step = _handover(params, fallback), stepper(params)
+    std = jnp.asarray(params["norm"]["z_std"])
+    free = (jnp.asarray(params["mesh"]["node_type"]) == 0)[:, None]
+    departure = jax.jit(lambda a, b: jnp.max(jnp.where(free, jnp.abs(step(a, b) - handover(a, b, False)) / std,
+                                                       0.0), axis=0))
+    out = np.zeros(M.STATE_DIM)
+    for a, b in zip(z.reshape(-1, n, M.STATE_DIM), forces.reshape(-1, n, 3)):
+        out = np.maximum(out, np.asarray(departure(jnp.asarray(a), jnp.asarray(b))))
+    return np.maximum(out, 1e-6).astype(np.float32)
+
+
 def fallback_stepper(params: dict, fallback: dict, copies: int = 1, hold: int = 30, tolerance: float = 1.5,
-                     bound: float = 8.0):
+                     bound: float = 8.0, consistency=None):
     """A guarded step that hands a body to a physically consistent, unconditionally stable step when the learned
     model leaves its training envelope, instead of resetting it: ``z_next, flagged, left = fn(z, forces, left)``
     for ``copies`` stacked bodies, with ``left`` int32 [copies] (start from zeros) the steps each body still has
@@ -289,6 +310,12 @@ def fallback_stepper(params: dict, fallback: dict, copies: int = 1, hold: int = 
       ``step_growth.md``; the fallback carries σ on from a consistent value), the fallback steps it from there,
       and it stays on the fallback for the next ``hold`` steps, which lets it settle before the network resumes.
 
+    ``consistency`` ([12], from ``consistency_bound``): a body is also flagged where its network step departs
+    from the fallback's step by more than ``tolerance`` × that bound in some component (free nodes, in
+    standard deviations): the learned model is trusted only as far from the physics as it was on its training
+    data. The envelope alone flags late (the state has to drift out first); this catches a departure at once,
+    at the cost of the fallback's step every call.
+
     Measured (``stability.md``, ``beam-abaqus`` with ``beam-linear``, 1000 steps under five loadings): finite
     everywhere, with the u error against the FEM at step 100 far below the "reset" policy's. The fallback's
     steps are the rest linearisation's, so away from rest (large rotations, loads beyond the training range)
@@ -303,6 +330,13 @@ def fallback_stepper(params: dict, fallback: dict, copies: int = 1, hold: int = 
     step = stepper(params, copies)     # validates copies
     copies, n = int(copies), len(params["mesh"]["q0"])
     flag = jax.vmap(state_guard(params, bound=bound, tolerance=tolerance))
+    if consistency is not None:
+        consistency = np.asarray(consistency, np.float32)
+        if consistency.shape != (M.STATE_DIM,) or not np.all(consistency > 0):
+            raise ValueError(f"consistency must be {M.STATE_DIM} positive bounds (consistency_bound), got "
+                             f"{consistency!r}")
+        limit = jnp.asarray(consistency * np.asarray(params["norm"]["z_std"], np.float32) * tolerance)
+        free = (jnp.asarray(params["mesh"]["node_type"]) == 0)[:, None]
 
     @jax.jit
     def fn(z, forces, left):
@@ -312,7 +346,12 @@ def fallback_stepper(params: dict, fallback: dict, copies: int = 1, hold: int = 
         on_fallback = left > 0
         nxt = jax.lax.cond(jnp.all(on_fallback), lambda: bodies,
                            lambda: step(z, forces).reshape(copies, n, M.STATE_DIM))
-        flagged = flag(nxt) & ~on_fallback
+        out_of_envelope = flag(nxt)
+        if consistency is not None:   # the network step against the fallback's from the same state
+            departs = jnp.any((jnp.abs(nxt - handover(bodies, loads, jnp.zeros(copies, bool))) > limit) & free,
+                              axis=(1, 2))
+            out_of_envelope = out_of_envelope | departs
+        flagged = out_of_envelope & ~on_fallback
         use = on_fallback | flagged
         safe = jax.lax.cond(jnp.any(use), lambda: handover(bodies, loads, flagged), lambda: bodies)
         out = jnp.where(use[:, None, None], safe, nxt)
