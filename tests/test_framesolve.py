@@ -271,6 +271,17 @@ def test_exact_force_correction_is_the_ceiling_the_bunny_benchmark_measures(bar_
     assert large["exact force", "u"] > large["prior", "u"]
 
 
+def _untrained_net(data):
+    """(params, normalisation) of an untrained forward-Euler 8×1 network on the data's mesh, with the envelope."""
+    norm_np = D.normalization(data, np.arange(len(data.sim_id)))
+    config = M.ModelConfig(hidden=8, passes=1)
+    nt = jnp.asarray(data.node_type, jnp.int32)
+    topo = M.model_topology(config, data.edges[0], data.edges[1], len(data.node_type), data.q0)
+    w = M.init_weights(jax.random.PRNGKey(0), config, {k: jnp.asarray(v) for k, v in norm_np.items()},
+                       jnp.asarray(data.z[0, 0]), jnp.asarray(data.f[0, 0]), nt, topo)
+    return api.make_params(config, norm_np, w, data.q0, data.edges, data.node_type), norm_np
+
+
 def test_fallback_stepper_hands_flagged_bodies_to_the_rest_linearised_fem(bar_data):
     """`framesolve.linear_model` is the scene's linearised backward-Euler step (as the zero-network model built
     from the data file). `api.fallback_stepper` returns the network's step where nothing is flagged; a body
@@ -278,14 +289,7 @@ def test_fallback_stepper_hands_flagged_bodies_to_the_rest_linearised_fem(bar_da
     and stays on it for ``hold`` more steps (the network not used), then the network resumes; the other body
     keeps its network step. Bad use is a clear error."""
     data, _, norm = _ops(bar_data)
-    rows = np.arange(len(data.sim_id))
-    norm_np = D.normalization(data, rows)
-    config = M.ModelConfig(hidden=8, passes=1)
-    nt = jnp.asarray(data.node_type, jnp.int32)
-    topo = M.model_topology(config, data.edges[0], data.edges[1], len(data.node_type), data.q0)
-    w = M.init_weights(jax.random.PRNGKey(0), config, {k: jnp.asarray(v) for k, v in norm_np.items()},
-                       jnp.asarray(data.z[0, 0]), jnp.asarray(data.f[0, 0]), nt, topo)
-    net = api.make_params(config, norm_np, w, data.q0, data.edges, data.node_type)
+    net, norm_np = _untrained_net(data)
     linear, info = FS.linear_model(net, _scene())
     assert info["fem_damping"] == ALPHA and "not learned" in info["kind"]
     reference = _zero_model(data, {**norm_np, **{k: np.asarray(v) for k, v in norm.items()}},
@@ -337,13 +341,7 @@ def test_consistency_bound_flags_a_step_that_departs_from_the_linear_one(bar_dat
     network (tolerance ≥ 1) and hands over a step that departs further, here a network whose bound was measured
     ten times tighter than its departures. Bad bounds and shapes are clear errors."""
     data, _, _ = _ops(bar_data)
-    norm_np = D.normalization(data, np.arange(len(data.sim_id)))
-    config = M.ModelConfig(hidden=8, passes=1)
-    nt = jnp.asarray(data.node_type, jnp.int32)
-    topo = M.model_topology(config, data.edges[0], data.edges[1], len(data.node_type), data.q0)
-    w = M.init_weights(jax.random.PRNGKey(0), config, {k: jnp.asarray(v) for k, v in norm_np.items()},
-                       jnp.asarray(data.z[0, 0]), jnp.asarray(data.f[0, 0]), nt, topo)
-    net = api.make_params(config, norm_np, w, data.q0, data.edges, data.node_type)
+    net, norm_np = _untrained_net(data)
     linear, _ = FS.linear_model(net, _scene())
     z, f = data.z[:2, :-1], data.f[:2]
     bound = api.consistency_bound(net, linear, z, f)
