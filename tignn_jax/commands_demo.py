@@ -153,11 +153,11 @@ def build_scene(name: str, frames: int, model: str | None = None, stand_in: bool
     world_normal = np.asarray(poses[press_body])[:3, :3] @ np.asarray(normal, np.float64)
     world_normal /= np.linalg.norm(world_normal)
     track = sc.press_track(cam, world_point, world_normal, frames, approach=0.03, press=0.012)
+    fallback = getattr(step_fn, "fallback", None)
     scene = sc.Scene(bodies=bodies, camera=cam, background=sc.table_background(cam), track=track,
                      contact_radius=0.006, contact_stiffness=5e7, step=step_fn,
                      guard=getattr(step_fn, "guard", None),
-                     fallback=(getattr(step_fn, "fallback", None),) * len(bodies)
-                     if getattr(step_fn, "fallback", None) is not None else ())
+                     fallback=(fallback,) * len(bodies) if fallback is not None else ())
     body_step = getattr(step_fn, "body_step", None)
     if len(devices) > 1 and len(bodies) > 1 and body_step is not None:
         scene = scene._replace(bodies=tuple(b._replace(step_fn=body_step) for b in bodies), step=None,

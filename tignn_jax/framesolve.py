@@ -254,4 +254,5 @@ def linear_model(like: dict, scene, damping: float | None = None) -> tuple[dict,
             "fem_damping": float(scene.damping), "fem_density": float(mat.density),
             "material": {"c10": float(mat.c10), "c01": float(mat.c01), "d1": float(mat.d1)},
             "velocity": like.get("info", {}).get("velocity", "gradient")}
-    return api.make_params(config, norm, weights, q0, edges, node_type), info
+    # the shell's normalisation already holds the dense A₀⁻¹: reused, not inverted a second time
+    return api.make_params(config, shell["norm"], weights, q0, edges, node_type), info
