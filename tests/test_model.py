@@ -309,6 +309,36 @@ def test_shipped_linear_models_are_the_rest_linearised_backward_euler_step(name,
     np.testing.assert_allclose(z1[:, 3:6].reshape(-1), u1 / 0.05, atol=1e-3 * np.abs(u1).max() / 0.05)
 
 
+@pytest.mark.parametrize("name", ["bunny-linear", "beam-linear"])
+def test_stepper_skips_a_zero_network_with_the_same_states(name):
+    # A rest-linearised model's network has every weight zero, so its rate is exactly zero: `stepper` runs the
+    # linearised solve alone (`network_is_zero`). Over ten loaded steps its states equal the full step's (the
+    # network traced), to float32 rounding of the stiff solve: 1e-2 of each component's range along the run.
+    params, graph = _shipped(name)
+    assert api.network_is_zero(params)
+    cfg, norm, w = api._config(params), params["norm"], params["weights"]
+    nt, topo = jnp.asarray(params["mesh"]["node_type"]), params["topo"]
+    full = jax.jit(lambda z, f: M.step_state(w, cfg, norm, z, f, nt, topo))
+    skip = api.stepper(params)
+    free = np.flatnonzero(np.asarray(nt) == 0)
+    forces = np.zeros((len(nt), 3), np.float32)
+    forces[free[-6:], 2] = -float(norm["f_max"][0])
+    forces = jnp.asarray(forces)
+    za = zb = graph.nodes["z"]
+    runs = []
+    for _ in range(10):
+        za, zb = skip(za, forces), full(zb, forces)
+        runs.append(np.stack([np.asarray(za), np.asarray(zb)]))
+    runs = np.stack(runs)                                           # [10, 2, N, 12]
+    scale = np.abs(runs[:, 1] - np.asarray(graph.nodes["z"])).max(axis=(0, 1))
+    assert np.all(scale > 0)
+    assert np.all(np.abs(runs[:, 0] - runs[:, 1]).max(axis=(0, 1)) <= 1e-2 * scale)
+    # a trained network, or a zero network with a term that is not zero at zero weights, is run as it is
+    assert not api.network_is_zero(_shipped("beam-abaqus")[0])
+    ported = {**params, "config": {**params["config"], "force_port": True}}
+    assert not api.network_is_zero(ported)
+
+
 def _irregular_graph(n=40, seed=0):
     """Symmetric random graph with degrees from 1 to ~20 (an irregular mesh's spread of degrees)."""
     rng = np.random.default_rng(seed)

@@ -63,15 +63,32 @@ def stepper(params: dict, copies: int = 1):
     node_type = jnp.tile(jnp.asarray(params["mesh"]["node_type"], jnp.int32), int(copies))
     n = int(node_type.shape[0])
     norm = M.with_rest(weights, config, norm, node_type, topo)   # computed once, not per call
+    if network_is_zero(params):   # its rate is exactly zero: only the rest-linearised solve remains
+        advance = _linear_step(norm, node_type, jnp.asarray(params["mesh"]["q0"], jnp.float32))
+    else:
+        def advance(z, forces):
+            return M.step_state(weights, config, norm, z, forces, node_type, topo)
 
     @jax.jit
     def fn(z, forces):
         if z.shape != (n, M.STATE_DIM) or forces.shape != (n, 3):
             raise ValueError(f"stepper for {copies} bodies of {n // copies} nodes expects z [{n}, {M.STATE_DIM}]"
                              f" and forces [{n}, 3], got {z.shape} and {forces.shape}")
-        return M.step_state(weights, config, norm, z, forces, node_type, topo)
+        return advance(z, forces)
 
     return fn
+
+
+def network_is_zero(params: dict) -> bool:
+    """True where the model's GENERIC network contributes exactly nothing to its step: a ``frame_solve`` +
+    ``linear_prior`` model (e.g. 'bunny-linear', 'beam-linear') whose every weight is zero and that has no term
+    which is non-zero at zero weights (``force_port``'s softplus gain, ``kinematic_prior``'s kinetic term). Its
+    step is then the rest-linearised backward-Euler step alone, and `stepper` does not run the network (a skip
+    decided when the program is built, from the weights' values; `step` and `rollout` keep tracing the network)."""
+    config = _config(params)
+    if not (config.frame_solve and config.linear_prior) or config.force_port or config.kinematic_prior:
+        return False
+    return all(not np.any(np.asarray(w)) for w in jax.tree_util.tree_leaves(params["weights"]))
 
 
 def force_check(params: dict, forces, tolerance: float = 1.0) -> dict:
@@ -381,14 +398,22 @@ def _handover(params: dict, fallback: dict):
     node_type, x0 = jnp.asarray(mesh["node_type"], jnp.int32), jnp.asarray(q0)
     free = (node_type == 0)[:, None]
 
-    def linear(z, f):
-        return z + FS.prior_step(norm, z, f, jnp.zeros_like(z), node_type, x0)
+    linear = _linear_step(norm, node_type, x0)
 
     def consistent(z):
         return z.at[:, 6:].set(FS.apply_s(norm, jnp.where(free, z[:, :3] - x0, 0.0)))
 
     def fn(z, f, restart):
         return linear(jnp.where(restart, consistent(z), z), f)
+
+    return fn
+
+
+def _linear_step(norm, node_type, x0):
+    """``fn(z, f) -> z_next``: the rest-linearised backward-Euler step of a ``frame_solve`` normalisation (with
+    its A₀⁻¹), without a network."""
+    def fn(z, f):
+        return z + FS.prior_step(norm, z, f, jnp.zeros_like(z), node_type, x0)
 
     return fn
 
