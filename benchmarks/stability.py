@@ -85,6 +85,24 @@ def loadings(name: str, steps: int, seed: int = 0, density: float | None = None,
                    "noise": constant}
 
 
+def fallback_model(model: str, params: dict, scene, damping: float | None = None) -> dict:
+    """The rest-linearised FEM of ``scene`` that ``model`` falls back to: the shipped one the demo hands it to
+    (`commands_demo.FALLBACKS`) where that was built for the same damping and density, which saves the
+    linearisation (about 40 s for the beam); otherwise `framesolve.linear_model` builds it."""
+    from tignn_jax import api
+    from tignn_jax import framesolve as FS
+    from tignn_jax.commands_demo import FALLBACKS
+
+    damping = float(scene.damping if damping is None else damping)
+    if model in FALLBACKS:
+        linear, _ = api.load_pretrained(FALLBACKS[model])
+        built = linear.get("info", {})
+        if np.isclose(built.get("fem_damping", np.nan), damping, rtol=1e-6) and \
+                np.isclose(built.get("fem_density", np.nan), scene.material.density, rtol=1e-6):
+            return linear
+    return FS.linear_model(params, scene, damping)[0]
+
+
 def model_runs(name: str, model: str, steps: int, fem_steps: int) -> dict:
     import fem
     from fem import scenes
@@ -130,8 +148,7 @@ def model_runs(name: str, model: str, steps: int, fem_steps: int) -> dict:
                          len(q0))   # [N, N] graph distances (756 or 1330 nodes: small)
     guarded = {p: api.guarded_stepper(params, policy=p) for p in api.GUARD_POLICIES}
     if not cfg.frame_solve:   # the rest-linearised FEM of the same scene as the fallback (a linear model is its own)
-        from tignn_jax import framesolve as FS
-        linear, _ = FS.linear_model(params, scene, info.get("fem_damping"))
+        linear = fallback_model(model, params, scene, info.get("fem_damping"))
         guarded["fallback"] = api.fallback_stepper(params, linear, hold=FALLBACK_HOLD)
         from tignn_jax import data as D
         if "fem_damping" not in info and D.reference_path().exists():   # trained on the reference data:

@@ -1,6 +1,7 @@
 """The frame_solve integrator and the linear_prior: the FEM's rest linearisation against `jax.jvp`, the W
 transform and its inverse, the untrained prior model against the linear backward-Euler recurrence and the
 implicit FEM, training, saving and the errors for bad use."""
+import functools
 import json
 
 import jax
@@ -78,7 +79,10 @@ def test_rest_linearization_matches_jvp():
     assert lin.alpha == ALPHA and lin.free.sum() == n - (scene.node_type == 1).sum()
 
 
+@functools.lru_cache(maxsize=None)
 def _ops(path):
+    """(data, rest linearisation, its norm entries) of a data file; built once per file (about 7 s for the bar)
+    and shared by the tests, which only read them."""
     lin = FS.operators_from_file(path)
     data = D.load(path)
     norm = {k: jnp.asarray(v, jnp.float32) for k, v in FS.norm_entries(lin).items()}
@@ -282,15 +286,24 @@ def _untrained_net(data):
     return api.make_params(config, norm_np, w, data.q0, data.edges, data.node_type), norm_np
 
 
-def test_fallback_stepper_hands_flagged_bodies_to_the_rest_linearised_fem(bar_data):
+@pytest.fixture(scope="module")
+def bar_fallback(bar_data):
+    """(untrained network, its normalisation, `framesolve.linear_model` of the bar for it, that model's info):
+    the linearisation (about 8 s) done once for the fallback and consistency tests."""
+    data, _, _ = _ops(bar_data)
+    net, norm_np = _untrained_net(data)
+    linear, info = FS.linear_model(net, _scene())
+    return net, norm_np, linear, info
+
+
+def test_fallback_stepper_hands_flagged_bodies_to_the_rest_linearised_fem(bar_data, bar_fallback):
     """`framesolve.linear_model` is the scene's linearised backward-Euler step (as the zero-network model built
     from the data file). `api.fallback_stepper` returns the network's step where nothing is flagged; a body
     whose network step leaves the envelope is stepped instead by that linear step from its state with σ = S₀u,
     and stays on it for ``hold`` more steps (the network not used), then the network resumes; the other body
     keeps its network step. Bad use is a clear error."""
     data, _, norm = _ops(bar_data)
-    net, norm_np = _untrained_net(data)
-    linear, info = FS.linear_model(net, _scene())
+    net, norm_np, linear, info = bar_fallback
     assert info["fem_damping"] == ALPHA and "not learned" in info["kind"]
     reference = _zero_model(data, {**norm_np, **{k: np.asarray(v) for k, v in norm.items()}},
                             M.ModelConfig(hidden=8, passes=1, frame_solve=True, linear_prior=True))
@@ -335,14 +348,13 @@ def test_fallback_stepper_hands_flagged_bodies_to_the_rest_linearised_fem(bar_da
         FS.linear_model(net, _scene()._replace(points=_scene().points * 2.0))
 
 
-def test_consistency_bound_flags_a_step_that_departs_from_the_linear_one(bar_data):
+def test_consistency_bound_flags_a_step_that_departs_from_the_linear_one(bar_data, bar_fallback):
     """`api.consistency_bound` is the largest departure (per component, in stds, free nodes) of the learned step
     from the linear one over the given transitions; with it, `fallback_stepper` leaves those transitions to the
     network (tolerance ≥ 1) and hands over a step that departs further, here a network whose bound was measured
     ten times tighter than its departures. Bad bounds and shapes are clear errors."""
     data, _, _ = _ops(bar_data)
-    net, norm_np = _untrained_net(data)
-    linear, _ = FS.linear_model(net, _scene())
+    net, norm_np, linear, _ = bar_fallback
     z, f = data.z[:2, :-1], data.f[:2]
     bound = api.consistency_bound(net, linear, z, f)
     assert bound.shape == (12,) and np.all(bound > 0)

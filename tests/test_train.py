@@ -297,12 +297,13 @@ def test_bptt_gradient_is_the_derivative_of_the_rollout_loss(toy):
         dirs = jax.tree_util.tree_unflatten(tree, [jax.random.normal(jax.random.PRNGKey(i), x.shape, x.dtype)
                                                    for i, x in enumerate(leaves)])
 
+        loss = jax.jit(lambda w: T.loss_fn(w, batch, key, norm, cfg, node_type, topo)[0])   # compiled once
+
         def loss_at(eps):
-            w = jax.tree.map(lambda a, d: a + eps * d, weights, dirs)
-            return float(T.loss_fn(w, batch, key, norm, cfg, node_type, topo)[0])
+            return float(loss(jax.tree.map(lambda a, d: a + eps * d, weights, dirs)))
 
         def directional(c):
-            g = jax.grad(lambda w: T.loss_fn(w, batch, key, norm, c, node_type, topo)[0])(weights)
+            g = jax.jit(jax.grad(lambda w: T.loss_fn(w, batch, key, norm, c, node_type, topo)[0]))(weights)
             return sum(float(jnp.vdot(a, d)) for a, d in zip(jax.tree.leaves(g), jax.tree.leaves(dirs)))
 
         h = 1e-5
