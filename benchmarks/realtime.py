@@ -15,7 +15,9 @@ Speed-ups are measured in the same run, as ratios of the step time of each scene
   * assembled edge features: the shipped layout, but the edge features assembled per slot (from the factored
     ``model.EdgeInputs``, by a gather and a column add) and multiplied by the first edge layer there;
   * shipped: rows of K slots near the mean degree (`model.topology`), fused first edge layer, one reverse pass,
-    features linear in q and v multiplied at node level (``model.EdgeInputs``).
+    features linear in q and v multiplied at node level (``model.EdgeInputs``);
+  * as stepped: ``api.stepper``, what the loop runs: the shipped step, except that a model whose network has
+    every weight zero (the rest-linearised `bunny-linear`) runs its linearised solve alone.
 The three slot variants carry the model's coarse level (``coarse_nodes``) when it has one.
 A scene whose model is not shipped runs with the labelled stand-in dynamics and is reported as not valid.
 Writes benchmarks/results/realtime.{json,md}.
@@ -102,6 +104,8 @@ def step_variants(name: str, repeats: int) -> dict:
         "max-degree slots": jax.jit(lambda z, f: M.step_state(w, cfg, norm, z, f, nt, slots)),
         "assembled edge features": assembled_step(w, cfg, norm, nt, rows),
         "shipped (rows)": jax.jit(lambda z, f: M.step_state(w, cfg, norm, z, f, nt, rows)),
+        # what the loop runs: the shipped step, or for a model whose network is all zero its solve alone
+        "as stepped (api.stepper)": api.stepper(params, copies),
     }
     times = interleaved_ms({k: (lambda fn=fn: fn(z, f)) for k, fn in fns.items()}, repeats)
     out = {k: float(np.median(v)) for k, v in times.items()}
@@ -259,8 +263,9 @@ def format_md(result: dict) -> str:
     if result["step_variants"]:
         lines += ["", "Step time of each scene's model written four ways (median of interleaved calls, same run):",
                   "", "| scene | model | slots (max-degree → rows) | straightforward | max-degree slots | "
-                  "assembled edge features | shipped | speed-up vs straightforward | vs assembled |",
-                  "|---|---|---|---|---|---|---|---|---|"]
+                  "assembled edge features | shipped | speed-up vs straightforward | vs assembled | "
+                  "as stepped by the loop (api.stepper) |",
+                  "|---|---|---|---|---|---|---|---|---|---|"]
         for name, v in result["step_variants"].items():
             t = v["step_p50_ms"]
             lines.append(
@@ -268,7 +273,9 @@ def format_md(result: dict) -> str:
                 f"{v['slots']['rows']} ({v['slots']['edges']} edges) | {t['straightforward (edge list)']:.2f} ms | "
                 f"{t['max-degree slots']:.2f} ms | {t['assembled edge features']:.2f} ms | "
                 f"{t['shipped (rows)']:.2f} ms | {v['speedup_vs_straightforward']['shipped (rows)']:.2f}× | "
-                f"{t['assembled edge features'] / t['shipped (rows)']:.2f}× |")
+                f"{t['assembled edge features'] / t['shipped (rows)']:.2f}× | " +
+                (f"{t['as stepped (api.stepper)']:.2f} ms ({t['shipped (rows)'] / t['as stepped (api.stepper)']:.2f}× "
+                 "vs shipped) |" if "as stepped (api.stepper)" in t else "— |"))
     for name, c in result.get("concurrency", {}).items():
         t, r = c["step_p50_ms"], c["speedup_vs_batched"]
         lines += ["", f"{name}: the two bodies' step ({c['model']}), {c['devices']} CPU devices (median of "
