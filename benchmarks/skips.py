@@ -149,6 +149,21 @@ def model_skips(repeats: int) -> list:
     return out
 
 
+def zero_network_pair(params: dict):
+    """(api.stepper of the model, its full step with the network traced (jitted), a load [N,3]: the training
+    range's largest nodal force, downwards, on the last six free nodes)."""
+    from tignn_jax import api
+    from tignn_jax import model as M
+
+    cfg, norm, w = api._config(params), params["norm"], params["weights"]
+    nt, topo = jnp.asarray(params["mesh"]["node_type"]), params["topo"]
+    full = jax.jit(lambda z, f: M.step_state(w, cfg, norm, z, f, nt, topo))
+    free = np.flatnonzero(np.asarray(nt) == 0)
+    f = np.zeros((int(nt.shape[0]), 3), np.float32)
+    f[free[-6:], 2] = -float(norm["f_max"][0])
+    return api.stepper(params), full, jnp.asarray(f)
+
+
 def zero_network_skips(repeats: int) -> list:
     """The shipped rest-linearised models (`bunny-linear`, the bunny scene's; `beam-linear`, the beams'
     fallback) carry a GENERIC network whose every weight is zero, so its rate is exactly zero: `api.stepper`
@@ -156,21 +171,15 @@ def zero_network_skips(repeats: int) -> list:
     built). Timed against the same model's full step, which traces the network, on a state ten loaded steps
     from rest."""
     from tignn_jax import api
-    from tignn_jax import model as M
 
     out = []
     for name in ("bunny-linear", "beam-linear"):
         params, graph = api.load_pretrained(name)
         if not api.network_is_zero(params):
             raise RuntimeError(f"{name}: its network is not zero, so the skip does not apply")
-        cfg, norm, w = api._config(params), params["norm"], params["weights"]
-        nt, topo = jnp.asarray(params["mesh"]["node_type"]), params["topo"]
-        full = jax.jit(lambda z, f: M.step_state(w, cfg, norm, z, f, nt, topo))
-        skip = api.stepper(params)
-        free = np.flatnonzero(np.asarray(nt) == 0)
-        f = np.zeros((len(nt), 3), np.float32)
-        f[free[-6:], 2] = -float(norm["f_max"][0])
-        f = jnp.asarray(f)
+        cfg = api._config(params)
+        skip, full, f = zero_network_pair(params)
+        nt = params["mesh"]["node_type"]
         z = graph.nodes["z"]
         for _ in range(10):
             z = full(z, f)

@@ -1,4 +1,5 @@
 """The GENERIC graph network: structure of L and M, gradients, degeneracy, clamping, the public API."""
+import sys
 from pathlib import Path
 
 import jax
@@ -11,6 +12,9 @@ from tignn_jax import api
 from tignn_jax import data as D
 from tignn_jax import graph as G
 from tignn_jax import model as M
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+import skips  # noqa: E402
 
 REFERENCE = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "abaqus_beam.npz"
 CONFIG = M.ModelConfig(hidden=8, mlp_layers=2, passes=2)
@@ -316,14 +320,7 @@ def test_stepper_skips_a_zero_network_with_the_same_states(name):
     # network traced), to float32 rounding of the stiff solve: 1e-2 of each component's range along the run.
     params, graph = _shipped(name)
     assert api.network_is_zero(params)
-    cfg, norm, w = api._config(params), params["norm"], params["weights"]
-    nt, topo = jnp.asarray(params["mesh"]["node_type"]), params["topo"]
-    full = jax.jit(lambda z, f: M.step_state(w, cfg, norm, z, f, nt, topo))
-    skip = api.stepper(params)
-    free = np.flatnonzero(np.asarray(nt) == 0)
-    forces = np.zeros((len(nt), 3), np.float32)
-    forces[free[-6:], 2] = -float(norm["f_max"][0])
-    forces = jnp.asarray(forces)
+    skip, full, forces = skips.zero_network_pair(params)   # the pair benchmarks/skips.py times
     za = zb = graph.nodes["z"]
     runs = []
     for _ in range(10):
