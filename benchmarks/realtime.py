@@ -207,9 +207,11 @@ def main(argv=None) -> int:
     if args.frames < 10 or args.warmup < 1:
         raise SystemExit(f"--frames must be ≥ 10 and --warmup ≥ 1, got {args.frames} and {args.warmup}")
     from tignn_jax import scene as sc
+    flagged = sc.real_time_xla_flags()   # before JAX's first operation, as `tignn demo` does
     devices = sc.cpu_devices(args.cores or os.cpu_count() or 1)   # before JAX's first operation
     machine = describe()
     machine["cpu_devices"] = len(devices)
+    machine["xla_flags"] = os.environ.get("XLA_FLAGS", "") + ("" if flagged else " (set by the user)")
     scenes, variants, parallel = {}, {}, {}
     for name in [s for s in args.scenes.split(",") if s]:
         if name not in BUDGET_MS:
@@ -238,7 +240,8 @@ def format_md(result: dict) -> str:
     lines = ["# Real-time budget: the mixed-reality loop per frame", "",
              f"Machine: {m['cpu']}, {m['cores']} cores, jax {m['jax']} ({m['backend']}); load average "
              f"{m['load_average_1m']} at start, {m['load_average_1m_at_end']} at end ({m['note']}). "
-             f"{result['frames']} timed frames per scene after {result['warmup']} warm-up frames; 640×480.", "",
+             f"{result['frames']} timed frames per scene after {result['warmup']} warm-up frames; 640×480; "
+             f"XLA_FLAGS `{m.get('xla_flags', '(not recorded)')}` (`scene.real_time_xla_flags`, as `tignn demo`).", "",
              "| scene | dynamics | nodes | forces p50 | step p50 | simulation p50 / p99 (budget) | render p50 | "
              "frame p50 / p99 | fps | guard resets | verdict |", "|---|---|---|---|---|---|---|---|---|---|---|"]
     for name, s in result["scenes"].items():

@@ -458,3 +458,16 @@ def test_loop_pauses_garbage_collection_and_restores_it():
     with pytest.raises(RuntimeError, match="writer failed"):
         sc.run(scene, write=fail)
     assert gc.isenabled()
+
+
+def test_real_time_xla_flags_add_the_loop_option_once_and_respect_the_user():
+    # The real-time loop's XLA:CPU option (YNNPACK fusions off) is appended to XLA_FLAGS, after what is there,
+    # once; a user's own choice of that option is left as it is.
+    env = {"XLA_FLAGS": "--xla_force_host_platform_device_count=2"}
+    assert sc.real_time_xla_flags(env)
+    assert env["XLA_FLAGS"] == "--xla_force_host_platform_device_count=2 " + sc.REAL_TIME_XLA_FLAG
+    assert not sc.real_time_xla_flags(env) and env["XLA_FLAGS"].count("ynn_fusion_type") == 1
+    empty = {}
+    assert sc.real_time_xla_flags(empty) and empty["XLA_FLAGS"] == sc.REAL_TIME_XLA_FLAG
+    mine = {"XLA_FLAGS": "--xla_cpu_experimental_ynn_fusion_type=dot"}
+    assert not sc.real_time_xla_flags(mine) and mine["XLA_FLAGS"] == "--xla_cpu_experimental_ynn_fusion_type=dot"

@@ -60,6 +60,7 @@ def run(args) -> int:
     cores = (os.cpu_count() or 1) if args.cores is None else args.cores
     if cores < 1:
         raise SystemExit(f"--cores must be at least 1, got {cores}")
+    sc.real_time_xla_flags()          # before JAX's first operation: XLA:CPU options of the real-time loop
     devices = sc.cpu_devices(cores)   # before JAX's first operation: one CPU device per core
     scene, dynamics = build_scene(args.scene, args.frames, args.model, args.stand_in, devices=devices)
     if args.track:
