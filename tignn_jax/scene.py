@@ -297,9 +297,9 @@ REAL_TIME_XLA_FLAG = "--xla_cpu_experimental_ynn_fusion_type="
 def real_time_xla_flags(environ=None) -> bool:
     """Turn off XLA:CPU's YNNPACK fusions for this process (``REAL_TIME_XLA_FLAG`` appended to ``XLA_FLAGS``)
     unless the user already chose a fusion type there; returns whether it was added. Like `cpu_devices` it acts
-    only before JAX's first operation. Measured for the real-time loop (session 24, AMD EPYC host, jax 0.10.2,
-    five alternating processes): the `beam-abaqus` step's p50 12.46 → 8.43 ms (1.45×) with the same states to
-    4e-6 (relative); a later jaxlib may differ (jax is pinned)."""
+    only before JAX's first operation. Measured for the real-time loop (`benchmarks/xla_flags.py`, session 24,
+    AMD EPYC host, jax 0.10.2, options in alternating processes): the `beam-abaqus` step's p50 10.07 → 7.68 ms
+    (1.31×) with the same states to 4e-6 (relative); a later jaxlib may differ (jax is pinned)."""
     environ = os.environ if environ is None else environ
     flags = environ.get("XLA_FLAGS", "")
     if "xla_cpu_experimental_ynn_fusion_type" in flags:
