@@ -269,7 +269,7 @@ def main(argv=None) -> int:
     rows = model_skips(args.repeats) + loop_skips(args.frames) + fem_skips(args.repeats, args.fem_frames)
     for r in rows:
         r["saving_ms"] = r["with_ms"] - r["without_ms"]
-        r["ratio"] = r["with_ms"] / r["without_ms"] if r["without_ms"] > 0 else float("inf")
+        r["ratio"] = r["with_ms"] / r["without_ms"] if r["without_ms"] > 0 else float("nan")   # nan: not measured
     machine["load_average_1m_at_end"] = describe()["load_average_1m"]
     RESULTS.mkdir(parents=True, exist_ok=True)
     (RESULTS / "skips.json").write_text(json.dumps({"machine": machine, "skips": rows}, indent=1))
@@ -289,10 +289,9 @@ def format_md(machine: dict, rows: list) -> str:
              "| skip | with the work (ms) | skipped (ms) | saving (ms) | ratio | measured as |",
              "|---|---|---|---|---|---|"]
     for r in rows:
-        ratio = r["with_ms"] / r["without_ms"] if np.isfinite(r["with_ms"] / r["without_ms"]) else float("nan")
+        ratio = num(r["ratio"], ".2f")
         lines.append(f"| {r['skip']} | {num(r['with_ms'], '.3f')} | {num(r['without_ms'], '.3f')} | "
-                     f"{num(r['saving_ms'], '.3f')} | {num(ratio, '.2f')}{'×' if np.isfinite(ratio) else ''} | "
-                     f"{r['detail']} |")
+                     f"{num(r['saving_ms'], '.3f')} | {ratio}{'' if ratio == '—' else '×'} | {r['detail']} |")
     lines += ["", "Clamped nodes: their q, v rates are masked in place (FEM: the `free` mask in the velocity "
               "update; network: one select on the increment), so no separate work exists to skip."]
     return "\n".join(lines) + "\n"

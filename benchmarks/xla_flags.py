@@ -68,8 +68,8 @@ def main(argv=None) -> int:
     outputs = {}
     with tempfile.TemporaryDirectory() as tmp:
         for r in range(args.rounds):
-            for name, flags in OPTIONS.items():
-                out = str(Path(tmp) / f"{r}_{len(runs[name])}_{abs(hash(name))}.npy")
+            for i, (name, flags) in enumerate(OPTIONS.items()):
+                out = str(Path(tmp) / f"{r}_{i}.npy")
                 env = dict(os.environ, XLA_FLAGS=flags)
                 done = subprocess.run([sys.executable, __file__, "--child", args.model, out], env=env,
                                       capture_output=True, text=True, check=True, timeout=600)

@@ -302,7 +302,7 @@ def real_time_xla_flags(environ=None) -> bool:
     (1.31×) with the same states to 4e-6 (relative); a later jaxlib may differ (jax is pinned)."""
     environ = os.environ if environ is None else environ
     flags = environ.get("XLA_FLAGS", "")
-    if "xla_cpu_experimental_ynn_fusion_type" in flags:
+    if REAL_TIME_XLA_FLAG.split("=")[0] in flags:
         return False
     environ["XLA_FLAGS"] = f"{flags} {REAL_TIME_XLA_FLAG}".strip()
     return True
