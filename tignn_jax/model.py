@@ -863,7 +863,9 @@ def _edge_inputs(norm, z, topo, edge_velocity=False, edge_strain=False, edge_tra
         dv = (gather_neighbors(v, topo) - expand_rows(v, topo)[:, None, :]) / norm["dv_std"]
         dq_unit = dq / norm["dqn_mean"]
         lin += [v / norm["dv_std"], jnp.zeros((n, 9), z.dtype)]
-        slot += [dv[..., a:a + 1] * dq_unit[..., b:b + 1] for a in range(3) for b in range(3)]
+        # the nine products dv_a dq_b (a-major) as one broadcast: one kernel and one in the reverse pass, where
+        # nine sliced products cost XLA:CPU eighteen small pad kernels (about 0.7 ms of the beam's 8 ms step)
+        slot += [(dv[..., :, None] * dq_unit[..., None, :]).reshape(dv.shape[:-1] + (9,))]
     if edge_strain:
         if topo.dx0 is None:
             raise ValueError("this model needs the rest edge vectors: build its Topology with q0")
