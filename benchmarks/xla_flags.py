@@ -25,8 +25,15 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _machine import describe  # noqa: E402
 
 RESULTS = Path(__file__).resolve().parent / "results"
-OPTIONS = {"default": "", "YNNPACK fusions off": "--xla_cpu_experimental_ynn_fusion_type=",
-           "XNNPACK off": "--xla_cpu_use_xnnpack=false"}
+_YNN_OFF = "--xla_cpu_experimental_ynn_fusion_type="
+OPTIONS = {"default": "", "YNNPACK fusions off": _YNN_OFF,
+           "XNNPACK off": "--xla_cpu_use_xnnpack=false",
+           "YNNPACK fusions off + XNNPACK fusions off": f"{_YNN_OFF} --xla_cpu_experimental_xnn_fusion_type=",
+           "YNNPACK fusions off + fast math": f"{_YNN_OFF} --xla_cpu_enable_fast_math=true",
+           "YNNPACK fusions off + concurrency-optimised scheduler":
+               f"{_YNN_OFF} --xla_cpu_enable_concurrency_optimized_scheduler=true",
+           "YNNPACK fusions off, single-threaded": f"{_YNN_OFF} --xla_cpu_multi_thread_eigen=false "
+                                                  "intra_op_parallelism_threads=1"}
 
 
 def child(model: str, out: str) -> None:
