@@ -222,6 +222,21 @@ def test_fingertip_press_pushes_the_body_down_and_frames_are_drawn():
     assert summary["frames"] == 9 and set(summary) >= {"forces", "step", "render", "write", "frame"}
 
 
+def test_fused_simulation_frames_match_the_stages_run_one_by_one():
+    # Once touched, a scene without devices runs forces, step and guard as one program per frame; its states
+    # equal those of the separate forces and step stages applied frame by frame.
+    scene, _ = _demo_scene(frames=8)
+    scene = scene._replace(skip_rest=False, guard=lambda zs: ~jnp.all(jnp.isfinite(zs[0])))
+    zs, t = sc.run(scene)
+    forces_fn, step_fn, _, _ = sc.build(scene)
+    ref = (jnp.asarray(scene.bodies[0].z, jnp.float32),)
+    for tips in scene.track:
+        ref = step_fn(ref, forces_fn(ref, tips))
+    np.testing.assert_allclose(np.asarray(zs[0]), np.asarray(ref[0]), rtol=1e-6, atol=1e-6)
+    assert t.fused_frames == 7 and t.summary()["fused_frames"] == 7 and t.guard_trips == 0
+    assert np.all(t.forces == 0.0) and np.all(t.step > 0.0)   # the forces are timed inside the step stage
+
+
 def test_bodies_on_their_own_devices_step_as_in_one_program():
     # Scene.devices: each body steps on its own (virtual CPU) device, concurrently; the states are those of the
     # serial loop, and the scene with a step over all bodies as well as devices is refused.

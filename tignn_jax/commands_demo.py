@@ -84,6 +84,9 @@ def run(args) -> int:
     print(f"{'stage':8s} {'p50 ms':>8s} {'p99 ms':>8s}")
     for k in ("forces", "step", "render", "write", "frame"):
         print(f"{k:8s} {summary[k]['p50_ms']:8.2f} {summary[k]['p99_ms']:8.2f}")
+    if summary.get("fused_frames"):
+        print(f"(in {summary['fused_frames']} frames forces, step and guard ran as one program: the forces "
+              "time is inside the step's)")
     print(f"{summary['fps_at_p50']:.1f} frames per second at the median frame time")
     if summary.get("guard_trips"):
         after = (f"handed to the rest-linearised FEM for {scene.fallback_hold} frames each time (api.fallback_step)"
