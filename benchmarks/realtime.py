@@ -61,10 +61,13 @@ def run_scene(name: str, frames: int, warmup: int, devices: tuple = ()) -> dict:
     out = {"dynamics": dynamics, "valid": dynamics.startswith("model"), "frames": int(len(t.frame)),
            "nodes": int(sum(len(b.q0) for b in scene.bodies)),
            "image": [scene.camera.width, scene.camera.height], "reallocations": t.reallocations, "guard_trips": t.guard_trips,
-           "fused_frames": t.fused_frames,
+           "fused_frames": t.fused_frames, "learned_frames": int(t.learned.sum()),
            **{k: percentiles(v) for k, v in (("forces", t.forces), ("step", t.step), ("simulation", sim),
                                               ("render", t.render), ("frame", t.frame))}}
-    p50, p99 = out["simulation"]["p50_ms"], out["simulation"]["p99_ms"]
+    # the budget is judged on the frames the learned model stepped: frames on the (cheaper) rest-linearised
+    # fallback after a guard trip would flatter the median
+    out["simulation_learned"] = percentiles(sim[t.learned]) if t.learned.any() else out["simulation"]
+    p50, p99 = out["simulation_learned"]["p50_ms"], out["simulation_learned"]["p99_ms"]
     out["budget"] = {"simulation_p50_ms": BUDGET_MS[name], "simulation_p50_ok": p50 <= BUDGET_MS[name],
                      "p99_over_p50": p99 / p50, "p99_ok": p99 <= 1.5 * p50,
                      "frame_p50_ok": out["frame"]["p50_ms"] <= FRAME_BUDGET_MS,
@@ -253,17 +256,24 @@ def format_md(result: dict) -> str:
              f"{m['load_average_1m']} at start, {m['load_average_1m_at_end']} at end ({m['note']}). "
              f"{result['frames']} timed frames per scene after {result['warmup']} warm-up frames; 640×480; "
              f"XLA_FLAGS `{m.get('xla_flags', '(not recorded)')}` (`scene.real_time_xla_flags`, as `tignn demo`).", "",
-             "| scene | dynamics | nodes | forces p50 | step p50 | simulation p50 / p99 (budget) | render p50 | "
-             "frame p50 / p99 | fps | guard resets | verdict |", "|---|---|---|---|---|---|---|---|---|---|---|"]
+             "Simulation = forces + step per frame. The budget is judged on the frames the learned model stepped "
+             "(after a guard trip a body spends `fallback_hold` frames on the cheaper rest-linearised fallback; "
+             "all frames are in the next column).", "",
+             "| scene | dynamics | nodes | forces p50 | step p50 | simulation p50 / p99, learned-step frames "
+             "(budget) | simulation p50 / p99, all frames | render p50 | frame p50 / p99 | fps | guard trips | "
+             "verdict |", "|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for name, s in result["scenes"].items():
         b = s["budget"]
         ok = s["valid"] and b["simulation_p50_ok"] and b["p99_ok"] and b["frame_p50_ok"]
         why = [w for w, c in (("sim p50", b["simulation_p50_ok"]), ("p99 > 1.5·p50", b["p99_ok"]),
                               ("frame", b["frame_p50_ok"])) if not c]
+        learned = s.get("simulation_learned", s["simulation"])
         verdict = "meets" if ok else ("STAND-IN, not valid" if not s["valid"] else "misses: " + ", ".join(why))
         lines.append(
             f"| {name} | {s['dynamics']} | {s['nodes']} | {forces_cell(s)} | {s['step']['p50_ms']:.2f} | "
-            f"{s['simulation']['p50_ms']:.2f} / {s['simulation']['p99_ms']:.2f} ({b['simulation_p50_ms']:.0f}) | "
+            f"{learned['p50_ms']:.2f} / {learned['p99_ms']:.2f} ({b['simulation_p50_ms']:.0f}; "
+            f"{s.get('learned_frames', s['frames'])} frames) | "
+            f"{s['simulation']['p50_ms']:.2f} / {s['simulation']['p99_ms']:.2f} | "
             f"{s['render']['p50_ms']:.2f} | {s['frame']['p50_ms']:.2f} / {s['frame']['p99_ms']:.2f} | "
             f"{b['fps_at_p50']:.1f} | {s.get('guard_trips', '—')} | {verdict} |")
     for name, sc_ in result["scenes"].items():

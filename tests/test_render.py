@@ -235,6 +235,7 @@ def test_fused_simulation_frames_match_the_stages_run_one_by_one():
     np.testing.assert_allclose(np.asarray(zs[0]), np.asarray(ref[0]), rtol=1e-6, atol=1e-6)
     assert t.fused_frames == 7 and t.summary()["fused_frames"] == 7 and t.guard_trips == 0
     assert np.all(t.forces == 0.0) and np.all(t.step > 0.0)   # the forces are timed inside the step stage
+    assert t.learned.shape == (7,) and t.learned.all() and t.summary()["learned_frames"] == 7
 
 
 def test_bodies_on_their_own_devices_step_as_in_one_program():

@@ -134,7 +134,9 @@ class Timings(NamedTuple):
 
     ``fused_frames``: timed frames whose forces, step and guard ran as one program (a scene without
     ``devices`` once a body is touched and not every body is on its fallback); their forces time is 0 and
-    counted in ``step``, so forces + step is the simulation time of every frame."""
+    counted in ``step``, so forces + step is the simulation time of every frame. ``learned`` (bool per frame):
+    the learned step ran in that frame, i.e. some body was touched and not on its fallback (None: not
+    recorded)."""
     forces: np.ndarray
     step: np.ndarray
     render: np.ndarray
@@ -143,17 +145,23 @@ class Timings(NamedTuple):
     reallocations: int
     guard_trips: int = 0
     fused_frames: int = 0
+    learned: np.ndarray | None = None
 
     def summary(self) -> dict:
         """{stage: {"p50_ms", "p99_ms"}} plus frames and frames per second at the median frame time."""
         out = {k: {"p50_ms": float(np.median(v)), "p99_ms": float(np.percentile(v, 99))}
                for k, v in self._asdict().items()
-               if k not in ("reallocations", "guard_trips", "fused_frames") and len(v)}
+               if k not in ("reallocations", "guard_trips", "fused_frames", "learned") and len(v)}
         out["frames"] = int(len(self.frame))
         out["fps_at_p50"] = 1e3 / out["frame"]["p50_ms"] if len(self.frame) else 0.0
         out["reallocations"] = self.reallocations
         out["guard_trips"] = self.guard_trips
         out["fused_frames"] = self.fused_frames
+        if self.learned is not None and len(self.learned) == len(self.frame):
+            out["learned_frames"] = int(self.learned.sum())
+            if self.learned.any():   # the simulation time of the frames the learned model stepped
+                sim = (self.forces + self.step)[self.learned]
+                out["simulation_learned"] = {"p50_ms": float(np.median(sim)), "p99_ms": float(np.percentile(sim, 99))}
         return out
 
 
@@ -215,6 +223,7 @@ def _run(scene, frames, write, warmup, gc_pause):
     if sim_fn is not None:   # compiled now, not at the first touched frame
         jax.block_until_ready(sim_fn(zs, track[0]))
     fused_frames = 0
+    learned = []   # per timed frame: did the learned step run (not every body at rest or on its fallback)
     for i in range(frames):
         tips = track[i]
         t0 = time.perf_counter()
@@ -263,8 +272,10 @@ def _run(scene, frames, write, warmup, gc_pause):
         if i >= warmup:
             for key, dt in zip(times, (t1 - t0, t2 - t1, t3 - t2, t4 - t3, t4 - t0)):
                 times[key].append(1e3 * dt)
+            learned.append(bool(touched and not on.all()))
     return zs, Timings(**{k: np.asarray(v) for k, v in times.items()}, reallocations=reallocations,
-                       guard_trips=guard_trips, fused_frames=fused_frames)
+                       guard_trips=guard_trips, fused_frames=fused_frames,
+                       learned=np.asarray(learned, bool))
 
 
 def _fused_simulation(forces_fn, step_fn, guard, bodies: int):
