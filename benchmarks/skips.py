@@ -274,8 +274,7 @@ def main(argv=None) -> int:
     machine = describe()
     rows = model_skips(args.repeats) + loop_skips(args.frames) + fem_skips(args.repeats, args.fem_frames)
     for r in rows:
-        r["saving_ms"] = r["with_ms"] - r["without_ms"]
-        r["ratio"] = r["with_ms"] / r["without_ms"] if r["without_ms"] > 0 else float("nan")   # nan: not measured
+        with_saving(r)
     machine["load_average_1m_at_end"] = describe()["load_average_1m"]
     RESULTS.mkdir(parents=True, exist_ok=True)
     (RESULTS / "skips.json").write_text(json.dumps({"machine": machine, "skips": rows}, indent=1))
@@ -283,6 +282,13 @@ def main(argv=None) -> int:
     (RESULTS / "skips.md").write_text(text)
     print(text)
     return 0
+
+
+def with_saving(row: dict) -> dict:
+    """The row with its saving (ms) and ratio added (ratio nan for a row not measured)."""
+    row["saving_ms"] = row["with_ms"] - row["without_ms"]
+    row["ratio"] = row["with_ms"] / row["without_ms"] if row["without_ms"] > 0 else float("nan")
+    return row
 
 
 def update_prony_row(repeats: int, frames: int) -> int:
@@ -295,9 +301,7 @@ def update_prony_row(repeats: int, frames: int) -> int:
         raise SystemExit(f"{path} does not exist: run the whole benchmark first")
     data = json.loads(path.read_text())
     at = describe()
-    row = prony_skip(repeats, frames)
-    row["saving_ms"] = row["with_ms"] - row["without_ms"]
-    row["ratio"] = row["with_ms"] / row["without_ms"] if row["without_ms"] > 0 else float("nan")
+    row = with_saving(prony_skip(repeats, frames))
     row["detail"] += (f"; re-measured on its own ({time.strftime('%Y-%m-%d', time.gmtime())}, load average "
                       f"{at['load_average_1m']} at its start), not in the run of the other rows")
     rows = [row if r["skip"].startswith("no Prony") else r for r in data["skips"]]

@@ -864,7 +864,7 @@ def _edge_inputs(norm, z, topo, edge_velocity=False, edge_strain=False, edge_tra
         dq_unit = dq / norm["dqn_mean"]
         lin += [v / norm["dv_std"], jnp.zeros((n, 9), z.dtype)]
         # the nine products dv_a dq_b (a-major) as one broadcast: one kernel and one in the reverse pass, where
-        # nine sliced products cost XLA:CPU eighteen small pad kernels (about 0.7 ms of the beam's 8 ms step)
+        # nine sliced products cost XLA:CPU eighteen small pad kernels (measured: the beam's step 1.07x faster)
         slot += [(dv[..., :, None] * dq_unit[..., None, :]).reshape(dv.shape[:-1] + (9,))]
     if edge_strain:
         if topo.dx0 is None:
