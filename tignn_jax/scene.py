@@ -219,7 +219,7 @@ def _run(scene, frames, write, warmup, gc_pause):
             jax.block_until_ready(fb(z, f, jnp.asarray(True)))
     if guard_fn is not None:   # likewise the guard, before its first touched frame
         jax.block_until_ready(guard_fn(zs))
-    sim_fn = None if scene.devices else _fused_simulation(forces_fn, step_fn, scene.guard, len(zs))
+    sim_fn = None if scene.devices else _fused_simulation(forces_fn, step_fn, scene.guard)
     if sim_fn is not None:   # compiled now, not at the first touched frame
         jax.block_until_ready(sim_fn(zs, track[0]))
     fused_frames = 0
@@ -240,16 +240,12 @@ def _run(scene, frames, write, warmup, gc_pause):
             t1 = time.perf_counter()
         touched = touched or any(bool(jnp.any(f != 0)) for f in forces)
         if touched:   # bodies at rest and untouched stay as they are: no step
-            if fused:
-                flags = np.broadcast_to(flags, (len(zs),)) & ~on
-                guard_trips += int(flags.sum())
-            else:
+            if not fused:
                 prev = zs
                 zs = prev if on.all() else jax.block_until_ready(step_fn(zs, forces))
-                flags = np.zeros(len(zs), bool)
-                if guard_fn is not None and not on.all():
-                    flags = np.broadcast_to(np.asarray(guard_fn(zs), bool).reshape(-1), (len(zs),)) & ~on
-                    guard_trips += int(flags.sum())
+                flags = np.asarray(guard_fn(zs)) if guard_fn is not None and not on.all() else False
+            flags = np.broadcast_to(np.asarray(flags, bool).reshape(-1), (len(zs),)) & ~on
+            guard_trips += int(flags.sum())
             if flags.any() or on.any():
                 zs = tuple(fb(p, f, jnp.asarray(bool(bad))) if fb is not None and (bad or busy) else z0 if bad else z
                            for fb, p, f, z0, z, bad, busy in zip(fallback, prev, forces, initial, zs, flags, on))
@@ -278,17 +274,16 @@ def _run(scene, frames, write, warmup, gc_pause):
                        learned=np.asarray(learned, bool))
 
 
-def _fused_simulation(forces_fn, step_fn, guard, bodies: int):
-    """``(zs, tips) -> (zs_next, forces, flags [bodies])``: the loop's simulation stages (forces, step, guard)
-    as one program, one dispatch and one wait per frame instead of three (measured on the beam: 7.22 → 6.87 ms
-    p50 for the three, `benchmarks/realtime.py` times the loop with it). Flags are all False without a guard."""
+def _fused_simulation(forces_fn, step_fn, guard):
+    """``(zs, tips) -> (zs_next, forces, flags)``: the loop's simulation stages (forces, step, guard) as one
+    program, one dispatch and one wait per frame instead of three (measured on the beam: 7.22 → 6.87 ms p50 for
+    the three, `benchmarks/realtime.py` times the loop with it). ``flags`` is what the guard returns (one bool,
+    or one per body), False without a guard."""
     @jax.jit
     def fn(zs, tips):
         forces = forces_fn(zs, tips)
         nxt = step_fn(zs, forces)
-        flags = jnp.zeros(bodies, bool) if guard is None else jnp.broadcast_to(
-            jnp.asarray(guard(nxt), bool).reshape(-1), (bodies,))
-        return nxt, forces, flags
+        return nxt, forces, jnp.asarray(False) if guard is None else guard(nxt)
 
     return fn
 
