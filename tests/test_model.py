@@ -1138,3 +1138,42 @@ def test_step_growth_is_the_spectral_radius_of_the_step_jacobian(toy):
         api.step_growth(params, z, f, iterations=2)
     with pytest.raises(ValueError, match="must be finite"):
         api.step_growth(params, np.full_like(z, np.nan), f)
+
+
+def test_growth_terms_split_the_step_jacobian_and_static_l_removes_the_change_of_l(toy):
+    # api.growth_terms' four terms (L∇²E, (∂L)∇E, M∇²S, (∂M)∇S) against xᵀ(J − I)x of the dense Jacobian of the
+    # step (reverse mode) in state-std units, for a random direction x at a mid-rollout state; with static_l
+    # (L decoded at the rest state) L is the same at every state and its change term is exactly zero.
+    params, data = toy["params"], toy["data"]
+    z, f = np.asarray(data.z[0, 2]), np.asarray(data.f[0, 2])
+    free = ~((np.asarray(data.node_type) != 0)[:, None] & (np.arange(12) < 6)[None, :])
+    x = np.random.default_rng(0).normal(size=z.shape) * free
+    x = x / np.linalg.norm(x)
+
+    def dense_quadratic(p):
+        fn, std = api.stepper(p), p["norm"]["z_std"]
+        step = lambda d: (fn(jnp.asarray(z) + d * std, jnp.asarray(f)) / std).ravel()
+        jac = np.asarray(jax.jacrev(step)(jnp.zeros(z.shape)), np.float64).reshape(z.size, z.size)
+        return float(x.ravel() @ jac @ x.ravel()) - 1.0
+
+    terms = api.growth_terms(params, z, f, x)
+    parts = sum(terms[k] for k in api.GROWTH_TERMS)
+    exact = dense_quadratic(params)
+    assert abs(terms["L_change"]) > 1e-4 and abs(terms["L_hessian"]) > 1e-4   # both terms present untrained
+    assert abs(parts - exact) <= 1e-3 * max(abs(exact), 1e-2), (terms, exact)
+    assert abs(terms["total"] - exact) <= 1e-3 * max(abs(exact), 1e-2)
+
+    static = dict(params, config={**params["config"], "static_l": True})
+    l_a, _ = M.operators(toy["weights"], M.ModelConfig(**static["config"]), toy["norm"], jnp.asarray(z),
+                         jnp.asarray(f), toy["nt"], params["topo"])
+    l_b, _ = M.operators(toy["weights"], M.ModelConfig(**static["config"]), toy["norm"],
+                         jnp.asarray(data.z[1, 3]), jnp.asarray(data.f[1, 3]), toy["nt"], params["topo"])
+    assert float(jnp.max(jnp.abs(l_a - l_b))) == 0.0 and float(jnp.max(jnp.abs(l_a))) > 0
+    s_terms = api.growth_terms(static, z, f, x)
+    assert s_terms["L_change"] == 0.0
+    assert abs(sum(s_terms[k] for k in api.GROWTH_TERMS) - dense_quadratic(static)) <= 1e-3 * max(
+        abs(dense_quadratic(static)), 1e-2)
+    with pytest.raises(ValueError, match=r"mode must be \[16, 12\]"):
+        api.growth_terms(params, z, f, x[:-1])
+    with pytest.raises(ValueError, match="mode must have a non-zero entry"):
+        api.growth_terms(params, z, f, x * 0)

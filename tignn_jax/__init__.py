@@ -4,7 +4,7 @@ __version__ = "0.1.0"
 _LAZY = {name: "tignn_jax.api" for name in
          ("step", "rollout", "load_pretrained", "stepper", "force_check", "state_check", "state_guard",
           "guarded_stepper", "fallback_stepper", "fallback_step", "consistency_bound",
-          "step_growth", "network_is_zero")}
+          "step_growth", "growth_terms", "network_is_zero")}
 
 
 def __getattr__(name):

@@ -217,6 +217,79 @@ def step_growth(params: dict, z, forces, iterations: int = 150, eps: float = 1e-
             "top_node": int(np.argmax(np.sum(mode ** 2, axis=1)))}
 
 
+GROWTH_TERMS = ("L_hessian", "L_change", "M_hessian", "M_change")
+
+
+def growth_terms(params: dict, z, forces, mode) -> dict:
+    """Where a disturbance's growth comes from: the forward-Euler step z' = z + Δt (L(z) ∇E(z) + M(z) ∇S(z))
+    of a plain model (no ``frame_solve``, no ``exact_degeneracy``, Euler) has the Jacobian
+    I + Δt (L ∇²E + (∂L·)∇E + M ∇²S + (∂M·)∇S) (+ the port's terms), and for a unit ``mode`` x [N,12] in the
+    training split's state stds (e.g. ``step_growth``'s) this returns xᵀ T x for each term T (the product rule's
+    split of the rate's Jacobian at z under ``forces``, in the same units as ``step_jacobian``):
+
+    * ``L_hessian``: L ∇²E, the reversible part with L frozen (for a skew L and a convex E an oscillation,
+      whose forward-Euler growth is √(1 + (ωΔt)²));
+    * ``L_change``: L's change with the state times the energy gradient, (∂L/∂z · x) ∇E;
+    * ``M_hessian``: M ∇²S (≤ 0 when S is concave, a decay; > 0 means the entropy is convex along x and the
+      dissipative part amplifies it);
+    * ``M_change``: (∂M/∂z · x) ∇S;
+    * ``total``: xᵀ (J − I) x of the whole step (reverse mode), so that the four terms can be checked against it
+      (the remainder is the port's terms, zero without ``force_port``).
+
+    For x the dominant mode with a real eigenvalue μ, ``total`` ≈ μ − 1, so the terms say which part of the
+    model makes the step unstable. Measured on `beam-abaqus` (``step_growth_terms.md``): at rest ``L_change``
+    is 0.888 of the growth's 0.888, the other terms < 1e-3."""
+    config = _config(params)
+    if config.frame_solve or config.exact_degeneracy or config.integrator != "euler":
+        raise ValueError("growth_terms needs a plain forward-Euler model (no frame_solve, exact_degeneracy or "
+                         f"Heun), got frame_solve={config.frame_solve}, exact_degeneracy="
+                         f"{config.exact_degeneracy}, integrator={config.integrator!r}")
+    n = len(params["mesh"]["node_type"])
+    arrays = [np.asarray(a, np.float32) for a in (z, forces, mode)]
+    for name, a, cols in zip(("z", "forces", "mode"), arrays, (M.STATE_DIM, 3, M.STATE_DIM)):
+        if a.shape != (n, cols):
+            raise ValueError(f"{name} must be [{n}, {cols}] for this model's mesh, got {a.shape}")
+        if not np.all(np.isfinite(a)):
+            raise ValueError(f"{name} must be finite")
+    z, forces, mode = (jnp.asarray(a) for a in arrays)
+    weights, norm, node_type, topo = params["weights"], params["norm"], jnp.asarray(params["mesh"]["node_type"]), \
+        params["topo"]
+    norm = M.with_rest(weights, config, norm, node_type, topo)
+    std, scale = jnp.asarray(norm["z_std"]), M.state_scale(norm)
+    free = (~M.prescribed(node_type)).astype(z.dtype)
+    mode = mode * free
+    size = jnp.linalg.norm(mode)
+    if not float(size) > 0:
+        raise ValueError("mode must have a non-zero entry where the state evolves")
+    mode = mode / size
+
+    def parts(z_):
+        g_e, g_s, (l_mat, m_mat), _ = M._potentials_and_grads(weights, config, norm, z_, forces, node_type, topo)
+        return g_e, g_s, l_mat, m_mat
+
+    frozen = jax.tree_util.tree_map(jax.lax.stop_gradient, parts(z))
+
+    def terms(z_):
+        g_e, g_s, l_mat, m_mat = parts(z_)
+        g_e0, g_s0, l0, m0 = frozen
+        apply_l, apply_m = M._appliers(config, norm, g_e0, g_s0)
+        # (the kinematic prior's constant L₀ adds nothing to the change term's derivative)
+        return apply_l(l0, g_e), apply_l(l_mat, g_e0), apply_m(m0, g_s), apply_m(m_mat, g_s0)
+
+    out, pullback = jax.vjp(terms, z)
+    cotangent = mode * scale / std * free          # the rate in scaled units → state stds, evolved entries only
+    result = {}
+    for i, name in enumerate(GROWTH_TERMS):
+        cts = tuple(cotangent if j == i else jnp.zeros_like(o) for j, o in enumerate(out))
+        (row,) = pullback(cts)
+        result[name] = float(jnp.sum(row * mode * std))
+    fn = stepper(params)
+    _, step_pullback = jax.vjp(lambda d: fn(z + d * std, forces) / std, jnp.zeros_like(z))
+    (row,) = step_pullback(mode)
+    result["total"] = float(jnp.sum(row * mode)) - 1.0
+    return result
+
+
 GUARD_POLICIES = ("clip", "reset")
 
 

@@ -125,7 +125,15 @@ class ModelConfig(NamedTuple):
     this small, so training starts from the prior's map). integrator: how a step answers the GENERIC rate F(z)
     without ``frame_solve``: "euler" (forward Euler, z + Δt F(z), the paper's) or "heun" (the explicit trapezoidal
     rule, z + Δt/2 (F(z) + F(z + Δt F(z))): two network evaluations per step, second order); a model must be
-    trained with the integrator it is used with (training steps with it too)."""
+    trained with the integrator it is used with (training steps with it too); static_l: L is the one the network
+    decodes at the rest state (q = X, v = σ = 0, no force), a function of the weights and the rest mesh only,
+    instead of L(z) at the current state. Reason (measured on `beam-abaqus`, ``step_growth``): the growth of
+    the forward-Euler step (1.89 per step at rest, 1.10–1.21 at loaded states) comes almost entirely from the
+    term (∂L/∂z · δz) ∇E of the step's Jacobian, L's change with the state times the energy gradient, not from
+    L ∇²E δz (whose eigenvalues are imaginary for a skew L and a convex E) nor from M. A state-independent L
+    removes that term (the canonical Poisson bracket of elasticity is constant too). No new weights: a model
+    trained with L(z) can be fine-tuned with it (``with_rest`` caches the rest L for inference).
+    """
     hidden: int = 32
     mlp_layers: int = 2
     passes: int = 4
@@ -150,6 +158,7 @@ class ModelConfig(NamedTuple):
     linear_prior: bool = False
     correction_scale: float = 0.01
     integrator: str = "euler"
+    static_l: bool = False
 
 
 INTEGRATORS = ("euler", "heun")
@@ -259,12 +268,25 @@ def with_rest(weights, config: ModelConfig, norm: dict, node_type, topo) -> dict
         extra["spring_edges"] = spring_stiffness(weights, norm, topo)
     if config.force_port and config.port_hops:
         extra["spread_edges"] = _spread_coefficients(weights, topo, config.port_hops)
+    if config.static_l:
+        extra["rest_l"] = rest_l_entries(weights, config, norm, node_type, topo)
     return {**norm, **extra} if extra else norm
 
 
 def _rest(weights, config, norm, node_type, topo):
     rest = norm.get("rest_grads")
     return rest_gradients(weights, config, norm, node_type, topo) if rest is None else rest
+
+
+def rest_l_entries(weights, config: ModelConfig, norm: dict, node_type, topo):
+    """[N, 66]: the entries of l that the network decodes at the rest state (q = X, v = σ = 0) under zero force,
+    ``static_l``'s state-independent L."""
+    if topo.x0 is None:
+        raise ValueError("static_l needs the rest positions: build the Topology with q0")
+    n, dtype = topo.x0.shape[0], jnp.result_type(norm["z_mean"])
+    z = jnp.concatenate([topo.x0.astype(dtype), jnp.zeros((n, STATE_DIM - 3), dtype)], axis=1)
+    _, heads = _network_out(weights, config, norm, z, jnp.zeros((n, 3), dtype), node_type, topo, split=True)
+    return heads[:, :N_L]
 
 
 def init_weights(key, config: ModelConfig, norm: dict, z, f, node_type, topo):
@@ -603,6 +625,11 @@ def _potentials_and_grads(weights, config, norm, z, f, node_type, topo):
     if config.rest_equilibrium:
         rest = _rest(weights, config, norm, node_type, topo)
         g_e, g_s = g_e - rest[0], g_s - rest[1]
+    if config.static_l:   # L from the rest state's heads: the same for every state
+        rest_l = norm.get("rest_l")
+        if rest_l is None:
+            rest_l = rest_l_entries(weights, config, norm, node_type, topo)
+        heads = jnp.concatenate([rest_l, heads[:, N_L:]], axis=1)
     return g_e, g_s, _matrices(heads), heads[:, N_L + N_M:]
 
 

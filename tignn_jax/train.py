@@ -97,6 +97,7 @@ class TrainConfig(NamedTuple):
     linear_prior: bool = False
     correction_scale: float = 0.01
     integrator: str = "euler"
+    static_l: bool = False
     residual_scale: bool = False
     lr: float = 3e-3
     lr_end: float = 2e-5
@@ -536,7 +537,8 @@ def train(data: D.Dataset, cfg: TrainConfig, run_dir: str | Path, train_split="t
 
 
 # model options that change how the weights are used but not their shapes: a warm start may switch them
-WEIGHT_FREE = ("exact_degeneracy", "kinematic_prior", "rest_equilibrium", "correction_scale", "integrator")
+WEIGHT_FREE = ("exact_degeneracy", "kinematic_prior", "rest_equilibrium", "correction_scale", "integrator",
+               "static_l")
 
 
 def _parent(init_from, cfg: TrainConfig) -> dict:

@@ -1,0 +1,102 @@
+"""Which part of the learned GENERIC step makes it unstable: the growth's split into its terms.
+
+For each beam model, at the states of ``step_growth.py`` (rest; ramp end and hold +20 of the model's own
+rollout under the stability benchmark's constant load) and at the six test cases' true frame-19 states (when
+``../shared/data/abaqus_beam.npz`` is present), ``tignn_jax.step_growth`` finds the step's dominant mode x
+(power iteration) and ``tignn_jax.growth_terms`` splits xᵀ(J − I)x, ≈ growth − 1 for a real eigenvalue, into
+  L∇²E (L frozen), (∂L·x)∇E (L's change with the state times ∇E), M∇²S and (∂M·x)∇S,
+with the whole step's xᵀ(J − I)x beside them (reverse mode; the terms sum to it). A convex E with a skew,
+constant L only rotates a disturbance, and a concave S with a PSD M only damps it, so a term that is positive
+and large says where the model's anti-damping lives.
+
+A model is a shipped name, a model.npz path, or either with ``+static_l`` (the same weights with ``static_l``:
+L decoded at the rest state), optionally labelled ``label=spec``.
+Writes benchmarks/results/step_growth_terms.{json,md}.
+
+    python benchmarks/growth_terms.py [--models beam-abaqus,beam-abaqus+static_l,...] [--iterations 150]
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+import warnings
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from _machine import describe  # noqa: E402
+
+RESULTS = Path(__file__).resolve().parent / "results"
+DEFAULT_MODELS = ("beam-abaqus", "beam", "beam-abaqus-small", "beam-abaqus+static_l")
+TERMS = ("L_hessian", "L_change", "M_hessian", "M_change")
+
+
+def load(spec: str):
+    """(label, params) of a ``[label=]name_or_path[+static_l]`` spec."""
+    from tignn_jax import api
+
+    label, _, spec = spec.rpartition("=")
+    base, _, flag = spec.partition("+")
+    if flag not in ("", "static_l"):
+        raise ValueError(f"model spec {spec!r}: the only modifier is '+static_l', got '+{flag}'")
+    params = api.load_model(base) if base.endswith(".npz") else api.load_pretrained(base)[0]
+    if flag:
+        params = dict(params, config={**params["config"], "static_l": True})
+    return label or spec, params
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--models", default=",".join(DEFAULT_MODELS))
+    ap.add_argument("--iterations", type=int, default=150)
+    args = ap.parse_args(argv)
+    warnings.filterwarnings("ignore")
+    from step_growth import anchors
+    from tignn_jax import api
+    from tignn_jax import data as D
+
+    reference = D.load(D.reference_path()) if D.reference_path().exists() else None
+    rows, t_start = [], time.time()
+    for spec in [m for m in args.models.split(",") if m]:
+        label, params = load(spec)
+        if len(params["mesh"]["node_type"]) != 756:
+            raise ValueError(f"{label}: growth_terms.py measures beam models (756 nodes)")
+        states, _ = anchors(params, "beam")
+        if reference is not None:
+            states += [(f"test sim {int(reference.sim_id[r])}, frame 19", reference.z[r, 19], reference.f[r, 19])
+                       for r in D.split_rows(reference, "test")]
+        for anchor, z, f in states:
+            g = api.step_growth(params, z, f, iterations=args.iterations)
+            if not np.isfinite(g["growth"]):
+                continue
+            terms = api.growth_terms(params, z, f, g["mode"])
+            rows.append({"model": label, "anchor": anchor, "growth": g["growth"], **terms})
+            print(f"{label:>28s} {anchor:>24s}: growth {g['growth']:.3f}  "
+                  + "  ".join(f"{k} {terms[k]:+.3f}" for k in (*TERMS, "total")), flush=True)
+    result = {"machine": describe(), "iterations": args.iterations, "rows": rows, "wall_s": time.time() - t_start}
+    RESULTS.mkdir(exist_ok=True)
+    (RESULTS / "step_growth_terms.json").write_text(json.dumps(result, indent=1))
+    (RESULTS / "step_growth_terms.md").write_text(render(result))
+    print(f"wrote {RESULTS / 'step_growth_terms'}.{{json,md}} in {time.time() - t_start:.0f} s")
+    return 0
+
+
+def render(result: dict) -> str:
+    lines = ["# Where the learned step's growth comes from", "",
+             f"Machine: {result['machine']}. {result['iterations']} power iterations per state "
+             "(`tignn_jax.step_growth`), then `tignn_jax.growth_terms` along the dominant mode x (state stds): "
+             "xᵀ(J − I)x split by the product rule into L∇²E (L frozen), (∂L·x)∇E, M∇²S (M frozen) and "
+             "(∂M·x)∇S; 'step' is the whole step's xᵀ(J − I)x (reverse mode), ≈ growth − 1 for a real "
+             "eigenvalue. `+static_l`: the same weights with L decoded at the rest state (no training).", "",
+             "| model | state | growth | L∇²E | (∂L·x)∇E | M∇²S | (∂M·x)∇S | step |", "|---|---|---|---|---|---|---|---|"]
+    for r in result["rows"]:
+        lines.append(f"| {r['model']} | {r['anchor']} | {r['growth']:.3f} | " + " | ".join(
+            f"{r[k]:+.4f}" for k in (*TERMS, "total")) + " |")
+    return "\n".join(lines) + "\n"
+
+
+if __name__ == "__main__":
+    sys.exit(main())
