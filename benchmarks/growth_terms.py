@@ -85,8 +85,9 @@ def main(argv=None) -> int:
 
 
 def render(result: dict) -> str:
+    m = result["machine"]
     lines = ["# Where the learned step's growth comes from", "",
-             f"Machine: {result['machine']}. {result['iterations']} power iterations per state "
+             f"Machine: {m['cpu']}, {m['cores']} cores, jax {m['jax']}. {result['iterations']} power iterations per state "
              "(`tignn_jax.step_growth`), then `tignn_jax.growth_terms` along the dominant mode x (state stds): "
              "xᵀ(J − I)x split by the product rule into L∇²E (L frozen), (∂L·x)∇E, M∇²S (M frozen) and "
              "(∂M·x)∇S; 'step' is the whole step's xᵀ(J − I)x (reverse mode), ≈ growth − 1 for a real "
@@ -95,6 +96,11 @@ def render(result: dict) -> str:
     for r in result["rows"]:
         lines.append(f"| {r['model']} | {r['anchor']} | {r['growth']:.3f} | " + " | ".join(
             f"{r[k]:+.4f}" for k in (*TERMS, "total")) + " |")
+    lines += ["", "Largest term per model (share of the states where it is the largest of the four in magnitude):", ""]
+    for model in dict.fromkeys(r["model"] for r in result["rows"]):
+        rows = [r for r in result["rows"] if r["model"] == model]
+        top = [max(TERMS, key=lambda k: abs(r[k])) for r in rows]
+        lines.append(f"- {model}: " + ", ".join(f"{k} {top.count(k)}/{len(rows)}" for k in TERMS if top.count(k)))
     return "\n".join(lines) + "\n"
 
 
