@@ -132,7 +132,11 @@ class ModelConfig(NamedTuple):
     term (∂L/∂z · δz) ∇E of the step's Jacobian, L's change with the state times the energy gradient, not from
     L ∇²E δz (whose eigenvalues are imaginary for a skew L and a convex E) nor from M. A state-independent L
     removes that term (the canonical Poisson bracket of elasticity is constant too). No new weights: a model
-    trained with L(z) can be fine-tuned with it (``with_rest`` caches the rest L for inference).
+    trained with L(z) can be fine-tuned with it (``with_rest`` caches the rest L for inference). Measured
+    (``step_growth_terms.md``, session 26): it is not a fix by itself. `beam-abaqus`'s weights with it grow
+    1.12–1.19 but lose the dynamics (test u 0.92), and fine-tuned with it the network moved the growth into M
+    (M∇²S 0.88 at rest with ``rest_equilibrium``: a learned entropy convex along the mode), with test rollouts
+    non-finite. No shipped model uses it.
     """
     hidden: int = 32
     mlp_layers: int = 2
@@ -247,12 +251,9 @@ def energy_entropy(weights, config: ModelConfig, norm: dict, z, f, node_type, to
 
 def rest_gradients(weights, config: ModelConfig, norm: dict, node_type, topo):
     """[2,N,12]: ∇_w E and ∇_w S of the unshifted network at the rest state (q = X, v = σ = 0) with zero force."""
-    if topo.x0 is None:
-        raise ValueError("rest_equilibrium needs the rest positions: build the Topology with q0")
-    n, dtype = topo.x0.shape[0], jnp.result_type(norm["z_mean"])   # the precision the model runs in
-    z = jnp.concatenate([topo.x0.astype(dtype), jnp.zeros((n, STATE_DIM - 3), dtype)], axis=1)
-    g_e, g_s, _, _ = _potentials_and_grads(weights, config._replace(rest_equilibrium=False), norm, z,
-                                           jnp.zeros((n, 3), z.dtype), node_type, topo)
+    z, f = _rest_state(norm, topo, "rest_equilibrium")
+    g_e, g_s, _, _ = _potentials_and_grads(weights, config._replace(rest_equilibrium=False), norm, z, f,
+                                           node_type, topo)
     return jnp.stack([g_e, g_s])
 
 
@@ -281,12 +282,19 @@ def _rest(weights, config, norm, node_type, topo):
 def rest_l_entries(weights, config: ModelConfig, norm: dict, node_type, topo):
     """[N, 66]: the entries of l that the network decodes at the rest state (q = X, v = σ = 0) under zero force,
     ``static_l``'s state-independent L."""
+    z, f = _rest_state(norm, topo, "static_l")
+    _, heads = _network_out(weights, config, norm, z, f, node_type, topo, split=True)
+    return heads[:, :N_L]
+
+
+def _rest_state(norm: dict, topo, option: str):
+    """(z [N,12], f [N,3]): the rest state (q = X, v = σ = 0) and zero force, in the precision the model runs in;
+    ``option`` names the model option that needs it, for the error when the topology has no rest positions."""
     if topo.x0 is None:
-        raise ValueError("static_l needs the rest positions: build the Topology with q0")
+        raise ValueError(f"{option} needs the rest positions: build the Topology with q0")
     n, dtype = topo.x0.shape[0], jnp.result_type(norm["z_mean"])
     z = jnp.concatenate([topo.x0.astype(dtype), jnp.zeros((n, STATE_DIM - 3), dtype)], axis=1)
-    _, heads = _network_out(weights, config, norm, z, jnp.zeros((n, 3), dtype), node_type, topo, split=True)
-    return heads[:, :N_L]
+    return z, jnp.zeros((n, 3), dtype)
 
 
 def init_weights(key, config: ModelConfig, norm: dict, z, f, node_type, topo):
