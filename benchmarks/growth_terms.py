@@ -11,9 +11,9 @@ and large says where the model's anti-damping lives.
 
 A model is a shipped name, a model.npz path, or either with ``+static_l`` (the same weights with ``static_l``:
 L decoded at the rest state), optionally labelled ``label=spec``.
-Writes benchmarks/results/step_growth_terms.{json,md}.
+Writes benchmarks/results/step_growth_terms.{json,md} (``--tag T``: step_growth_terms_T.*).
 
-    python benchmarks/growth_terms.py [--models beam-abaqus,beam-abaqus+static_l,...] [--iterations 150]
+    python benchmarks/growth_terms.py [--models beam-abaqus,beam-abaqus+static_l,...] [--iterations 150] [--tag T]
 """
 from __future__ import annotations
 
@@ -52,6 +52,7 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--models", default=",".join(DEFAULT_MODELS))
     ap.add_argument("--iterations", type=int, default=150)
+    ap.add_argument("--tag", default="", help="write step_growth_terms_TAG.* instead of step_growth_terms.*")
     args = ap.parse_args(argv)
     warnings.filterwarnings("ignore")
     from step_growth import anchors
@@ -78,9 +79,10 @@ def main(argv=None) -> int:
                   + "  ".join(f"{k} {terms[k]:+.3f}" for k in (*TERMS, "total")), flush=True)
     result = {"machine": describe(), "iterations": args.iterations, "rows": rows, "wall_s": time.time() - t_start}
     RESULTS.mkdir(exist_ok=True)
-    (RESULTS / "step_growth_terms.json").write_text(json.dumps(result, indent=1))
-    (RESULTS / "step_growth_terms.md").write_text(render(result))
-    print(f"wrote {RESULTS / 'step_growth_terms'}.{{json,md}} in {time.time() - t_start:.0f} s")
+    stem = f"step_growth_terms_{args.tag}" if args.tag else "step_growth_terms"
+    (RESULTS / f"{stem}.json").write_text(json.dumps(result, indent=1))
+    (RESULTS / f"{stem}.md").write_text(render(result))
+    print(f"wrote {RESULTS / stem}.{{json,md}} in {time.time() - t_start:.0f} s")
     return 0
 
 
