@@ -10,7 +10,8 @@ constant L only rotates a disturbance, and a concave S with a PSD M only damps i
 and large says where the model's anti-damping lives.
 
 A model is a shipped name, a model.npz path, or either with ``+static_l`` (the same weights with ``static_l``:
-L decoded at the rest state), optionally labelled ``label=spec``.
+L decoded at the rest state), optionally labelled ``label=spec`` (``--models`` is comma-separated, so a label
+holds no comma).
 Writes benchmarks/results/step_growth_terms.{json,md} (``--tag T``: step_growth_terms_T.*).
 
     python benchmarks/growth_terms.py [--models beam-abaqus,beam-abaqus+static_l,...] [--iterations 150] [--tag T]
@@ -71,7 +72,10 @@ def main(argv=None) -> int:
                        for r in D.split_rows(reference, "test")]
         for anchor, z, f in states:
             g = api.step_growth(params, z, f, iterations=args.iterations)
-            if not np.isfinite(g["growth"]):
+            if not np.isfinite(g["growth"]):   # reported, not dropped: the power iteration left finite numbers
+                rows.append({"model": label, "anchor": anchor, "growth": float("nan"),
+                             **{k: float("nan") for k in (*TERMS, "total")}})
+                print(f"{label:>28s} {anchor:>24s}: growth not finite", flush=True)
                 continue
             terms = api.growth_terms(params, z, f, g["mode"])
             rows.append({"model": label, "anchor": anchor, "growth": g["growth"], **terms})
@@ -101,8 +105,8 @@ def render(result: dict) -> str:
     lines += ["", "Largest term per model (share of the states where it is the largest of the four in magnitude):", ""]
     for model in dict.fromkeys(r["model"] for r in result["rows"]):
         rows = [r for r in result["rows"] if r["model"] == model]
-        top = [max(TERMS, key=lambda k: abs(r[k])) for r in rows]
-        lines.append(f"- {model}: " + ", ".join(f"{k} {top.count(k)}/{len(rows)}" for k in TERMS if top.count(k)))
+        top = [max(TERMS, key=lambda k: abs(r[k])) for r in rows if np.isfinite(r["total"])]
+        lines.append(f"- {model}: " + ", ".join(f"{k} {top.count(k)}/{len(top)}" for k in TERMS if top.count(k)))
     return "\n".join(lines) + "\n"
 
 
