@@ -135,8 +135,8 @@ class ModelConfig(NamedTuple):
     trained with L(z) can be fine-tuned with it (``with_rest`` caches the rest L for inference). Measured
     (``step_growth_terms.md``, session 26): it is not a fix by itself. `beam-abaqus`'s weights with it grow
     1.12–1.19 but lose the dynamics (test u 0.92), and fine-tuned with it the network moved the growth into M
-    (M∇²S 0.88 at rest with ``rest_equilibrium``: a learned entropy convex along the mode), with test rollouts
-    non-finite. No shipped model uses it.
+    (M∇²S 0.88 at rest with ``rest_equilibrium``: a learned entropy convex along the mode), its test rollouts
+    blown up (relative errors ~1e6). No shipped model uses it.
     """
     hidden: int = 32
     mlp_layers: int = 2
