@@ -43,7 +43,7 @@ def load(spec: str):
     base, _, flag = spec.partition("+")
     if flag not in ("", "static_l"):
         raise ValueError(f"model spec {spec!r}: the only modifier is '+static_l', got '+{flag}'")
-    params = api.load_model(base) if base.endswith(".npz") else api.load_pretrained(base)[0]
+    params, _ = api.load_pretrained(base)   # a shipped name or a model path
     if flag:
         params = dict(params, config={**params["config"], "static_l": True})
     return label or spec, params

@@ -154,13 +154,8 @@ def state_guard(params: dict, bound: float = 8.0, tolerance: float = 1.5):
     return fn
 
 
-def step_jacobian(params: dict, z, forces, eps: float = 1e-2):
-    """``x -> J x``: the learned step's Jacobian at the state ``z`` [N,12] under ``forces`` [N,3] applied to
-    x [N,12], both in the training split's state stds, by a finite difference of size ``eps`` along x/‖x‖ (the
-    step has custom VJPs, so no forward-mode JVP). The prescribed entries (clamped q, v) are left out of x and
-    of J x: a disturbance there would stay as it is, eigenvalue 1 whatever the network."""
-    if not (isinstance(eps, (int, float)) and eps > 0):
-        raise ValueError(f"eps must be a positive number, got {eps!r}")
+def _state_and_forces(params: dict, z, forces):
+    """(z [N,12], forces [N,3]) as float32 arrays, checked: one body of the model's mesh, finite."""
     n = len(params["mesh"]["node_type"])
     z, forces = np.asarray(z, np.float32), np.asarray(forces, np.float32)
     if z.shape != (n, M.STATE_DIM) or forces.shape != (n, 3):
@@ -168,6 +163,17 @@ def step_jacobian(params: dict, z, forces, eps: float = 1e-2):
                          f"{z.shape} and {forces.shape}")
     if not (np.all(np.isfinite(z)) and np.all(np.isfinite(forces))):
         raise ValueError("z and forces must be finite")
+    return z, forces
+
+
+def step_jacobian(params: dict, z, forces, eps: float = 1e-2):
+    """``x -> J x``: the learned step's Jacobian at the state ``z`` [N,12] under ``forces`` [N,3] applied to
+    x [N,12], both in the training split's state stds, by a finite difference of size ``eps`` along x/‖x‖ (the
+    step has custom VJPs, so no forward-mode JVP). The prescribed entries (clamped q, v) are left out of x and
+    of J x: a disturbance there would stay as it is, eigenvalue 1 whatever the network."""
+    if not (isinstance(eps, (int, float)) and eps > 0):
+        raise ValueError(f"eps must be a positive number, got {eps!r}")
+    z, forces = _state_and_forces(params, z, forces)
     fn, std = stepper(params), params["norm"]["z_std"]
     z, forces = jnp.asarray(z), jnp.asarray(forces)
     free = (~M.prescribed(params["mesh"]["node_type"])).astype(z.dtype)
@@ -244,14 +250,13 @@ def growth_terms(params: dict, z, forces, mode) -> dict:
         raise ValueError("growth_terms needs a plain forward-Euler model (no frame_solve, exact_degeneracy or "
                          f"Heun), got frame_solve={config.frame_solve}, exact_degeneracy="
                          f"{config.exact_degeneracy}, integrator={config.integrator!r}")
-    n = len(params["mesh"]["node_type"])
-    arrays = [np.asarray(a, np.float32) for a in (z, forces, mode)]
-    for name, a, cols in zip(("z", "forces", "mode"), arrays, (M.STATE_DIM, 3, M.STATE_DIM)):
-        if a.shape != (n, cols):
-            raise ValueError(f"{name} must be [{n}, {cols}] for this model's mesh, got {a.shape}")
-        if not np.all(np.isfinite(a)):
-            raise ValueError(f"{name} must be finite")
-    z, forces, mode = (jnp.asarray(a) for a in arrays)
+    z, forces = _state_and_forces(params, z, forces)
+    n, mode = len(z), np.asarray(mode, np.float32)
+    if mode.shape != (n, M.STATE_DIM):
+        raise ValueError(f"mode must be [{n}, {M.STATE_DIM}] for this model's mesh, got {mode.shape}")
+    if not np.all(np.isfinite(mode)):
+        raise ValueError("mode must be finite")
+    z, forces, mode = jnp.asarray(z), jnp.asarray(forces), jnp.asarray(mode)
     weights, norm, node_type, topo = params["weights"], params["norm"], jnp.asarray(params["mesh"]["node_type"]), \
         params["topo"]
     norm = M.with_rest(weights, config, norm, node_type, topo)
