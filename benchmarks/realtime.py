@@ -4,8 +4,9 @@ For each scene (one beam, the paper's two beams, the bunny) the loop of ``tignn_
 fingertip press track for ``--frames`` frames after ``--warmup`` frames of compilation, with the shipped model
 of the scene, rendering at 640x480. Per frame it times: forces (fingertip unprojection + object contact), step
 (the learned simulator for all bodies), render (rasterise + shade + occlude) and the whole frame. The
-simulation time per frame is forces + step (a scene stepped in one program runs forces, step and guard as one
-program once touched, `scene.Timings.fused_frames`: its forces time is then inside the step's). Budgets (issue
+simulation time per frame is forces + step (once touched, the loop dispatches forces, step and guard together
+and awaits them once, `scene.Timings.fused_frames`: the forces time is then inside the step's; the fused loop is
+also compared with the stages awaited one by one, `loop_fusion`). Budgets (issue
 5): simulation p50 ≤ 9 ms (one beam), ≤ 11 ms (bunny), ≤ 18 ms (two beams), p99 ≤ 1.5 × p50, judged on the
 frames the learned step ran in; whole frame p50 ≤ 33 ms (≥ 30 frames per second). The machine's own tail is
 measured in the same run on fixed programs of the same duration (`platform_jitter`).
@@ -59,22 +60,43 @@ def run_scene(name: str, frames: int, warmup: int, devices: tuple = ()) -> dict:
     scene, dynamics = build_scene(name, frames + warmup, devices=devices)
     scene = scene._replace(skip_rest=False)   # every frame steps: the budget is for a body in motion
     _, t = sc.run(scene, frames=frames + warmup, warmup=warmup)
-    sim = t.forces + t.step
-    out = {"dynamics": dynamics, "valid": dynamics.startswith("model"), "frames": int(len(t.frame)),
+    summary = t.summary()
+    out = {"dynamics": dynamics, "valid": dynamics.startswith("model"), "frames": summary["frames"],
            "nodes": int(sum(len(b.q0) for b in scene.bodies)),
            "image": [scene.camera.width, scene.camera.height], "reallocations": t.reallocations, "guard_trips": t.guard_trips,
-           "fused_frames": t.fused_frames, "learned_frames": int(t.learned.sum()),
-           **{k: percentiles(v) for k, v in (("forces", t.forces), ("step", t.step), ("simulation", sim),
-                                              ("render", t.render), ("frame", t.frame))}}
+           "fused_frames": t.fused_frames, "learned_frames": summary["learned_frames"],
+           **{k: summary[k] for k in ("forces", "step", "simulation", "render", "frame")}}
     # the budget is judged on the frames the learned model stepped: frames on the (cheaper) rest-linearised
     # fallback after a guard trip would flatter the median
-    out["simulation_learned"] = percentiles(sim[t.learned]) if t.learned.any() else out["simulation"]
+    out["simulation_learned"] = summary.get("simulation_learned", out["simulation"])
     p50, p99 = out["simulation_learned"]["p50_ms"], out["simulation_learned"]["p99_ms"]
     out["budget"] = {"simulation_p50_ms": BUDGET_MS[name], "simulation_p50_ok": p50 <= BUDGET_MS[name],
                      "p99_over_p50": p99 / p50, "p99_ok": p99 <= 1.5 * p50,
                      "frame_p50_ok": out["frame"]["p50_ms"] <= FRAME_BUDGET_MS,
                      "fps_at_p50": 1e3 / out["frame"]["p50_ms"]}
     return out
+
+
+def loop_fusion(name: str, frames: int, warmup: int, devices: tuple, rounds: int) -> dict:
+    """The scene's loop with its simulation stages fused (``Scene.fuse``: forces, step and guard dispatched
+    together and awaited once; with ``devices`` each body's guard in its step's program) against the stages
+    dispatched and awaited one by one, alternating for ``rounds`` rounds of ``frames`` frames each. Simulation
+    p50 / p99 over the learned-step frames per run, and the ratio of the two variants' medians over the rounds."""
+    from tignn_jax import scene as sc
+    from tignn_jax.commands_demo import build_scene
+
+    scene, _ = build_scene(name, frames + warmup, devices=devices)
+    scene = scene._replace(skip_rest=False)
+    runs = {"staged": [], "fused": []}
+    for _ in range(rounds):
+        for variant in runs:
+            _, t = sc.run(scene._replace(fuse=variant == "fused"), frames=frames + warmup, warmup=warmup)
+            summary = t.summary()
+            runs[variant].append(summary.get("simulation_learned", summary["simulation"]))
+    p50 = {k: float(np.median([r["p50_ms"] for r in v])) for k, v in runs.items()}
+    return {"frames": frames, "rounds": rounds, "runs": runs, "p50_ms": p50,
+            "p99_ms": {k: float(np.median([r["p99_ms"] for r in v])) for k, v in runs.items()},
+            "speedup_fused_vs_staged": p50["staged"] / p50["fused"]}
 
 
 def step_variants(name: str, repeats: int) -> dict:
@@ -251,6 +273,9 @@ def main(argv=None) -> int:
     parser.add_argument("--warmup", type=int, default=20, help="untimed first frames (default: %(default)s)")
     parser.add_argument("--scenes", default="beam,two-beams,bunny")
     parser.add_argument("--variant-repeats", type=int, default=60, help="calls per step variant")
+    parser.add_argument("--fusion-rounds", type=int, default=2,
+                        help="rounds of the fused-against-staged loop comparison per scene (0: skip it)")
+    parser.add_argument("--fusion-frames", type=int, default=200, help="timed frames per run of that comparison")
     parser.add_argument("--cores", type=int, default=None,
                         help="CPU devices for scenes of several bodies, one body per core (default: all cores)")
     args = parser.parse_args(argv)
@@ -262,7 +287,7 @@ def main(argv=None) -> int:
     machine = describe()
     machine["cpu_devices"] = len(devices)
     machine["xla_flags"] = os.environ.get("XLA_FLAGS", "") + ("" if flagged else " (set by the user)")
-    scenes, variants, parallel = {}, {}, {}
+    scenes, variants, parallel, fusion = {}, {}, {}, {}
     for name in [s for s in args.scenes.split(",") if s]:
         if name not in BUDGET_MS:
             raise SystemExit(f"unknown scene {name!r}; choose from {sorted(BUDGET_MS)}")
@@ -272,6 +297,9 @@ def main(argv=None) -> int:
             variants[name] = step_variants(name, args.variant_repeats)
             if name == "two-beams":
                 parallel[name] = concurrency(name, args.variant_repeats, devices)
+            if args.fusion_rounds > 0:
+                print(f"scene {name}: fused against staged loop, {args.fusion_rounds} rounds ...", flush=True)
+                fusion[name] = loop_fusion(name, args.fusion_frames, args.warmup, devices, args.fusion_rounds)
         else:
             scenes[name]["untrained_model_step"] = untrained_step(name, args.variant_repeats)
     target = float(np.median([s["simulation_learned"]["p50_ms"] for s in scenes.values()])) if scenes else 8.0
@@ -279,7 +307,7 @@ def main(argv=None) -> int:
     jitter = platform_jitter(target, calls=args.frames)
     machine["load_average_1m_at_end"] = describe()["load_average_1m"]
     result = {"platform_jitter": jitter, "machine": machine, "frames": args.frames, "warmup": args.warmup, "scenes": scenes,
-              "step_variants": variants, "concurrency": parallel, "budgets_ms": {"simulation_p50": BUDGET_MS, "frame_p50": FRAME_BUDGET_MS}}
+              "step_variants": variants, "concurrency": parallel, "loop_fusion": fusion, "budgets_ms": {"simulation_p50": BUDGET_MS, "frame_p50": FRAME_BUDGET_MS}}
     RESULTS.mkdir(parents=True, exist_ok=True)
     (RESULTS / "realtime.json").write_text(json.dumps(result, indent=1))
     md = format_md(result)
@@ -289,8 +317,8 @@ def main(argv=None) -> int:
 
 
 def forces_cell(s: dict) -> str:
-    """The forces stage's p50, or where most frames ran forces, step and guard as one program
-    (``Timings.fused_frames``) a note that it is inside the step's time."""
+    """The forces stage's p50, or where most frames ran forces, step and guard fused (``Timings.fused_frames``)
+    a note that it is inside the step's time."""
     fused = s.get("fused_frames", 0)
     if 2 * fused > s["frames"]:
         return f"in step ({fused}/{s['frames']} frames fused)"
@@ -361,6 +389,17 @@ def format_md(result: dict) -> str:
                   "interleaved calls, same run; p99 in brackets): " +
                   ", ".join(f"{k} {v:.2f} ms ({c['step_p99_ms'][k]:.2f}, {r[k]:.2f}× vs the batched graph)"
                             for k, v in t.items()) + "."]
+    if result.get("loop_fusion"):
+        lines += ["", "The loop's simulation stages fused (`Scene.fuse`: forces, step and guard dispatched together, "
+                  "awaited once per frame; with devices each body's guard runs in its step's program) against the "
+                  "stages dispatched and awaited one by one, alternating runs in the same process (simulation p50 / "
+                  "p99 over the learned-step frames, median over the rounds):", "",
+                  "| scene | frames × rounds | staged p50 / p99 | fused p50 / p99 | speed-up (p50) |",
+                  "|---|---|---|---|---|"]
+        for name, f in result["loop_fusion"].items():
+            lines.append(f"| {name} | {f['frames']} × {f['rounds']} | {f['p50_ms']['staged']:.2f} / "
+                         f"{f['p99_ms']['staged']:.2f} ms | {f['p50_ms']['fused']:.2f} / {f['p99_ms']['fused']:.2f} ms "
+                         f"| {f['speedup_fused_vs_staged']:.2f}× |")
     return "\n".join(lines) + "\n"
 
 

@@ -266,6 +266,20 @@ def test_bodies_on_their_own_devices_step_as_in_one_program():
             np.testing.assert_allclose(np.asarray(a), np.asarray(c), rtol=1e-6, atol=1e-6)
         assert np.abs(np.asarray(parallel[0])[:, :3] - b.q0).max() > 1e-3   # the pressed body moved
         assert all(list(z.devices())[0] == devices[0] for z in parallel)
+        # each body's own guard runs in its step's program on its device (Scene.fuse): the same states and
+        # trips as the stages awaited one by one, the bad body reset, the good one stepped
+        import jax.numpy as jnp
+        finite = lambda z: ~jnp.all(jnp.isfinite(z))
+        good = b._replace(guard=finite)
+        bad = b._replace(model=beside, step_fn=lambda z, f: z * jnp.nan, guard=finite)
+        guarded = scene._replace(bodies=(good, bad), devices=devices, skip_rest=False)
+        fused, tf = sc.run(guarded)
+        staged, ts = sc.run(guarded._replace(fuse=False))
+        for a, c in zip(fused, staged):
+            np.testing.assert_allclose(np.asarray(a), np.asarray(c), rtol=1e-6, atol=1e-6)
+        np.testing.assert_array_equal(np.asarray(fused[1]), b.z)
+        assert tf.fused_frames == 5 and ts.fused_frames == 0 and np.all(tf.forces == 0.0)
+        assert tf.guard_trips == ts.guard_trips == 6, (tf.guard_trips, ts.guard_trips)   # every frame, warm-up too
         try:
             sc.run(two._replace(devices=devices, step=lambda zs, fs: zs))
         except ValueError as err:
@@ -420,6 +434,15 @@ def test_guard_with_one_flag_per_body_resets_only_the_flagged_body():
     np.testing.assert_array_equal(np.asarray(zs[1]), body.z)
     assert np.abs(np.asarray(zs[0])[:, :3] - body.q0).max() > 1e-3    # the good body was pressed and moved
     assert t.guard_trips > 0
+    # the same with each body's own guard (Body.guard) instead of one over all bodies; both at once is refused
+    finite = lambda z: ~jnp.all(jnp.isfinite(z))
+    own = scene._replace(bodies=(body._replace(guard=finite), bad._replace(guard=finite)))
+    zs_own, t_own = sc.run(own)
+    for a, c in zip(zs, zs_own):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(c))
+    assert t_own.guard_trips == t.guard_trips
+    with pytest.raises(ValueError, match="not both"):
+        sc.run(own._replace(guard=guard))
 
 
 def test_guard_hands_flagged_bodies_to_their_fallback_for_the_hold():

@@ -85,7 +85,7 @@ def run(args) -> int:
     for k in ("forces", "step", "render", "write", "frame"):
         print(f"{k:8s} {summary[k]['p50_ms']:8.2f} {summary[k]['p99_ms']:8.2f}")
     if summary.get("fused_frames"):
-        print(f"(in {summary['fused_frames']} frames forces, step and guard ran as one program: the forces "
+        print(f"(in {summary['fused_frames']} frames forces, step and guard were dispatched together: the forces "
               "time is inside the step's)")
     print(f"{summary['fps_at_p50']:.1f} frames per second at the median frame time")
     if summary.get("guard_trips"):
@@ -152,7 +152,8 @@ def build_scene(name: str, frames: int, model: str | None = None, stand_in: bool
                     far=5.0, view=view)
     z0 = np.concatenate([q0, np.zeros((len(q0), 9), np.float32)], axis=1)
     bodies = tuple(sc.Body(q0=q0, triangles=triangles, model=np.asarray(m), z=z0, step_fn=None,
-                           tip_radius=tip_radius, tip_force=tip_force, vmax=vmax) for m in poses)
+                           tip_radius=tip_radius, tip_force=tip_force, vmax=vmax,
+                           guard=getattr(step_fn, "body_guard", None)) for m in poses)
     world_point = np.asarray(ar.transform_points(poses[press_body], jnp.asarray([press_at], jnp.float32)))[0]
     world_normal = np.asarray(poses[press_body])[:3, :3] @ np.asarray(normal, np.float64)
     world_normal /= np.linalg.norm(world_normal)
@@ -160,7 +161,6 @@ def build_scene(name: str, frames: int, model: str | None = None, stand_in: bool
     fallback = getattr(step_fn, "fallback", None)
     scene = sc.Scene(bodies=bodies, camera=cam, background=sc.table_background(cam), track=track,
                      contact_radius=0.006, contact_stiffness=5e7, step=step_fn,
-                     guard=getattr(step_fn, "guard", None),
                      fallback=(fallback,) * len(bodies) if fallback is not None else ())
     body_step = getattr(step_fn, "body_step", None)
     if len(devices) > 1 and len(bodies) > 1 and body_step is not None:
@@ -191,7 +191,7 @@ def _dynamics(model_name, stand_in, q0, cells, edges, clamped, copies):
                 def step(zs, forces):
                     return tuple(jnp.split(fn(jnp.concatenate(zs), jnp.concatenate(forces)), copies))
 
-                step.guard = lambda zs: jnp.stack([guard(z) for z in zs])   # one flag per body
+                step.body_guard = guard   # each body's own flag (Body.guard)
                 step.body_step = api.stepper(params) if copies > 1 else fn   # one body, for Scene.devices
                 if model_name in FALLBACKS:
                     linear, _ = api.load_pretrained(FALLBACKS[model_name])

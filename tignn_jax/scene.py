@@ -70,7 +70,9 @@ class Body(NamedTuple):
     the body's simulator (the learned model, or anything with that signature), traceable by ``jax.jit`` (no
     Python-side checks on values: ``run`` jits all bodies' steps together); tip_radius (model units) and
     tip_force (model force units per node): the fingertip rule of ``ar.fingertip_forces``; colour by the von
-    Mises stress of sigma (or the displacement magnitude, see ``Scene.colour_by``) over [0, vmax].
+    Mises stress of sigma (or the displacement magnitude, see ``Scene.colour_by``) over [0, vmax]; guard:
+    optional jit-able ``z -> bool``, True where this body's new state must not be shown (as ``Scene.guard``, for
+    one body; with ``Scene.devices`` it runs in the body's own step program on its device).
     """
     q0: np.ndarray
     triangles: np.ndarray
@@ -80,6 +82,7 @@ class Body(NamedTuple):
     tip_radius: float
     tip_force: float
     vmax: float
+    guard: Callable | None = None
 
 
 class Background(NamedTuple):
@@ -102,7 +105,7 @@ class Scene(NamedTuple):
     guard: optional ``zs -> bool`` or ``zs -> bool [bodies]`` (jit-able), True where a new state must not be
     shown (e.g. non-finite or outside the model's training envelope, see ``api.state_check``): the flagged
     bodies (all bodies for a single bool) return to their initial state, or, where ``fallback`` gives the body
-    one, are handed to it, and each counts as a guard trip;
+    one, are handed to it, and each counts as a guard trip (or give each body its own ``Body.guard``, not both);
     fallback: per body, None or a jitted ``(z, forces, restart) -> z`` (``api.fallback_step``: the rest-linearised
     FEM, starting from σ = S₀u where ``restart``) that steps a flagged body from its previous state instead, and
     keeps stepping it for ``fallback_hold`` more frames (the body's learned step and guard then ignored), after
@@ -111,7 +114,12 @@ class Scene(NamedTuple):
     that made one per core, see ``cpu_devices``): each body's ``step_fn`` is then jitted on its own and the
     bodies' steps are dispatched together, so they run concurrently, one core each (XLA runs one program's
     independent parts one after another on a single core); the states return to ``devices[0]`` for forces and
-    rendering. Empty (the default): all bodies step in one program on the default device.
+    rendering. Empty (the default): all bodies step in one program on the default device;
+    fuse: once a body is touched, forces, step and guard are dispatched together and awaited once per frame
+    (one program, or with ``devices`` one per device, each body's guard in its step's program; a scene with
+    devices and a ``Scene.guard`` over all bodies runs its guard after the steps). False: each stage is
+    dispatched and awaited in turn, so the forces are timed on their own (what ``benchmarks/realtime.py``
+    compares against).
     """
     bodies: tuple
     camera: Camera
@@ -127,13 +135,14 @@ class Scene(NamedTuple):
     devices: tuple = ()
     fallback: tuple = ()
     fallback_hold: int = 30
+    fuse: bool = True
 
 
 class Timings(NamedTuple):
     """Milliseconds per frame for each stage (arrays over frames) and the frames' overflow count.
 
-    ``fused_frames``: timed frames whose forces, step and guard ran as one program (a scene without
-    ``devices`` once a body is touched and not every body is on its fallback); their forces time is 0 and
+    ``fused_frames``: timed frames whose forces, step and guard were dispatched together and awaited once
+    (``Scene.fuse``, once a body is touched and not every body is on its fallback); their forces time is 0 and
     counted in ``step``, so forces + step is the simulation time of every frame. ``learned`` (bool per frame):
     the learned step ran in that frame, i.e. some body was touched and not on its fallback (None: not
     recorded)."""
@@ -148,10 +157,16 @@ class Timings(NamedTuple):
     learned: np.ndarray | None = None
 
     def summary(self) -> dict:
-        """{stage: {"p50_ms", "p99_ms"}} plus frames and frames per second at the median frame time."""
-        out = {k: {"p50_ms": float(np.median(v)), "p99_ms": float(np.percentile(v, 99))}
-               for k, v in self._asdict().items()
+        """{stage: {"p50_ms", "p99_ms", "mean_ms"}} for the stages and the simulation (forces + step; and
+        ``simulation_learned``: over the frames the learned step ran in), plus frames and frames per second at
+        the median frame time."""
+        def stats(v):
+            return {"p50_ms": float(np.median(v)), "p99_ms": float(np.percentile(v, 99)), "mean_ms": float(np.mean(v))}
+
+        out = {k: stats(v) for k, v in self._asdict().items()
                if k not in ("reallocations", "guard_trips", "fused_frames", "learned") and len(v)}
+        if len(self.frame):
+            out["simulation"] = stats(self.forces + self.step)
         out["frames"] = int(len(self.frame))
         out["fps_at_p50"] = 1e3 / out["frame"]["p50_ms"] if len(self.frame) else 0.0
         out["reallocations"] = self.reallocations
@@ -160,8 +175,7 @@ class Timings(NamedTuple):
         if self.learned is not None and len(self.learned) == len(self.frame):
             out["learned_frames"] = int(self.learned.sum())
             if self.learned.any():   # the simulation time of the frames the learned model stepped
-                sim = (self.forces + self.step)[self.learned]
-                out["simulation_learned"] = {"p50_ms": float(np.median(sim)), "p99_ms": float(np.percentile(sim, 99))}
+                out["simulation_learned"] = stats((self.forces + self.step)[self.learned])
         return out
 
 
@@ -205,7 +219,8 @@ def _run(scene, frames, write, warmup, gc_pause):
     times = {k: [] for k in ("forces", "step", "render", "write", "frame")}
     reallocations = 0
     guard_trips = 0
-    guard_fn = jax.jit(scene.guard) if scene.guard is not None else None
+    guard = _scene_guard(scene)
+    guard_fn = jax.jit(guard) if guard is not None else None
     at_rest = all(np.allclose(np.asarray(b.z)[:, :3], b.q0) and not np.any(np.asarray(b.z)[:, 3:])
                   for b in scene.bodies)
     touched = not (scene.skip_rest and at_rest)
@@ -219,7 +234,11 @@ def _run(scene, frames, write, warmup, gc_pause):
             jax.block_until_ready(fb(z, f, jnp.asarray(True)))
     if guard_fn is not None:   # likewise the guard, before its first touched frame
         jax.block_until_ready(guard_fn(zs))
-    sim_fn = None if scene.devices else _fused_simulation(forces_fn, step_fn, scene.guard)
+    sim_fn = None
+    if scene.fuse and not scene.devices:
+        sim_fn = _fused_simulation(forces_fn, step_fn, guard)
+    elif scene.fuse and scene.guard is None:   # per device: each body's step and its own guard in one program
+        sim_fn = _fused_concurrent(forces_fn, _concurrent_step(scene, flags=True))
     if sim_fn is not None:   # compiled now, not at the first touched frame
         jax.block_until_ready(sim_fn(zs, track[0]))
     fused_frames = 0
@@ -272,6 +291,27 @@ def _run(scene, frames, write, warmup, gc_pause):
     return zs, Timings(**{k: np.asarray(v) for k, v in times.items()}, reallocations=reallocations,
                        guard_trips=guard_trips, fused_frames=fused_frames,
                        learned=np.asarray(learned, bool))
+
+
+def _scene_guard(scene: Scene):
+    """The loop's guard over all bodies, ``zs -> bool`` or ``bool [bodies]``: ``scene.guard``, or the bodies'
+    own guards stacked (False for a body without one), or None when there is none."""
+    if scene.guard is not None or all(b.guard is None for b in scene.bodies):
+        return scene.guard
+    guards = [b.guard for b in scene.bodies]
+    return lambda zs: jnp.stack([jnp.asarray(False) if g is None else g(z) for g, z in zip(guards, zs)])
+
+
+def _fused_concurrent(forces_fn, step_fn):
+    """``(zs, tips) -> (zs_next, forces, flags)`` for a scene with ``devices``: the forces on ``devices[0]``,
+    then every body's step and guard as one program on its own device (``_concurrent_step(..., flags=True)``),
+    all dispatched before anything is awaited; returns once the states are back on ``devices[0]``."""
+    def fn(zs, tips):
+        forces = forces_fn(zs, tips)
+        nxt, flags = step_fn(zs, forces)
+        return jax.block_until_ready(nxt), forces, jnp.stack(flags)
+
+    return fn
 
 
 def _fused_simulation(forces_fn, step_fn, guard):
@@ -366,18 +406,31 @@ def cpu_devices(n: int) -> tuple:
     return tuple(jax.local_devices())
 
 
-def _concurrent_step(scene: Scene):
+def _concurrent_step(scene: Scene, flags: bool = False):
     """``step_fn(zs, forces) -> zs`` that steps body k on ``scene.devices[k % D]``: every body's step is
     dispatched before any is awaited (JAX dispatch is asynchronous), then each state is moved back to
-    ``devices[0]``."""
+    ``devices[0]``. With ``flags``: ``-> (zs, flags)``, each body's ``Body.guard`` of its new state evaluated in
+    the same program as its step, on its device (False for a body without a guard)."""
     devices = scene.devices
     home = devices[0]
-    fns = [jax.jit(b.step_fn) for b in scene.bodies]
+
+    def program(b):
+        if not flags:
+            return jax.jit(b.step_fn)
+
+        def step_and_guard(z, f):
+            nxt = b.step_fn(z, f)
+            return nxt, jnp.asarray(False) if b.guard is None else jnp.asarray(b.guard(nxt), bool).reshape(())
+        return jax.jit(step_and_guard)
+
+    fns = [program(b) for b in scene.bodies]
     places = [devices[k % len(devices)] for k in range(len(scene.bodies))]
 
     def step_fn(zs, forces):
         out = [fn(jax.device_put(z, d), jax.device_put(f, d)) for fn, z, f, d in zip(fns, zs, forces, places)]
-        return tuple(jax.device_put(z, home) for z in out)
+        if not flags:
+            return tuple(jax.device_put(z, home) for z in out)
+        return (tuple(jax.device_put(z, home) for z, _ in out), tuple(jax.device_put(g, home) for _, g in out))
 
     return step_fn
 
@@ -533,6 +586,9 @@ def validate(scene: Scene) -> None:
         raise ValueError(f"track must be [frames, tips, 3] (u, v, depth_m), got shape {track.shape}")
     if not scene.bodies:
         raise ValueError("scene has no bodies")
+    if scene.guard is not None and any(b.guard is not None for b in scene.bodies):
+        raise ValueError("give the scene one guard over all bodies (scene.guard) or each body its own "
+                         "(Body.guard), not both")
     if scene.devices and scene.step is not None:
         raise ValueError("a scene with devices steps each body's step_fn on its device; it cannot also have a "
                          "step over all bodies (scene.step)")
