@@ -280,6 +280,18 @@ def test_bodies_on_their_own_devices_step_as_in_one_program():
         np.testing.assert_array_equal(np.asarray(fused[1]), b.z)
         assert tf.fused_frames == 5 and ts.fused_frames == 0 and np.all(tf.forces == 0.0)
         assert tf.guard_trips == ts.guard_trips == 6, (tf.guard_trips, ts.guard_trips)   # every frame, warm-up too
+        # with a fallback, the fused frame programs hand the bad body over themselves and, while it is held,
+        # run only its fallback: restart (+1) at frames 0 and 3, held (+2) at frames 1, 2, 4, 5
+        import jax
+        fb = jax.jit(lambda z, f, restart: z + jnp.where(restart, 1.0, 2.0))
+        handed = guarded._replace(fallback=(None, fb), fallback_hold=2)
+        fused, tf = sc.run(handed)
+        staged, ts = sc.run(handed._replace(fuse=False))
+        for a, c in zip(fused, staged):
+            np.testing.assert_allclose(np.asarray(a), np.asarray(c), rtol=1e-6, atol=1e-6)
+        np.testing.assert_allclose(np.asarray(fused[1]), b.z + 10.0, rtol=1e-6)
+        assert tf.guard_trips == ts.guard_trips == 2, (tf.guard_trips, ts.guard_trips)
+        assert tf.fused_frames == 5, tf.fused_frames
         try:
             sc.run(two._replace(devices=devices, step=lambda zs, fs: zs))
         except ValueError as err:

@@ -116,8 +116,9 @@ class Scene(NamedTuple):
     independent parts one after another on a single core); the states return to ``devices[0]`` for forces and
     rendering. Empty (the default): all bodies step in one program on the default device;
     fuse: once a body is touched, forces, step and guard are dispatched together and awaited once per frame
-    (one program, or with ``devices`` one per device, each body's guard in its step's program; a scene with
-    devices and a ``Scene.guard`` over all bodies runs its guard after the steps). False: each stage is
+    (one program; or with ``devices`` one per body on its device, holding the body's guard and its hand-over,
+    and for a body on its fallback only the fallback step; a scene with devices and a ``Scene.guard`` over all
+    bodies runs its guard after the steps). False: each stage is
     dispatched and awaited in turn, so the forces are timed on their own (what ``benchmarks/realtime.py``
     compares against).
     """
@@ -142,8 +143,9 @@ class Timings(NamedTuple):
     """Milliseconds per frame for each stage (arrays over frames) and the frames' overflow count.
 
     ``fused_frames``: timed frames whose forces, step and guard were dispatched together and awaited once
-    (``Scene.fuse``, once a body is touched and not every body is on its fallback); their forces time is 0 and
-    counted in ``step``, so forces + step is the simulation time of every frame. ``learned`` (bool per frame):
+    (``Scene.fuse``, once a body is touched and, without devices, not every body is on its fallback); their
+    forces time is 0 and counted in ``step``, so forces + step is the simulation time of every frame.
+    ``learned`` (bool per frame):
     the learned step ran in that frame, i.e. some body was touched and not on its fallback (None: not
     recorded)."""
     forces: np.ndarray
@@ -235,22 +237,24 @@ def _run(scene, frames, write, warmup, gc_pause):
     if guard_fn is not None:   # likewise the guard, before its first touched frame
         jax.block_until_ready(guard_fn(zs))
     sim_fn = None
+    resolves = False   # does sim_fn also hand flagged bodies over and step those on their fallback?
     if scene.fuse and not scene.devices:
         sim_fn = _fused_simulation(forces_fn, step_fn, guard)
-    elif scene.fuse and scene.guard is None:   # per device: each body's step and its own guard in one program
-        sim_fn = _fused_concurrent(forces_fn, _concurrent_step(scene, flags=True))
-    if sim_fn is not None:   # compiled now, not at the first touched frame
-        jax.block_until_ready(sim_fn(zs, track[0]))
+    elif scene.fuse and scene.guard is None:   # per device: each body's whole frame in one program
+        sim_fn, resolves = _fused_concurrent(forces_fn, _concurrent_frame(scene, fallback, initial)), True
+    if sim_fn is not None:   # compiled now, not at the first touched frame (both programs of each body)
+        for on_all in ((False, True) if resolves else (False,)):
+            jax.block_until_ready(sim_fn(zs, track[0], *((np.full(len(zs), on_all),) if resolves else ())))
     fused_frames = 0
     learned = []   # per timed frame: did the learned step run (not every body at rest or on its fallback)
     for i in range(frames):
         tips = track[i]
         t0 = time.perf_counter()
         on = left > 0
-        fused = sim_fn is not None and touched and not on.all()
+        fused = sim_fn is not None and touched and (resolves or not on.all())
         if fused:   # forces, step and guard in one program (the forces stage is then counted in the step's)
             prev = zs
-            zs, forces, flags = sim_fn(zs, tips)
+            zs, forces, flags = sim_fn(zs, tips, on) if resolves else sim_fn(zs, tips)
             flags = np.asarray(flags)   # awaits the program
             t1 = t0
             fused_frames += i >= warmup
@@ -265,7 +269,7 @@ def _run(scene, frames, write, warmup, gc_pause):
                 flags = np.asarray(guard_fn(zs)) if guard_fn is not None and not on.all() else False
             flags = np.broadcast_to(np.asarray(flags, bool).reshape(-1), (len(zs),)) & ~on
             guard_trips += int(flags.sum())
-            if flags.any() or on.any():
+            if (flags.any() or on.any()) and not (fused and resolves):
                 zs = tuple(fb(p, f, jnp.asarray(bool(bad))) if fb is not None and (bad or busy) else z0 if bad else z
                            for fb, p, f, z0, z, bad, busy in zip(fallback, prev, forces, initial, zs, flags, on))
                 zs = jax.block_until_ready(zs)
@@ -302,16 +306,48 @@ def _scene_guard(scene: Scene):
     return lambda zs: jnp.stack([jnp.asarray(False) if g is None else g(z) for g, z in zip(guards, zs)])
 
 
-def _fused_concurrent(forces_fn, step_fn):
-    """``(zs, tips) -> (zs_next, forces, flags)`` for a scene with ``devices``: the forces on ``devices[0]``,
-    then every body's step and guard as one program on its own device (``_concurrent_step(..., flags=True)``),
-    all dispatched before anything is awaited; returns once the states are back on ``devices[0]``."""
-    def fn(zs, tips):
+def _fused_concurrent(forces_fn, frame_fn):
+    """``(zs, tips, on) -> (zs_next, forces, flags)`` for a scene with ``devices``: the forces on ``devices[0]``,
+    then every body's frame as one program on its own device (`_concurrent_frame`), all dispatched before
+    anything is awaited; returns once the states are back on ``devices[0]``."""
+    def fn(zs, tips, on):
         forces = forces_fn(zs, tips)
-        nxt, flags = step_fn(zs, forces)
+        nxt, flags = frame_fn(zs, forces, on)
         return jax.block_until_ready(nxt), forces, jnp.stack(flags)
 
     return fn
+
+
+def _concurrent_frame(scene: Scene, fallback: tuple, initial: tuple):
+    """``frame_fn(zs, forces, on) -> (zs, flags)``: body k's whole simulation frame as one program on
+    ``scene.devices[k % D]``, every body's dispatched before any is awaited. A body not on its fallback
+    (``on[k]`` False) runs its learned step and its ``Body.guard``; where the guard flags the new state the same
+    program hands the body over (its fallback from the previous state with the stress restarted, or its initial
+    state without one), as the loop would do after it. A body on its fallback runs only its fallback: its
+    learned step, whose result the loop would discard, is not computed."""
+    devices, home = scene.devices, scene.devices[0]
+    places = [devices[k % len(devices)] for k in range(len(scene.bodies))]
+
+    def programs(b, fb, z0):
+        def learned(z, f):
+            nxt = b.step_fn(z, f)
+            if b.guard is None:
+                return nxt, jnp.asarray(False)
+            bad = jnp.asarray(b.guard(nxt), bool).reshape(())
+            handed = (lambda: fb(z, f, jnp.asarray(True))) if fb is not None else (lambda: z0)
+            return jax.lax.cond(bad, handed, lambda: nxt), bad
+        held = None if fb is None else jax.jit(lambda z, f: (fb(z, f, jnp.asarray(False)), jnp.asarray(False)))
+        return jax.jit(learned), held
+
+    progs = [programs(b, fb, jax.device_put(z0, d))
+             for b, fb, z0, d in zip(scene.bodies, fallback, initial, places)]
+
+    def frame_fn(zs, forces, on):
+        out = [(held if on_k and held is not None else learned)(jax.device_put(z, d), jax.device_put(f, d))
+               for (learned, held), z, f, d, on_k in zip(progs, zs, forces, places, on)]
+        return tuple(jax.device_put(z, home) for z, _ in out), tuple(jax.device_put(g, home) for _, g in out)
+
+    return frame_fn
 
 
 def _fused_simulation(forces_fn, step_fn, guard):
@@ -406,31 +442,17 @@ def cpu_devices(n: int) -> tuple:
     return tuple(jax.local_devices())
 
 
-def _concurrent_step(scene: Scene, flags: bool = False):
+def _concurrent_step(scene: Scene):
     """``step_fn(zs, forces) -> zs`` that steps body k on ``scene.devices[k % D]``: every body's step is
     dispatched before any is awaited (JAX dispatch is asynchronous), then each state is moved back to
-    ``devices[0]``. With ``flags``: ``-> (zs, flags)``, each body's ``Body.guard`` of its new state evaluated in
-    the same program as its step, on its device (False for a body without a guard)."""
+    ``devices[0]`` (the staged loop's step; `_concurrent_frame` is the fused loop's)."""
     devices = scene.devices
-    home = devices[0]
-
-    def program(b):
-        if not flags:
-            return jax.jit(b.step_fn)
-
-        def step_and_guard(z, f):
-            nxt = b.step_fn(z, f)
-            return nxt, jnp.asarray(False) if b.guard is None else jnp.asarray(b.guard(nxt), bool).reshape(())
-        return jax.jit(step_and_guard)
-
-    fns = [program(b) for b in scene.bodies]
+    fns = [jax.jit(b.step_fn) for b in scene.bodies]
     places = [devices[k % len(devices)] for k in range(len(scene.bodies))]
 
     def step_fn(zs, forces):
         out = [fn(jax.device_put(z, d), jax.device_put(f, d)) for fn, z, f, d in zip(fns, zs, forces, places)]
-        if not flags:
-            return tuple(jax.device_put(z, home) for z in out)
-        return (tuple(jax.device_put(z, home) for z, _ in out), tuple(jax.device_put(g, home) for _, g in out))
+        return tuple(jax.device_put(z, devices[0]) for z in out)
 
     return step_fn
 
