@@ -79,7 +79,8 @@ def run_scene(name: str, frames: int, warmup: int, devices: tuple = ()) -> dict:
 
 def loop_fusion(name: str, frames: int, warmup: int, devices: tuple, rounds: int) -> dict:
     """The scene's loop with its simulation stages fused (``Scene.fuse``: forces, step and guard dispatched
-    together and awaited once; with ``devices`` each body's guard in its step's program) against the stages
+    together and awaited once; with ``devices`` each body's guard and hand-over in its step's program, and a body
+    on its fallback stepped by the fallback alone) against the stages
     dispatched and awaited one by one, alternating for ``rounds`` rounds of ``frames`` frames each. Simulation
     p50 / p99 over the learned-step frames per run, and the ratio of the two variants' medians over the rounds."""
     from tignn_jax import scene as sc
@@ -391,7 +392,8 @@ def format_md(result: dict) -> str:
                             for k, v in t.items()) + "."]
     if result.get("loop_fusion"):
         lines += ["", "The loop's simulation stages fused (`Scene.fuse`: forces, step and guard dispatched together, "
-                  "awaited once per frame; with devices each body's guard runs in its step's program) against the "
+                  "awaited once per frame; with devices each body's guard and hand-over run in its step's program, and "
+                  "a body on its fallback runs the fallback alone) against the "
                   "stages dispatched and awaited one by one, alternating runs in the same process (simulation p50 / "
                   "p99 over the learned-step frames, median over the rounds):", "",
                   "| scene | frames × rounds | staged p50 / p99 | fused p50 / p99 | speed-up (p50) |",
