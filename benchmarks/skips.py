@@ -16,13 +16,15 @@ compilation, on this CPU:
   mixed-reality loop (tignn_jax/scene.py)
     * no object–object contact → the forces stage skips the contact search (two beams side by side);
     * bodies at rest and untouched are not stepped (the fingertip approaching, before the first touch);
-    * colour by displacement → the stress is not colour-mapped (render stage).
+    * colour by displacement → the stress is not colour-mapped (render stage);
+    * a body on its fallback (after a guard trip) is stepped by the fallback alone, not by its learned step too.
 Clamped nodes are not integrated: in the FEM and the network their rates are masked in place (one select
 over the state), so there is no separate work to skip; that is stated, not timed.
 Writes benchmarks/results/skips.{json,md}.
 
     python benchmarks/skips.py [--repeats 7]
     python benchmarks/skips.py --only-prony    # the Prony row alone, e.g. after its child deadlocked
+    python benchmarks/skips.py --only-held     # the held body's row alone
 """
 from __future__ import annotations
 
@@ -224,6 +226,25 @@ def rest_constants_skip(repeats: int) -> dict:
             "detail": f"bunny 32×3 with both port options, untrained, {n} nodes"}
 
 
+def held_body_skip(repeats: int) -> dict:
+    """A body on its fallback is stepped by the fallback alone: per frame, the loop used to run the body's
+    learned step too (dispatched on its own, its result discarded) before the fallback step."""
+    from tignn_jax.commands_demo import build_scene
+
+    scene, _ = build_scene("beam", 3)
+    fb = scene.fallback[0]
+    z = jnp.asarray(scene.bodies[0].z, jnp.float32)
+    f = jnp.zeros((z.shape[0], 3), jnp.float32)
+    learned, held = jax.jit(scene.step.body_step), jnp.asarray(False)   # one body's learned step
+    t = interleaved({"with": lambda: (jax.block_until_ready(learned(z, f)), fb(z, f, held))[1],
+                     "without": lambda: fb(z, f, held)}, repeats * 20)
+    return {"skip": "a body on its fallback is stepped by the fallback alone, not by its learned step too "
+                    "(beam-abaqus held on beam-linear)",
+            "with_ms": 1e3 * t["with"], "without_ms": 1e3 * t["without"],
+            "detail": "per held frame: learned step dispatched and discarded, then the fallback step, against "
+                      "the fallback step alone (the loop with one body per core, `scene._concurrent_frame`)"}
+
+
 def loop_skips(frames: int) -> list:
     from tignn_jax import scene as sc
     from tignn_jax.commands_demo import build_scene
@@ -262,6 +283,8 @@ def main(argv=None) -> int:
     ap.add_argument("--only-prony", action="store_true",
                     help="re-measure only the Prony row (its child process) and replace it in the existing "
                          "skips.json / skips.md, marked with this run's machine load and date")
+    ap.add_argument("--only-held", action="store_true",
+                    help="likewise for the row of a body on its fallback (measured alone and put in place)")
     args = ap.parse_args(argv)
     if args.repeats < 1 or args.frames < 1 or args.fem_frames < 1:
         raise SystemExit(f"--repeats, --frames and --fem-frames must be positive, got {args.repeats}, "
@@ -270,9 +293,12 @@ def main(argv=None) -> int:
         print(json.dumps(prony_pair(args.repeats, args.fem_frames)))
         return 0
     if args.only_prony:
-        return update_prony_row(args.repeats, args.fem_frames)
+        return update_row(lambda: prony_skip(args.repeats, args.fem_frames), "no Prony")
+    if args.only_held:
+        return update_row(lambda: held_body_skip(args.repeats), "a body on its fallback")
     machine = describe()
-    rows = model_skips(args.repeats) + loop_skips(args.frames) + fem_skips(args.repeats, args.fem_frames)
+    rows = (model_skips(args.repeats) + loop_skips(args.frames) + [held_body_skip(args.repeats)]
+            + fem_skips(args.repeats, args.fem_frames))
     for r in rows:
         with_saving(r)
     machine["load_average_1m_at_end"] = describe()["load_average_1m"]
@@ -291,9 +317,10 @@ def with_saving(row: dict) -> dict:
     return row
 
 
-def update_prony_row(repeats: int, frames: int) -> int:
-    """Re-measure the Prony pair alone (its ratio is self-contained: both sides interleaved in one child) and put
-    it in place of that row of the existing results; the row says when and under which load it was measured."""
+def update_row(measure, key: str) -> int:
+    """Measure one pair alone (``measure()`` → row; its ratio is self-contained: both sides timed in the same
+    run) and put it in place of the existing results' row whose skip starts with ``key`` (appended if there is
+    none); the row says when and under which load it was measured."""
     import time
 
     path = RESULTS / "skips.json"
@@ -301,11 +328,11 @@ def update_prony_row(repeats: int, frames: int) -> int:
         raise SystemExit(f"{path} does not exist: run the whole benchmark first")
     data = json.loads(path.read_text())
     at = describe()
-    row = with_saving(prony_skip(repeats, frames))
-    row["detail"] += (f"; re-measured on its own ({time.strftime('%Y-%m-%d', time.gmtime())}, load average "
-                      f"{at['load_average_1m']} at its start), not in the run of the other rows")
-    rows = [row if r["skip"].startswith("no Prony") else r for r in data["skips"]]
-    if not any(r["skip"].startswith("no Prony") for r in data["skips"]):
+    row = with_saving(measure())
+    row["detail"] += (f"; re-measured on its own ({time.strftime('%Y-%m-%d', time.gmtime())}, {at['cpu']}, "
+                      f"load average {at['load_average_1m']} at its start), not in the run of the other rows")
+    rows = [row if r["skip"].startswith(key) else r for r in data["skips"]]
+    if not any(r["skip"].startswith(key) for r in data["skips"]):
         rows.append(row)
     data["skips"] = rows
     path.write_text(json.dumps(data, indent=1))
