@@ -325,8 +325,7 @@ def _concurrent_frame(scene: Scene, fallback: tuple, initial: tuple):
     program hands the body over (its fallback from the previous state with the stress restarted, or its initial
     state without one), as the loop would do after it. A body on its fallback runs only its fallback: its
     learned step, whose result the loop would discard, is not computed."""
-    devices, home = scene.devices, scene.devices[0]
-    places = [devices[k % len(devices)] for k in range(len(scene.bodies))]
+    home, places = scene.devices[0], _places(scene)
 
     def programs(b, fb, z0):
         def learned(z, f):
@@ -446,15 +445,19 @@ def _concurrent_step(scene: Scene):
     """``step_fn(zs, forces) -> zs`` that steps body k on ``scene.devices[k % D]``: every body's step is
     dispatched before any is awaited (JAX dispatch is asynchronous), then each state is moved back to
     ``devices[0]`` (the staged loop's step; `_concurrent_frame` is the fused loop's)."""
-    devices = scene.devices
     fns = [jax.jit(b.step_fn) for b in scene.bodies]
-    places = [devices[k % len(devices)] for k in range(len(scene.bodies))]
+    places = _places(scene)
 
     def step_fn(zs, forces):
         out = [fn(jax.device_put(z, d), jax.device_put(f, d)) for fn, z, f, d in zip(fns, zs, forces, places)]
-        return tuple(jax.device_put(z, devices[0]) for z in out)
+        return tuple(jax.device_put(z, scene.devices[0]) for z in out)
 
     return step_fn
+
+
+def _places(scene: Scene) -> list:
+    """The device of each body: body k on ``scene.devices[k % D]``."""
+    return [scene.devices[k % len(scene.devices)] for k in range(len(scene.bodies))]
 
 
 def make_render_fn(scene: Scene, capacity: int):
