@@ -72,7 +72,7 @@ def linear_world(name: str = "bunny-linear"):
         raise ValueError(f"the bunny scene has {len(scene.points)} nodes, the model {n}")
     return dict(a_inv=a_inv[np.ix_(free, free)], mass=mass[free], c=(1 + alpha * h) / h ** 2, h=h,
                 free_n=free_n, free=free, dist=dist[np.ix_(free_n, free_n)], scene=scene,
-                radius=float(info["fem_load_radius"]))
+                radius=float(info["fem_load_radius"]), senders=s, receivers=r)
 
 
 def forces_for(world, load_nodes=None, n_cases=100, seed=0):
