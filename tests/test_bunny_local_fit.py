@@ -48,3 +48,23 @@ def test_a_fit_with_too_few_hops_cannot_reproduce_a_wider_map():
     err = lambda f: np.linalg.norm(f(*np.moveaxis(x, -1, 0)) - y) / np.linalg.norm(y)
     assert err(wide) < 1e-8
     assert err(narrow) > 0.3
+
+
+def test_the_linear_message_passing_probe_is_linear_in_the_state_and_sees_p_hops():
+    import jax
+    import jax.numpy as jnp
+
+    import bunny_linear_gnn as lg
+
+    n, layers = 9, 2
+    s = np.concatenate([np.arange(n - 1), np.arange(1, n)])        # a chain, both directions
+    r = np.concatenate([np.arange(1, n), np.arange(n - 1)])
+    g = jnp.asarray(np.random.default_rng(0).standard_normal((len(s), 13)), jnp.float32)
+    p = lg.init(jax.random.PRNGKey(0), layers, 8, 13)
+    x1, x2 = (jnp.asarray(np.random.default_rng(k).standard_normal((2, n, 9)), jnp.float32) for k in (1, 2))
+    f = lambda x: lg.apply(p, x, g, jnp.asarray(s), jnp.asarray(r))
+    np.testing.assert_allclose(f(2.0 * x1 - 3.0 * x2), 2.0 * f(x1) - 3.0 * f(x2), rtol=1e-4, atol=1e-6)
+    # a disturbance at node 0 reaches nodes 0..layers and no further
+    kick = jnp.zeros((1, n, 9)).at[0, 0, 0].set(1.0)
+    reached = np.abs(np.asarray(f(kick))[0]).sum(1) > 0
+    assert reached[: layers + 1].all() and not reached[layers + 1:].any()
