@@ -100,12 +100,7 @@ def main(argv=None) -> int:
     world = blf.linear_world()
     h = world["h"]
     step = blf.exact_step(world)
-    f_all, picked = blf.forces_for(world)
-    from fem.cases import _free_surface
-
-    surface, _ = _free_surface(world["scene"])
-    f_tr = blf.forces_for(world, load_nodes=np.setdiff1d(surface, surface[picked[blf.HELD_OUT]]))[0]
-    f_te = f_all[blf.HELD_OUT]
+    f_te, _, f_tr = blf.split_forces(world)
     x, y = blf.transitions(*blf.roll(step, f_tr, h), f_tr)          # [S, dofs, 3], [S, dofs]
     n = x.shape[1] // 3
     scale = x.reshape(len(x), n, 3, 3).std(axis=(0, 1, 2)) + 1e-30

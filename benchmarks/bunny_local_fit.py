@@ -83,6 +83,19 @@ def forces_for(world, load_nodes=None, n_cases=100, seed=0):
     return f.reshape(f.shape[0], f.shape[1], -1)[..., world["free"]], picked
 
 
+def split_forces(world, dense: bool = True):
+    """(held-out forces: the data set's positions 81–100; the data set's training positions 1–80; every other
+    free surface position, or None without ``dense``), each [cases, frames, free dofs]."""
+    from fem.cases import _free_surface
+
+    f_all, picked = forces_for(world)
+    rest = None
+    if dense:
+        surface, _ = _free_surface(world["scene"])
+        rest = forces_for(world, load_nodes=np.setdiff1d(surface, surface[picked[HELD_OUT]]))[0]
+    return f_all[HELD_OUT], f_all[:80], rest
+
+
 def roll(step, f, h):
     """u, v [cases, frames+1, dofs] from rest, with u_{k+1} = step(u, v, f_k)."""
     u = np.zeros((f.shape[0], f.shape[2]))
@@ -173,16 +186,9 @@ def main(argv=None) -> int:
     t0 = time.time()
     world = linear_world()
     step = exact_step(world)
-    f_all, picked = forces_for(world)
-    f_test = f_all[HELD_OUT]
+    f_test, f_data, f_dense = split_forces(world, dense="dense" in sets)
     u_t, v_t = roll(step, f_test, world["h"])
-    from fem.cases import _free_surface
-
-    surface, _ = _free_surface(world["scene"])
-    train_forces = {"data": f_all[:80]}
-    if "dense" in sets:
-        rest = np.setdiff1d(surface, surface[picked[HELD_OUT]])
-        train_forces["dense"] = forces_for(world, load_nodes=rest)[0]
+    train_forces = {"data": f_data, "dense": f_dense}
     out = {"machine": machine, "world": "bunny-linear (rest-linearised backward Euler)",
            "free_nodes": int(world["free_n"].sum()), "held_out_cases": (HELD_OUT + 1).tolist(),
            "ridges": ridges, "truncated_check": {}, "fits": {}}
