@@ -17,7 +17,7 @@ the one-step loss is what a linear world needs, and the spectral radius of its u
 It is a probe, not a GENERIC model: a positive answer says what a thermodynamics-informed network for the bunny
 must contain (state-linear messages with geometry-dependent coefficients), not that one has been built.
 
-    python benchmarks/bunny_linear_gnn.py [--layers 4] [--width 16] [--steps 3000] [--noise 0]
+    python benchmarks/bunny_linear_gnn.py [--layers 4] [--width 16] [--steps 3000] [--noise 0] [--per-sample]
 
 Writes benchmarks/results/bunny_linear_gnn.{json,md}.
 """
@@ -92,6 +92,9 @@ def main(argv=None) -> int:
     ap.add_argument("--lr", type=float, default=2e-3)
     ap.add_argument("--noise", type=float, default=0.0, help="input noise in feature stds (a ridge, for stability)")
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--per-sample", action="store_true",
+                    help="divide each transition's inputs and target by its target's norm (the map is linear, so "
+                         "this only weights the loss: every transition counts alike, as in a relative error)")
     args = ap.parse_args(argv)
     if min(args.layers, args.width, args.steps, args.batch) < 1 or not args.lr > 0 or args.noise < 0:
         raise SystemExit(f"--layers, --width, --steps, --batch must be positive, --lr > 0, --noise >= 0; got {vars(args)}")
@@ -108,6 +111,9 @@ def main(argv=None) -> int:
     t_scale = target.std()
     xs = (x.reshape(len(x), n, 3, 3) / scale).reshape(len(x), n, 9).astype(np.float32)
     ts = (target / t_scale).astype(np.float32)
+    if args.per_sample:
+        w = np.sqrt((ts ** 2).mean(axis=(1, 2), keepdims=True)) + 1e-6
+        xs, ts = (xs / w).astype(np.float32), (ts / w).astype(np.float32)
     g, s, r = geometry(world)
     g, s, r = jnp.asarray(g), jnp.asarray(s), jnp.asarray(r)
     params = init(jax.random.PRNGKey(args.seed), args.layers, args.width, g.shape[1])
@@ -165,7 +171,8 @@ def main(argv=None) -> int:
            "spectral_radius": radius, "train_positions_one_step_of_kinematic_residual": one_seen,
            "train_positions_rollout_u": seen_u, "train_positions_rollout_v": seen_v, "total_s": time.time() - t0}
     RESULTS.mkdir(parents=True, exist_ok=True)
-    tag = f"{args.layers}x{args.width}" + (f"_noise{args.noise:g}" if args.noise else "")
+    tag = (f"{args.layers}x{args.width}" + (f"_noise{args.noise:g}" if args.noise else "")
+           + ("_per-sample" if args.per_sample else ""))
     runs_path = RESULTS / "bunny_linear_gnn.json"
     runs = json.loads(runs_path.read_text()) if runs_path.exists() else {}
     runs[tag] = out
