@@ -131,36 +131,37 @@ class LocalMap:
         return scale, xs.T @ xs, xs.T @ y
 
     def __init__(self, world, hops: int, moments, ridge: float):
+        from scipy.sparse import coo_matrix
+
         n_free = world["dist"].shape[0]
-        self.scale, gram, cross = moments
-        self.blocks = []
+        scale, gram, cross = moments
+        rows, cols_all, vals, support = [], [], [], []
         for i in range(n_free):
             nodes = np.where(world["dist"][i] <= hops)[0]
             cols = ((nodes[:, None] * 3 + np.arange(3))[..., None] * 3 + np.arange(3)).ravel()
             g = gram[np.ix_(cols, cols)]
             g[np.diag_indices_from(g)] += ridge * np.trace(g) / len(g)
-            w = np.linalg.solve(g, cross[cols][:, 3 * i:3 * i + 3])
-            self.blocks.append((cols, w))
-        self.mean_support = float(np.mean([len(c) // 9 for c, _ in self.blocks]))
+            w = np.linalg.solve(g, cross[cols][:, 3 * i:3 * i + 3]) / scale[cols % 3][:, None]   # raw units
+            rows.append(np.broadcast_to(np.arange(3 * i, 3 * i + 3), w.shape).ravel())
+            cols_all.append(np.broadcast_to(cols[:, None], w.shape).ravel())
+            vals.append(w.ravel())
+            support.append(len(nodes))
+        # the fitted map as one sparse matrix [free dofs, free dofs × (u, v, f)], features ordered (dof, kind)
+        self.W = coo_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols_all))),
+                            shape=(3 * n_free, 9 * n_free)).tocsr()
+        self.mean_support = float(np.mean(support))
 
     def radius(self, h: float) -> float:
         """Spectral radius of the fitted map's free response (u, v) → (u', v'), f = 0 (the exact map's is < 1)."""
-        from scipy.sparse import coo_matrix, bmat, identity
+        from scipy.sparse import bmat, identity
         from scipy.sparse.linalg import eigs
 
-        n = 3 * len(self.blocks)
-        rows = np.concatenate([np.repeat(np.arange(3 * i, 3 * i + 3)[None], len(c), 0).ravel()
-                               for i, (c, _) in enumerate(self.blocks)])
-        cols = np.concatenate([np.repeat(c[:, None], 3, 1).ravel() for c, _ in self.blocks])
-        vals = np.concatenate([(w / self.scale[c % 3][:, None]).ravel() for c, w in self.blocks])
-        W = coo_matrix((vals, (rows, cols)), shape=(n, 3 * n)).tocsr()
-        wu, wv = W[:, 0::3], W[:, 1::3]
-        T = bmat([[wu, wv], [(wu - identity(n)) / h, wv / h]]).tocsr()
+        wu, wv = self.W[:, 0::3], self.W[:, 1::3]
+        T = bmat([[wu, wv], [(wu - identity(wu.shape[0])) / h, wv / h]]).tocsr()
         return float(np.abs(eigs(T, k=1, which="LM", return_eigenvectors=False, maxiter=5000)).max())
 
     def __call__(self, u, v, f):
-        xs = (np.stack([u, v, f], -1) / self.scale).reshape(len(u), -1)
-        return np.concatenate([xs[:, cols] @ w for cols, w in self.blocks], axis=1)
+        return (self.W @ np.stack([u, v, f], -1).reshape(len(u), -1).T).T
 
 
 def rel_errors(u, v, u_t, v_t):

@@ -118,9 +118,8 @@ class Scene(NamedTuple):
     fuse: once a body is touched, forces, step and guard are dispatched together and awaited once per frame
     (one program; or with ``devices`` one per body on its device, holding the body's guard and its hand-over,
     and for a body on its fallback only the fallback step; a scene with devices and a ``Scene.guard`` over all
-    bodies runs its guard after the steps). False: each stage is
-    dispatched and awaited in turn, so the forces are timed on their own (what ``benchmarks/realtime.py``
-    compares against).
+    bodies runs its guard after the steps). False: each stage is dispatched and awaited in turn, so the forces
+    are timed on their own (what ``benchmarks/realtime.py`` compares against).
     """
     bodies: tuple
     camera: Camera
@@ -145,9 +144,8 @@ class Timings(NamedTuple):
     ``fused_frames``: timed frames whose forces, step and guard were dispatched together and awaited once
     (``Scene.fuse``, once a body is touched and, without devices, not every body is on its fallback); their
     forces time is 0 and counted in ``step``, so forces + step is the simulation time of every frame.
-    ``learned`` (bool per frame):
-    the learned step ran in that frame, i.e. some body was touched and not on its fallback (None: not
-    recorded)."""
+    ``learned`` (bool per frame): the learned step ran in that frame, i.e. some body was touched and not on its
+    fallback (None: not recorded)."""
     forces: np.ndarray
     step: np.ndarray
     render: np.ndarray
@@ -244,7 +242,7 @@ def _run(scene, frames, write, warmup, gc_pause):
         sim_fn, resolves = _fused_concurrent(forces_fn, _concurrent_frame(scene, fallback, initial)), True
     if sim_fn is not None:   # compiled now, not at the first touched frame (both programs of each body)
         for on_all in ((False, True) if resolves else (False,)):
-            jax.block_until_ready(sim_fn(zs, track[0], *((np.full(len(zs), on_all),) if resolves else ())))
+            jax.block_until_ready(sim_fn(zs, track[0], np.full(len(zs), on_all)))
     fused_frames = 0
     learned = []   # per timed frame: did the learned step run (not every body at rest or on its fallback)
     for i in range(frames):
@@ -254,7 +252,7 @@ def _run(scene, frames, write, warmup, gc_pause):
         fused = sim_fn is not None and touched and (resolves or not on.all())
         if fused:   # forces, step and guard in one program (the forces stage is then counted in the step's)
             prev = zs
-            zs, forces, flags = sim_fn(zs, tips, on) if resolves else sim_fn(zs, tips)
+            zs, forces, flags = sim_fn(zs, tips, on)
             flags = np.asarray(flags)   # awaits the program
             t1 = t0
             fused_frames += i >= warmup
@@ -350,8 +348,9 @@ def _concurrent_frame(scene: Scene, fallback: tuple, initial: tuple):
 
 
 def _fused_simulation(forces_fn, step_fn, guard):
-    """``(zs, tips) -> (zs_next, forces, flags)``: the loop's simulation stages (forces, step, guard) as one
-    program, one dispatch and one wait per frame instead of three (measured on the beam: 7.22 → 6.87 ms p50 for
+    """``(zs, tips, on) -> (zs_next, forces, flags)``: the loop's simulation stages (forces, step, guard) as one
+    program (every body is stepped, so ``on``, the bodies on their fallback, is not used: the loop hands bodies
+    over after it), one dispatch and one wait per frame instead of three (measured on the beam: 7.22 → 6.87 ms p50 for
     the three, `benchmarks/realtime.py` times the loop with it). ``flags`` is what the guard returns (one bool,
     or one per body), False without a guard."""
     @jax.jit
@@ -360,7 +359,7 @@ def _fused_simulation(forces_fn, step_fn, guard):
         nxt = step_fn(zs, forces)
         return nxt, forces, jnp.asarray(False) if guard is None else guard(nxt)
 
-    return fn
+    return lambda zs, tips, on: fn(zs, tips)
 
 
 def build(scene: Scene):
