@@ -6,6 +6,10 @@ united); this script also keeps the first file's mesh cells and metadata (materi
 time step and the material; a difference is an error naming it.
 
     python scripts/concat_data.py data/bunny_imp_r3_p5.npz data/bunny_p5_f5.npz --out data/bunny_p5_f1f5.npz
+
+``--train-later``: the later files are training data only. Every case of theirs forms the train split, and
+the first file contributes only its val and test splits (for a dense training set around held-out positions:
+`scripts/bunny_dense_positions.py`).
 """
 from __future__ import annotations
 
@@ -22,6 +26,8 @@ def main(argv=None) -> Path:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("files", nargs="+", help="data-set .npz files of one scene, in order")
     parser.add_argument("--out", required=True, help="output .npz")
+    parser.add_argument("--train-later", action="store_true",
+                        help="train = every case of the files after the first; val and test = the first file's")
     args = parser.parse_args(argv)
     sets = [D.load(p) for p in args.files]
     raw = [np.load(p, allow_pickle=False) for p in args.files]
@@ -33,6 +39,11 @@ def main(argv=None) -> Path:
         if "cells" in raw[0].files and ("cells" not in r.files or not np.array_equal(r["cells"], raw[0]["cells"])):
             raise ValueError(f"{path} does not have the cells of {args.files[0]}")
     data = D.concatenate(*sets)
+    if args.train_later:
+        if len(sets) < 2:
+            raise ValueError("--train-later needs at least two files")
+        first = {k: np.asarray(v, np.int32) for k, v in sets[0].splits.items() if k in ("val", "test")}
+        data = data._replace(splits={"train": data.sim_id[len(sets[0].sim_id):], **first})
     meta = json.loads(str(raw[0]["metadata"])) if "metadata" in raw[0].files else {}
     meta["concatenated_from"] = [str(p) for p in args.files]
     out = Path(args.out)
