@@ -86,12 +86,12 @@ def forces_for(world, load_nodes=None, n_cases=100, seed=0):
 def split_forces(world, dense: bool = True):
     """(held-out forces: the data set's positions 81–100; the data set's training positions 1–80; every other
     free surface position, or None without ``dense``), each [cases, frames, free dofs]."""
-    from fem.cases import _free_surface
+    from fem.cases import free_surface
 
     f_all, picked = forces_for(world)
     rest = None
     if dense:
-        surface, _ = _free_surface(world["scene"])
+        surface, _ = free_surface(world["scene"])
         rest = forces_for(world, load_nodes=np.setdiff1d(surface, surface[picked[HELD_OUT]]))[0]
     return f_all[HELD_OUT], f_all[:80], rest
 

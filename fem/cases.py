@@ -38,7 +38,7 @@ def fingertip_forces(scene, n_cases: int, seed: int, *, peak_total: float = 600_
     if peak_total <= 0:
         raise ValueError(f"peak_total must be positive, got {peak_total}")
     rng = np.random.default_rng(seed)
-    nodes, normals = _free_surface(scene)
+    nodes, normals = free_surface(scene)
     T, N = scene.n_frames, len(scene.points)
     out = np.zeros((n_cases, T, N, 3))
     described = []
@@ -84,7 +84,7 @@ def point_load_forces(scene, n_cases: int = 100, seed: int = 0, load_nodes=None,
         raise ValueError(f"rise_frames must be in 0..{scene.n_frames}, got {rise_frames}")
     if not (np.isfinite(radius) and radius >= 0):
         raise ValueError(f"radius must be a finite number >= 0, got {radius}")
-    nodes, normals = _free_surface(scene)
+    nodes, normals = free_surface(scene)
     if load_nodes is None:
         if not 1 <= n_cases <= len(nodes):
             raise ValueError(f"n_cases must be in 1..{len(nodes)} (free surface nodes), got {n_cases}")
@@ -125,7 +125,7 @@ def multi_point_load_forces(scene, n_cases: int, per_case: int, seed: int = 0, *
         raise ValueError(f"n_cases and per_case must be positive, got {n_cases} and {per_case}")
     if not 0 <= rise_frames <= scene.n_frames:
         raise ValueError(f"rise_frames must be in 0..{scene.n_frames}, got {rise_frames}")
-    nodes, normals = _free_surface(scene)
+    nodes, normals = free_surface(scene)
     n = len(scene.points)
     exclude_nodes = np.asarray(exclude_nodes, int).ravel()
     allowed = np.ones(len(nodes), bool)
@@ -166,7 +166,9 @@ def smooth_rise(n_frames: int, rise_frames: int) -> np.ndarray:
     return s * s * (3.0 - 2.0 * s)
 
 
-def _free_surface(scene):
+def free_surface(scene):
+    """(node ids, outward unit normals) of the scene's surface nodes that are free (node type 0): where loads
+    may be placed."""
     nodes, normals = surface_nodes_and_normals(scene.points, scene.cells)
     keep = scene.node_type[nodes] == 0
     return nodes[keep], normals[keep]

@@ -24,7 +24,7 @@ def dense_positions(min_distance: float = 5.5, n_cases: int = 100, seed: int = 0
     if not (np.isfinite(min_distance) and min_distance >= 0):
         raise ValueError(f"min_distance must be a finite number >= 0, got {min_distance}")
     scene = scenes.bunny_scene()
-    surface, _ = cases._free_surface(scene)
+    surface, _ = cases.free_surface(scene)
     _, picked = cases.point_load_forces(scene, n_cases=n_cases, seed=seed)
     held = picked[np.asarray(list(held_out))]
     d = np.linalg.norm(scene.points[surface][:, None] - scene.points[held][None], axis=-1).min(axis=1)

@@ -31,7 +31,8 @@ def main(argv=None) -> Path:
     args = parser.parse_args(argv)
     sets = [D.load(p) for p in args.files]
     raw = [np.load(p, allow_pickle=False) for p in args.files]
-    materials = [json.loads(str(r["metadata"])).get("material") if "metadata" in r.files else None for r in raw]
+    metas = [json.loads(str(r["metadata"]) or "{}") if "metadata" in r.files else {} for r in raw]
+    materials = [m.get("material") for m in metas]
     for path, mat in zip(args.files[1:], materials[1:]):
         if mat != materials[0]:
             raise ValueError(f"{path} has the material {mat}, {args.files[0]} has {materials[0]}")
@@ -44,7 +45,7 @@ def main(argv=None) -> Path:
             raise ValueError("--train-later needs at least two files")
         first = {k: np.asarray(v, np.int32) for k, v in sets[0].splits.items() if k in ("val", "test")}
         data = data._replace(splits={"train": data.sim_id[len(sets[0].sim_id):], **first})
-    meta = json.loads(str(raw[0]["metadata"])) if "metadata" in raw[0].files else {}
+    meta = dict(metas[0])
     meta["concatenated_from"] = [str(p) for p in args.files]
     out = Path(args.out)
     extra = {k: raw[0][k] for k in ("cells", "cell_type") if k in raw[0].files}

@@ -1,0 +1,66 @@
+"""The dense bunny training set: its positions keep away from the held-out ones, and `concat_data --train-later`
+makes every later case a training case while the first file keeps its val and test cases."""
+import importlib.util
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from fem import cases, scenes
+from tignn_jax import data as D
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def _script(name):
+    spec = importlib.util.spec_from_file_location(name, ROOT / "scripts" / f"{name}.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_dense_positions_keep_their_distance_from_the_held_out_ones():
+    dense, held = _script("bunny_dense_positions").dense_positions(5.5)
+    scene = scenes.bunny_scene()
+    surface, _ = cases.free_surface(scene)
+    _, picked = cases.point_load_forces(scene, n_cases=100, seed=0)
+    assert np.array_equal(held, picked[80:])
+    assert np.isin(dense, surface).all() and len(np.unique(dense)) == len(dense)
+    d = np.linalg.norm(scene.points[dense][:, None] - scene.points[held][None], axis=-1)
+    assert d.min() >= 5.5
+    # every free surface node at that distance is in it, the data set's own training positions (5.54 away) too
+    d_all = np.linalg.norm(scene.points[surface][:, None] - scene.points[held][None], axis=-1).min(axis=1)
+    assert len(dense) == int((d_all >= 5.5).sum()) == 705
+    assert np.isin(picked[:80], dense).all()
+    with pytest.raises(ValueError, match="min_distance"):
+        _script("bunny_dense_positions").dense_positions(-1.0)
+
+
+def _tiny(n_cases, seed, splits):
+    rng = np.random.default_rng(seed)
+    q0 = rng.normal(size=(4, 3)).astype(np.float32)
+    edges = np.array([[0, 1, 2], [1, 2, 3]], np.int32)
+    return D.Dataset(q0=q0, edges=edges, node_type=np.zeros(4, np.int8),
+                     z=rng.normal(size=(n_cases, 3, 4, 12)).astype(np.float32),
+                     f=rng.normal(size=(n_cases, 2, 4, 3)).astype(np.float32), dt=0.05,
+                     sim_id=np.arange(1, n_cases + 1, dtype=np.int32), splits=splits)
+
+
+def test_concat_train_later(tmp_path, monkeypatch):
+    first = _tiny(5, 0, {"train": np.array([1, 2, 3]), "val": np.array([4]), "test": np.array([5])})
+    later = _tiny(3, 0, {"train": np.array([1]), "val": np.array([2]), "test": np.array([3])})
+    later = later._replace(z=later.z + 1.0)
+    paths = [D.save(first, tmp_path / "a.npz"), D.save(later, tmp_path / "b.npz")]
+    concat = _script("concat_data")
+    out = concat.main([str(p) for p in paths] + ["--out", str(tmp_path / "all.npz"), "--train-later"])
+    got = D.load(out)
+    assert got.sim_id.tolist() == [1, 2, 3, 4, 5, 6, 7, 8]
+    assert got.splits["train"].tolist() == [6, 7, 8]
+    assert got.splits["val"].tolist() == [4] and got.splits["test"].tolist() == [5]
+    np.testing.assert_array_equal(got.z[5:], later.z)
+    # without the flag the splits are the union, the later set's ids shifted
+    got = D.load(concat.main([str(p) for p in paths] + ["--out", str(tmp_path / "u.npz")]))
+    assert got.splits["train"].tolist() == [1, 2, 3, 6] and got.splits["test"].tolist() == [5, 8]
+    with pytest.raises(ValueError, match="--train-later"):
+        concat.main([str(paths[0]), "--out", str(tmp_path / "one.npz"), "--train-later"])
