@@ -64,3 +64,27 @@ def test_concat_train_later(tmp_path, monkeypatch):
     assert got.splits["train"].tolist() == [1, 2, 3, 6] and got.splits["test"].tolist() == [5, 8]
     with pytest.raises(ValueError, match="--train-later"):
         concat.main([str(paths[0]), "--out", str(tmp_path / "one.npz"), "--train-later"])
+
+
+def test_case_errors_per_case_and_chunk_independent():
+    import tignn_jax
+    from tignn_jax import evaluate as EV
+
+    params, graph = tignn_jax.load_pretrained("bunny-linear")
+    z0 = np.asarray(graph.nodes["z"], np.float32)
+    n = len(z0)
+    rng = np.random.default_rng(0)
+    f = np.zeros((3, 3, n, 3), np.float32)
+    f[:, :, rng.integers(0, n, 20)] = rng.normal(size=(3, 3, 20, 3)).astype(np.float32) * 0.1
+    data = D.Dataset(q0=z0[:, :3], edges=np.stack([np.asarray(graph.senders), np.asarray(graph.receivers)]),
+                     node_type=np.asarray(graph.nodes["node_type"]), z=np.repeat(z0[None, None], 3, 1).repeat(3, 0),
+                     f=f, dt=0.05, sim_id=np.array([1, 2, 3], np.int32), splits={})
+    truth = np.array(EV.rollout_cases(params, data, np.arange(3)))
+    truth[1, 1:, :, :3] += 0.01 * np.abs(truth[1, 1:, :, :3] - z0[:, :3]).max()   # case 2 off by a shift
+    data = data._replace(z=truth)
+    case_errors = _script("case_errors").case_errors
+    a, b = case_errors(params, data, np.arange(3), chunk=2), case_errors(params, data, np.arange(3), chunk=1)
+    for k in (1, 2, 3):   # chunks change only the float32 batch arithmetic
+        np.testing.assert_allclose([a[k][v] for v in EV.VARIABLES], [b[k][v] for v in EV.VARIABLES], rtol=1e-3,
+                                   atol=1e-3)
+    assert a[1]["u"] < 1e-3 and a[3]["u"] < 1e-3 and a[2]["u"] > 1e-2
