@@ -8,7 +8,10 @@
 #   scripts/bunny_dense_train.sh phase2   # BPTT over 20-step rollouts       -> runs/dense-p2/best/model.npz
 #
 # Environment: PY (python, default python3), REF_CASES (100), DENSE_LIMIT (all), GEN_BATCH (128),
-# P1_EPOCHS/P1_TIME (16 / 330 s), P2_EPOCHS/P2_TIME/P2_BATCH (12 / 480 s / 8), SIZE ("--set hidden=128 --set passes=6").
+# P1_EPOCHS (24), P2_EPOCHS (8), P2_BATCH (8), P1_TIME/P2_TIME (a time limit in s; default none),
+# SIZE ("--set hidden=128 --set passes=6"). On one H100: data 219 s, 17.3 s per one-step epoch, 29 s per BPTT
+# epoch, plus about 2 min to load the data and compile. Session 29's run (lab notes) was cut by its device time
+# after 17 of the 24 one-step epochs; its BPTT phase started from epoch 16's model.
 set -euo pipefail
 PY=${PY:-python3}
 STAGE=${1:?stage: data, phase1 or phase2}
@@ -33,13 +36,13 @@ case "$STAGE" in
     echo "assembled: $(( $(date +%s) - t2 )) s" ;;
   phase1)
     $PY -m tignn_jax.cli train --data data/bunny_all.npz --config bunny --run-dir runs/dense-p1 --no-progress \
-        --time-limit "${P1_TIME:-330}" $SIZE "${OPTS[@]}" --set batch_size=16 --set epochs="${P1_EPOCHS:-16}" \
+        ${P1_TIME:+--time-limit $P1_TIME} $SIZE "${OPTS[@]}" --set batch_size=16 --set epochs="${P1_EPOCHS:-24}" \
         --set lr=1e-3 --set warmup_steps=200 --set eval_every=1 --set ckpt_every=1 ;;
   phase2)
     $PY -m tignn_jax.cli train --data data/bunny_all.npz --config bunny --run-dir runs/dense-p2 --no-progress \
-        --init-from runs/dense-p1 --time-limit "${P2_TIME:-480}" $SIZE "${OPTS[@]}" --set unroll=20 \
+        --init-from runs/dense-p1 ${P2_TIME:+--time-limit $P2_TIME} $SIZE "${OPTS[@]}" --set unroll=20 \
         --set bptt=true --set snapshot_loss=true --set noise=0.1 --set batch_size="${P2_BATCH:-8}" --set lr=3e-4 \
-        --set lr_end=3e-5 --set warmup_steps=20 --set epochs="${P2_EPOCHS:-12}" --set eval_every=1 \
+        --set lr_end=3e-5 --set warmup_steps=20 --set epochs="${P2_EPOCHS:-8}" --set eval_every=1 \
         --set ckpt_every=1 ;;
   *) echo "unknown stage $STAGE (data, phase1, phase2)" >&2; exit 2 ;;
 esac

@@ -29,6 +29,8 @@ def main(argv=None) -> Path:
     parser.add_argument("--train-later", action="store_true",
                         help="train = every case of the files after the first; val and test = the first file's")
     args = parser.parse_args(argv)
+    if args.train_later and len(args.files) < 2:
+        raise ValueError("--train-later needs at least two files")
     sets = [D.load(p) for p in args.files]
     raw = [np.load(p, allow_pickle=False) for p in args.files]
     metas = [json.loads(str(r["metadata"]) or "{}") if "metadata" in r.files else {} for r in raw]
@@ -41,8 +43,6 @@ def main(argv=None) -> Path:
             raise ValueError(f"{path} does not have the cells of {args.files[0]}")
     data = D.concatenate(*sets)
     if args.train_later:
-        if len(sets) < 2:
-            raise ValueError("--train-later needs at least two files")
         first = {k: np.asarray(v, np.int32) for k, v in sets[0].splits.items() if k in ("val", "test")}
         data = data._replace(splits={"train": data.sim_id[len(sets[0].sim_id):], **first})
     meta = dict(metas[0])
