@@ -215,6 +215,34 @@ def test_force_scale_is_the_rms_of_the_loaded_nodes():
     np.testing.assert_array_equal(unloaded["f_std"], np.ones(3))
 
 
+def test_normalisation_streams_over_cases_with_the_same_statistics():
+    # Running sums over a few cases at a time give the statistics of all the rows' values at once.
+    data = D.synthetic_beam(nx=5, ny=2, nz=2, cases=5, frames=4)
+    rng = np.random.default_rng(1)
+    data = data._replace(z=data.z + rng.normal(size=data.z.shape).astype(np.float32) * 0.1)
+    rows = np.array([4, 0, 2, 3])
+    ref = D.normalization(data, rows, chunk=len(rows))
+    for chunk in (1, 3):
+        got = D.normalization(data, rows, chunk=chunk)
+        assert got.keys() == ref.keys()
+        for k in ref:
+            np.testing.assert_allclose(got[k], ref[k], rtol=1e-6, err_msg=k)
+    z = data.z[rows].astype(np.float64)
+    s, r = data.edges
+    dq = z[..., s, :3] - z[..., r, :3]
+    flat = z.reshape(-1, 12)
+    np.testing.assert_allclose(ref["z_mean"], flat.mean(0), rtol=1e-6, atol=1e-7)
+    np.testing.assert_allclose(ref["z_std"][6:], np.maximum(flat[:, 6:].std(0), 1e-2 * flat[:, 6:].std(0).max()),
+                               rtol=1e-5)
+    np.testing.assert_allclose(ref["z_std"][:3], np.sqrt(np.mean((flat[:, :3] - flat[:, :3].mean(0)) ** 2)), rtol=1e-5)
+    np.testing.assert_allclose(ref["dq_std"], np.sqrt(np.mean(dq ** 2)), rtol=1e-6)
+    np.testing.assert_allclose(ref["dqn_std"], np.linalg.norm(dq, axis=-1).std(), rtol=1e-5)
+    dev = np.abs((flat - ref["z_mean"]) / ref["z_std"]).max(0)
+    np.testing.assert_allclose(ref["z_dev_max"], dev, rtol=1e-5)
+    with pytest.raises(ValueError, match="chunk"):
+        D.normalization(data, rows, chunk=0)
+
+
 def test_warm_start_keeps_the_parent_normalisation_and_may_switch_weight_free_options(toy, tmp_path):
     parent = T.train(toy, TINY, tmp_path / "parent", **QUIET)
     api.save_model(parent, tmp_path / "parent" / "best" / "model.npz")

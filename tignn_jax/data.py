@@ -165,7 +165,7 @@ def parse_split(text: str) -> str | list[int]:
     return text
 
 
-def normalization(data: Dataset, rows: np.ndarray, increments=None) -> dict:
+def normalization(data: Dataset, rows: np.ndarray, increments=None, chunk: int = 8) -> dict:
     """Per-feature statistics of the rows' cases (the training split), float32 numpy arrays.
 
     ``increments`` [C,T,N,12] (the rows' cases): what the model's step must produce per frame, where that is not
@@ -187,47 +187,114 @@ def normalization(data: Dataset, rows: np.ndarray, increments=None) -> dict:
     the training envelope (see ``envelope``).
     Vectors (q, v, their increments, f, dq) get one isotropic scale (RMS over components), so a direction
     unseen in training is not blown up; stress components get their own std, floored at 1e-2 of the largest;
-    every scale is positive.
+    every scale is positive. The sums run over ``chunk`` cases at a time (float64), so the memory does not grow
+    with the number of cases.
     """
-    z, f = data.z[rows].astype(np.float64), data.f[rows].astype(np.float64)
+    rows = np.asarray(rows, int).ravel()
+    n_frames = data.z.shape[1] - 1
+    if increments is not None:
+        increments = np.asarray(increments)
+        want = (len(rows), n_frames) + data.z.shape[2:]
+        if increments.shape != want:
+            raise ValueError(f"increments must have the shape {want} of the rows' transitions, got {increments.shape}")
+    if not (isinstance(chunk, (int, np.integer)) and chunk >= 1):
+        raise ValueError(f"chunk must be a positive integer, got {chunk!r}")
     s, r = data.edges
-    dq = z[..., s, :3] - z[..., r, :3]
-    dqn = np.linalg.norm(dq, axis=-1)
     free = data.node_type == 0
-    dz = z[:, 1:] - z[:, :-1] if increments is None else np.asarray(increments, np.float64)
-    if dz.shape != z[:, 1:].shape:
-        raise ValueError(f"increments must have the shape {z[:, 1:].shape} of the rows' transitions, got {dz.shape}")
-    flat = z.reshape(-1, STATE_DIM)
-    z_std = np.concatenate([_iso(flat[:, :3] - flat[:, :3].mean(0)), _iso(flat[:, 3:6] - flat[:, 3:6].mean(0)),
-                            _floored(flat[:, 6:].std(0))])
-    dz_free = dz[:, :, free].reshape(-1, STATE_DIM)
-    dz_std = np.concatenate([_iso(dz_free[:, :3]), _iso(dz_free[:, 3:6]),
-                             _floored(dz.reshape(-1, STATE_DIM)[:, 6:].std(0))])
-    dqn_mean = dqn.mean()
+    rest_dq = data.q0[s] - data.q0[r]
+    m = _Moments()
+    gain_num = gain_den = 0.0
+    for a in range(0, len(rows), chunk):   # a few cases at a time: float64 edge arrays of all cases at once
+        z = data.z[rows[a:a + chunk]].astype(np.float64)   # would take tens of GB for ~1000 bunny cases
+        f = data.f[rows[a:a + chunk]].astype(np.float64)
+        dz = z[:, 1:] - z[:, :-1] if increments is None else increments[a:a + chunk].astype(np.float64)
+        dq = z[..., s, :3] - z[..., r, :3]
+        flat = z.reshape(-1, STATE_DIM)
+        m.add("z", flat)
+        m.add("dz_free", dz[:, :, free].reshape(-1, STATE_DIM))
+        m.add("dz", dz.reshape(-1, STATE_DIM))
+        m.add("f", _nonzero_rows(f.reshape(-1, 3)))
+        m.peak("f_max", np.linalg.norm(f, axis=-1))
+        m.add("dq", dq.reshape(-1, 3))
+        m.add("dqn", np.linalg.norm(dq, axis=-1).reshape(-1, 1))
+        m.add("dv", (z[..., s, 3:6] - z[..., r, 3:6]).reshape(-1, 3))
+        m.add("du", (dq - rest_dq).reshape(-1, 3))
+        m.add("u", (z[..., :3] - data.q0).reshape(-1, 3))
+        num, den = _rest_start_sums(z, f, dz)
+        gain_num, gain_den = gain_num + num, gain_den + den
+    z_mean = m.mean("z")
+    z_std = np.concatenate([_iso_centred(m, "z", slice(0, 3)), _iso_centred(m, "z", slice(3, 6)),
+                            _floored(m.std("z")[6:])])
+    dz_std = np.concatenate([m.rms("dz_free", slice(0, 3)), m.rms("dz_free", slice(3, 6)),
+                             _floored(m.std("dz")[6:])])
+    dqn_mean = float(m.mean("dqn")[0])
     stats = dict(
-        z_mean=flat.mean(0),
+        z_mean=z_mean,
         z_std=z_std,
         dz_std=dz_std,
-        f_std=_iso(_nonzero_rows(f.reshape(-1, 3))),
-        f_max=np.array([np.linalg.norm(f, axis=-1).max() if f.size else 0.0]),
-        dq_std=_iso(dq.reshape(-1, 3)),
-        dv_std=_iso((z[..., s, 3:6] - z[..., r, 3:6]).reshape(-1, 3)),
-        du_std=_iso((dq - (data.q0[s] - data.q0[r])).reshape(-1, 3)),
-        u_std=_iso((z[..., :3] - data.q0).reshape(-1, 3)),
+        f_std=m.rms("f"),
+        f_max=np.array([m.peaks.get("f_max", 0.0)]),
+        dq_std=m.rms("dq"),
+        dv_std=m.rms("dv"),
+        du_std=m.rms("du"),
+        u_std=m.rms("u"),
         x0_mean=data.q0.mean(0),
         x0_std=_iso(data.q0 - data.q0.mean(0)),
         dqn_mean=np.array([dqn_mean]),
-        dqn_std=np.array([max(dqn.std(), 1e-3 * dqn_mean, 1e-12)]),
+        dqn_std=np.array([max(float(m.std("dqn")[0]), 1e-3 * dqn_mean, 1e-12)]),
         dt=np.array([data.dt]),
     )
-    stats.update(envelope(z, data.q0, stats["z_mean"], stats["z_std"]))
-    gain = _rest_start_gain(z, f, dz)
-    if gain is not None:
+    dev_max, u_max = np.zeros(STATE_DIM), 0.0   # the envelope needs the mean and scale: a second pass
+    for a in range(0, len(rows), chunk):
+        env = envelope(data.z[rows[a:a + chunk]], data.q0, z_mean, z_std)
+        dev_max, u_max = np.maximum(dev_max, env["z_dev_max"]), max(u_max, float(env["u_max"][0]))
+    stats.update(z_dev_max=dev_max, u_max=np.array([u_max]))
+    gain = gain_num / gain_den if gain_den > 0 else float("nan")
+    if np.isfinite(gain) and gain > 0:
         stats["port_gain"] = np.array([gain])
-        k = _spring_constant(z, f, dz, data.q0, data.edges, free, gain)
+        k = _spring_constant(data, rows, increments, free, gain)
         if k is not None:
             stats["spring_k"] = np.array([k])
     return {k: np.asarray(v, np.float32) for k, v in stats.items()}
+
+
+class _Moments:
+    """Running count, sum and sum of squares per column of named [M, d] arrays (float64), and running maxima:
+    the statistics of `normalization`, accumulated a few cases at a time."""
+
+    def __init__(self):
+        self.n, self.s1, self.s2, self.peaks = {}, {}, {}, {}
+
+    def add(self, key, x):
+        x = np.asarray(x, np.float64)
+        self.n[key] = self.n.get(key, 0) + len(x)
+        self.s1[key] = self.s1.get(key, 0.0) + x.sum(axis=0)
+        self.s2[key] = self.s2.get(key, 0.0) + np.square(x).sum(axis=0)
+
+    def peak(self, key, x):
+        if np.size(x):
+            self.peaks[key] = max(self.peaks.get(key, 0.0), float(np.max(x)))
+
+    def mean(self, key):
+        return self.s1[key] / self.n[key]
+
+    def std(self, key):
+        """Population std per column (0 for a constant column; the sums are float64)."""
+        return np.sqrt(np.maximum(self.s2[key] / self.n[key] - self.mean(key) ** 2, 0.0))
+
+    def rms(self, key, cols=slice(None)):
+        """`_iso` of the columns: one RMS over all their entries, repeated 3 times (1 if all zero or none)."""
+        if not self.n.get(key):
+            return np.ones(3)
+        s2 = self.s2[key][cols]
+        rms = float(np.sqrt(s2.sum() / (self.n[key] * s2.size)))
+        return np.full(3, rms if rms > 0 else 1.0)
+
+
+def _iso_centred(m: _Moments, key, cols) -> np.ndarray:
+    """`_iso` of the columns after subtracting their means: the RMS of the per-column standard deviations."""
+    rms = float(np.sqrt(np.mean(m.std(key)[cols] ** 2)))
+    return np.full(3, rms if rms > 0 else 1.0)
 
 
 def envelope(z, q0, z_mean, z_std) -> dict:
@@ -242,33 +309,35 @@ def envelope(z, q0, z_mean, z_std) -> dict:
     return {"z_dev_max": dev.max(0), "u_max": np.array([u.max()])}
 
 
-def _rest_start_gain(z, f, dz) -> float | None:
-    """Σ Δv·f / Σ f·f over the loaded nodes of the first frame of the cases that start at rest (v = 0) under a
-    nonzero load; None where there are none or the ratio is not positive."""
+def _rest_start_sums(z, f, dz) -> tuple[float, float]:
+    """(Σ Δv·f, Σ f·f) over the loaded nodes of the first frame of the cases that start at rest (v = 0) under a
+    nonzero load (0, 0 where there are none): their ratio is ``port_gain``."""
     at_rest = np.all(z[:, 0, :, 3:6] == 0, axis=(1, 2)) & np.any(f[:, 0] != 0, axis=(1, 2))
     if not at_rest.any():
-        return None
+        return 0.0, 0.0
     dv, f0 = dz[at_rest, 0, :, 3:6], f[at_rest, 0]
-    ratio = float(np.sum(dv * f0) / np.sum(f0 * f0))
-    return ratio if np.isfinite(ratio) and ratio > 0 else None
+    return float(np.sum(dv * f0)), float(np.sum(f0 * f0))
 
 
-def _spring_constant(z, f, dz, q0, edges, free, gain, max_samples: int = 200) -> float | None:
+def _spring_constant(data: Dataset, rows, increments, free, gain, max_samples: int = 200) -> float | None:
     """k₀ of ``ModelConfig.elastic_port``: the least-squares spring constant of one stiffness on every mesh edge,
     Δv / port_gain − f ≈ k₀ Σ_j (ℓ_ij − ℓ⁰_ij)(q_j − q_i)/ℓ_ij at the free nodes, over up to ``max_samples``
-    transitions evenly spread over the cases and frames; None where it is not positive."""
-    s, r = edges
-    cases, frames = np.meshgrid(np.arange(z.shape[0]), np.arange(z.shape[1] - 1), indexing="ij")
+    transitions evenly spread over the rows' cases and frames (``increments`` as in `normalization`, else the
+    state's); None where it is not positive."""
+    s, r = data.edges
+    cases, frames = np.meshgrid(np.arange(len(rows)), np.arange(data.z.shape[1] - 1), indexing="ij")
     pick = np.linspace(0, cases.size - 1, min(max_samples, cases.size)).round().astype(int)
-    rest = np.linalg.norm(q0[s] - q0[r], axis=-1)
+    rest = np.linalg.norm(data.q0[s] - data.q0[r], axis=-1)
     num = den = 0.0
     for c, k in zip(cases.ravel()[pick], frames.ravel()[pick]):
-        q = z[c, k, :, :3]
+        z = data.z[rows[c], k:k + 2].astype(np.float64)
+        q = z[0, :, :3]
         d = q[s] - q[r]
         length = np.linalg.norm(d, axis=-1)
         unit = np.zeros_like(q)
         np.add.at(unit, r, ((length - rest) / np.maximum(length, 1e-12))[:, None] * d)
-        y = dz[c, k, :, 3:6] / gain - f[c, k]
+        dv = z[1, :, 3:6] - z[0, :, 3:6] if increments is None else increments[c, k, :, 3:6].astype(np.float64)
+        y = dv / gain - data.f[rows[c], k].astype(np.float64)
         num += float(np.sum(y[free] * unit[free]))
         den += float(np.sum(unit[free] ** 2))
     k0 = num / den if den > 0 else float("nan")
