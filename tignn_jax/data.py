@@ -204,8 +204,9 @@ def normalization(data: Dataset, rows: np.ndarray, increments=None, chunk: int =
     rest_dq = data.q0[s] - data.q0[r]
     m = _Moments()
     gain_num = gain_den = 0.0
-    for a in range(0, len(rows), chunk):   # a few cases at a time: float64 edge arrays of all cases at once
-        z = data.z[rows[a:a + chunk]].astype(np.float64)   # would take tens of GB for ~1000 bunny cases
+    # a few cases at a time: the float64 edge arrays of ~700 bunny cases at once would take ~27 GB
+    for a in range(0, len(rows), chunk):
+        z = data.z[rows[a:a + chunk]].astype(np.float64)
         f = data.f[rows[a:a + chunk]].astype(np.float64)
         dz = z[:, 1:] - z[:, :-1] if increments is None else increments[a:a + chunk].astype(np.float64)
         dq = z[..., s, :3] - z[..., r, :3]
@@ -223,7 +224,7 @@ def normalization(data: Dataset, rows: np.ndarray, increments=None, chunk: int =
         num, den = _rest_start_sums(z, f, dz)
         gain_num, gain_den = gain_num + num, gain_den + den
     z_mean = m.mean("z")
-    z_std = np.concatenate([_iso_centred(m, "z", slice(0, 3)), _iso_centred(m, "z", slice(3, 6)),
+    z_std = np.concatenate([m.centred_rms("z", slice(0, 3)), m.centred_rms("z", slice(3, 6)),
                             _floored(m.std("z")[6:])])
     dz_std = np.concatenate([m.rms("dz_free", slice(0, 3)), m.rms("dz_free", slice(3, 6)),
                              _floored(m.std("dz")[6:])])
@@ -290,11 +291,10 @@ class _Moments:
         rms = float(np.sqrt(s2.sum() / (self.n[key] * s2.size)))
         return np.full(3, rms if rms > 0 else 1.0)
 
-
-def _iso_centred(m: _Moments, key, cols) -> np.ndarray:
-    """`_iso` of the columns after subtracting their means: the RMS of the per-column standard deviations."""
-    rms = float(np.sqrt(np.mean(m.std(key)[cols] ** 2)))
-    return np.full(3, rms if rms > 0 else 1.0)
+    def centred_rms(self, key, cols):
+        """`_iso` of the columns after subtracting their means: the RMS of their standard deviations."""
+        rms = float(np.sqrt(np.mean(self.std(key)[cols] ** 2)))
+        return np.full(3, rms if rms > 0 else 1.0)
 
 
 def envelope(z, q0, z_mean, z_std) -> dict:
