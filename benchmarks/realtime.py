@@ -60,7 +60,7 @@ def run_scene(name: str, frames: int, warmup: int, devices: tuple = ()) -> dict:
     scene, dynamics = build_scene(name, frames + warmup, devices=devices)
     scene = scene._replace(skip_rest=False)   # every frame steps: the budget is for a body in motion
     _, t = sc.run(scene, frames=frames + warmup, warmup=warmup)
-    summary = t.summary()
+    summary = t.summary(bodies=len(scene.bodies))
     out = {"dynamics": dynamics, "valid": dynamics.startswith("model"), "frames": summary["frames"],
            "nodes": int(sum(len(b.q0) for b in scene.bodies)),
            "image": [scene.camera.width, scene.camera.height], "reallocations": t.reallocations, "guard_trips": t.guard_trips,
@@ -69,6 +69,7 @@ def run_scene(name: str, frames: int, warmup: int, devices: tuple = ()) -> dict:
     # the budget is judged on the frames the learned model stepped: frames on the (cheaper) rest-linearised
     # fallback after a guard trip would flatter the median
     out["simulation_learned"] = summary.get("simulation_learned", out["simulation"])
+    out["simulation_by_class"] = summary.get("simulation_by_class", {})
     p50, p99 = out["simulation_learned"]["p50_ms"], out["simulation_learned"]["p99_ms"]
     out["budget"] = {"simulation_p50_ms": BUDGET_MS[name], "simulation_p50_ok": p50 <= BUDGET_MS[name],
                      "p99_over_p50": p99 / p50, "p99_ok": p99 <= 1.5 * p50,
@@ -353,6 +354,12 @@ def format_md(result: dict) -> str:
             f"{s['simulation']['p50_ms']:.2f} / {s['simulation']['p99_ms']:.2f} | "
             f"{s['render']['p50_ms']:.2f} | {s['frame']['p50_ms']:.2f} / {s['frame']['p99_ms']:.2f} | "
             f"{b['fps_at_p50']:.1f} | {s.get('guard_trips', '—')} | {verdict} |")
+    split = {n: s["simulation_by_class"] for n, s in result["scenes"].items() if len(s.get("simulation_by_class", {})) > 1}
+    if split:
+        lines += ["", "The learned-step frames by what the bodies did in them (simulation p50 / p99, frames): the "
+                  "verdict above is on all of them together; this shows what their mix is made of."] + [""] + [
+            f"- {n}: " + "; ".join(f"{k} {v['p50_ms']:.2f} / {v['p99_ms']:.2f} ms ({v['frames']})" for k, v in c.items())
+            for n, c in split.items()]
     if "platform_jitter" in result:
         lines += ["", "The machine's own tail, same run: fixed programs that do the same work every call, timed "
                   f"{result['frames']} times like the loop's stages (`platform_jitter`): " +

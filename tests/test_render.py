@@ -483,10 +483,29 @@ def test_guard_hands_flagged_bodies_to_their_fallback_for_the_hold():
     assert t.guard_trips == hand_overs + touched   # the reset body trips on every touched frame
     last_restart = (touched - 1) % (hold + 1) == 0
     assert np.all(z1[:, 6] == (7.0 if last_restart else 0.0))
+    # per frame: both bodies ran the learned step at a hand-over, one while the second is held; the reset body
+    # trips on every touched frame, so every touched frame is a hand-over frame
+    lb = t.learned_bodies[t.learned]
+    assert len(lb) == touched and (lb == 2).sum() == hand_overs and (lb == 1).sum() == touched - hand_overs
+    assert t.handed.sum() == touched and not t.handed[~t.learned].any()
+    by_class = t.summary(bodies=2)["simulation_by_class"]
+    assert list(by_class) == ["hand-over"] and by_class["hand-over"]["frames"] == touched
     with pytest.raises(ValueError, match="fallback"):
         sc.run(scene._replace(fallback=(None, None)))
     with pytest.raises(ValueError, match="fallback_hold"):
         sc.run(scene._replace(fallback_hold=-1))
+
+
+def test_timings_split_the_learned_frames_by_what_the_bodies_did():
+    ms = np.array([10.0, 11.0, 5.0, 6.0, 20.0, 1.0])
+    t = sc.Timings(forces=np.zeros(6), step=ms, render=ms, write=ms, frame=ms, reallocations=0,
+                   learned=np.array([1, 1, 1, 1, 1, 0], bool), learned_bodies=np.array([2, 2, 1, 1, 2, 0]),
+                   handed=np.array([0, 0, 0, 0, 1, 0], bool))
+    c = t.summary(bodies=2)["simulation_by_class"]
+    assert {k: v["frames"] for k, v in c.items()} == {"every body learned": 2, "a body held": 2, "hand-over": 1}
+    assert c["every body learned"]["p50_ms"] == 10.5 and c["a body held"]["p50_ms"] == 5.5
+    assert c["hand-over"]["p50_ms"] == 20.0
+    assert "simulation_by_class" not in t.summary()       # without the body count: not split
 
 
 def test_loop_pauses_garbage_collection_and_restores_it():

@@ -145,7 +145,8 @@ class Timings(NamedTuple):
     (``Scene.fuse``, once a body is touched and, without devices, not every body is on its fallback); their
     forces time is 0 and counted in ``step``, so forces + step is the simulation time of every frame.
     ``learned`` (bool per frame): the learned step ran in that frame, i.e. some body was touched and not on its
-    fallback (None: not recorded)."""
+    fallback (None: not recorded). ``learned_bodies`` (int per frame): how many bodies' learned step ran;
+    ``handed`` (bool per frame): a guard handed some body over in that frame."""
     forces: np.ndarray
     step: np.ndarray
     render: np.ndarray
@@ -155,16 +156,21 @@ class Timings(NamedTuple):
     guard_trips: int = 0
     fused_frames: int = 0
     learned: np.ndarray | None = None
+    learned_bodies: np.ndarray | None = None
+    handed: np.ndarray | None = None
 
-    def summary(self) -> dict:
+    def summary(self, bodies: int | None = None) -> dict:
         """{stage: {"p50_ms", "p99_ms", "mean_ms"}} for the stages and the simulation (forces + step; and
         ``simulation_learned``: over the frames the learned step ran in), plus frames and frames per second at
-        the median frame time."""
+        the median frame time. With ``bodies`` (the scene's count) also ``simulation_by_class``: the learned-step
+        frames split into those where every body ran its learned step, those where some body was held on its
+        fallback, and hand-over frames (each class present: its stats and frame count)."""
         def stats(v):
             return {"p50_ms": float(np.median(v)), "p99_ms": float(np.percentile(v, 99)), "mean_ms": float(np.mean(v))}
 
         out = {k: stats(v) for k, v in self._asdict().items()
-               if k not in ("reallocations", "guard_trips", "fused_frames", "learned") and len(v)}
+               if k not in ("reallocations", "guard_trips", "fused_frames", "learned", "learned_bodies", "handed")
+               and len(v)}
         if len(self.frame):
             out["simulation"] = stats(self.forces + self.step)
         out["frames"] = int(len(self.frame))
@@ -176,6 +182,13 @@ class Timings(NamedTuple):
             out["learned_frames"] = int(self.learned.sum())
             if self.learned.any():   # the simulation time of the frames the learned model stepped
                 out["simulation_learned"] = stats((self.forces + self.step)[self.learned])
+        if bodies and self.learned_bodies is not None and self.handed is not None and self.learned is not None:
+            sim, handed = self.forces + self.step, np.asarray(self.handed, bool)
+            classes = {"every body learned": self.learned & ~handed & (self.learned_bodies == bodies),
+                       "a body held": self.learned & ~handed & (self.learned_bodies < bodies),
+                       "hand-over": self.learned & handed}
+            out["simulation_by_class"] = {k: {**stats(sim[m]), "frames": int(m.sum())}
+                                          for k, m in classes.items() if m.any()}
         return out
 
 
@@ -245,6 +258,7 @@ def _run(scene, frames, write, warmup, gc_pause):
             jax.block_until_ready(sim_fn(zs, track[0], np.full(len(zs), on_all)))
     fused_frames = 0
     learned = []   # per timed frame: did the learned step run (not every body at rest or on its fallback)
+    learned_bodies, handed = [], []   # per timed frame: how many bodies ran it; was a body handed over
     for i in range(frames):
         tips = track[i]
         t0 = time.perf_counter()
@@ -290,9 +304,12 @@ def _run(scene, frames, write, warmup, gc_pause):
             for key, dt in zip(times, (t1 - t0, t2 - t1, t3 - t2, t4 - t3, t4 - t0)):
                 times[key].append(1e3 * dt)
             learned.append(bool(touched and not on.all()))
+            learned_bodies.append(int((~on).sum()) if touched else 0)
+            handed.append(bool(touched and np.any(flags)))
     return zs, Timings(**{k: np.asarray(v) for k, v in times.items()}, reallocations=reallocations,
                        guard_trips=guard_trips, fused_frames=fused_frames,
-                       learned=np.asarray(learned, bool))
+                       learned=np.asarray(learned, bool), learned_bodies=np.asarray(learned_bodies, np.int64),
+                       handed=np.asarray(handed, bool))
 
 
 def _scene_guard(scene: Scene):
