@@ -145,7 +145,8 @@ class Timings(NamedTuple):
     (``Scene.fuse``, once a body is touched and, without devices, not every body is on its fallback); their
     forces time is 0 and counted in ``step``, so forces + step is the simulation time of every frame.
     ``learned`` (bool per frame): the learned step ran in that frame, i.e. some body was touched and not on its
-    fallback (None: not recorded). ``learned_bodies`` (int per frame): how many bodies' learned step ran;
+    fallback (None: not recorded). ``learned_bodies`` (int per frame): how many bodies the learned step
+    moved (touched and not on their fallback; in a single program a held body's step is computed and discarded);
     ``handed`` (bool per frame): a guard handed some body over in that frame."""
     forces: np.ndarray
     step: np.ndarray
