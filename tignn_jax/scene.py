@@ -283,7 +283,7 @@ def _run(scene, frames, write, warmup, gc_pause):
             flags = np.broadcast_to(np.asarray(flags, bool).reshape(-1), (len(zs),)) & ~on
             guard_trips += int(flags.sum())
             if (flags.any() or on.any()) and not (fused and resolves):
-                zs = tuple(fb(p, f, jnp.asarray(bool(bad))) if fb is not None and (bad or busy) else z0 if bad else z
+                zs = tuple(_held(fb, p, f) if busy else _hand_over(fb, p, f, z0, z, bool(bad), _py_cond)
                            for fb, p, f, z0, z, bad, busy in zip(fallback, prev, forces, initial, zs, flags, on))
                 zs = jax.block_until_ready(zs)
             left = np.where(flags & has_fallback, scene.fallback_hold, np.maximum(left - 1, 0))
@@ -311,6 +311,23 @@ def _run(scene, frames, write, warmup, gc_pause):
                        guard_trips=guard_trips, fused_frames=fused_frames,
                        learned=np.asarray(learned, bool), learned_bodies=np.asarray(learned_bodies, np.int64),
                        handed=np.asarray(handed, bool))
+
+
+def _hand_over(fb, prev, f, z0, nxt, bad, cond):
+    """A body's state after its guard's verdict ``bad``: where bad, its fallback restarted from the previous
+    state (or its initial state ``z0`` without a fallback), else the learned step's ``nxt``. ``cond`` is
+    `jax.lax.cond` inside a program (bad traced) or `_py_cond` in the loop (bad a Python bool): one rule for both."""
+    handed = (lambda: fb(prev, f, jnp.asarray(True))) if fb is not None else (lambda: z0)
+    return cond(bad, handed, lambda: nxt)
+
+
+def _held(fb, prev, f):
+    """A body held on its fallback steps by the fallback alone, not restarted."""
+    return fb(prev, f, jnp.asarray(False))
+
+
+def _py_cond(pred, true_fn, false_fn):
+    return true_fn() if pred else false_fn()
 
 
 def _scene_guard(scene: Scene):
@@ -349,9 +366,8 @@ def _concurrent_frame(scene: Scene, fallback: tuple, initial: tuple):
             if b.guard is None:
                 return nxt, jnp.asarray(False)
             bad = jnp.asarray(b.guard(nxt), bool).reshape(())
-            handed = (lambda: fb(z, f, jnp.asarray(True))) if fb is not None else (lambda: z0)
-            return jax.lax.cond(bad, handed, lambda: nxt), bad
-        held = None if fb is None else jax.jit(lambda z, f: (fb(z, f, jnp.asarray(False)), jnp.asarray(False)))
+            return _hand_over(fb, z, f, z0, nxt, bad, jax.lax.cond), bad
+        held = None if fb is None else jax.jit(lambda z, f: (_held(fb, z, f), jnp.asarray(False)))
         return jax.jit(learned), held
 
     progs = [programs(b, fb, jax.device_put(z0, d))
