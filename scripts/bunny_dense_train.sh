@@ -9,6 +9,7 @@
 #
 # Environment: PY (python, default python3), REF_CASES (100), DENSE_LIMIT (all), GEN_BATCH (128),
 # P1_EPOCHS (24), P2_EPOCHS (8), P2_BATCH (8), P1_TIME/P2_TIME (a time limit in s; default none),
+# INIT (phase2's warm start; default runs/dense-p1, or tignn_jax/models/bunny-dense-128x6/model.npz),
 # SIZE ("--set hidden=128 --set passes=6"). On one H100: data 219 s, 17.3 s per one-step epoch, 29 s per BPTT
 # epoch, plus about 2 min to load the data and compile. Session 29's run (lab notes) was cut by its device time
 # after 17 of the 24 one-step epochs; its BPTT phase started from epoch 16's model.
@@ -40,7 +41,7 @@ case "$STAGE" in
         --set lr=1e-3 --set warmup_steps=200 --set eval_every=1 --set ckpt_every=1 ;;
   phase2)
     $PY -m tignn_jax.cli train --data data/bunny_all.npz --config bunny --run-dir runs/dense-p2 --no-progress \
-        --init-from runs/dense-p1 ${P2_TIME:+--time-limit $P2_TIME} $SIZE "${OPTS[@]}" --set unroll=20 \
+        --init-from "${INIT:-runs/dense-p1}" ${P2_TIME:+--time-limit $P2_TIME} $SIZE "${OPTS[@]}" --set unroll=20 \
         --set bptt=true --set snapshot_loss=true --set noise=0.1 --set batch_size="${P2_BATCH:-8}" --set lr=3e-4 \
         --set lr_end=3e-5 --set warmup_steps=20 --set epochs="${P2_EPOCHS:-8}" --set eval_every=1 \
         --set ckpt_every=1 ;;

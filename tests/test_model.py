@@ -278,10 +278,11 @@ def test_shipped_beam_model_loads_with_its_mesh(name):
     assert np.all(np.isfinite(np.asarray(moved.nodes["z"])))
 
 
-def test_shipped_bunny_128x6_loads_on_the_bunny_mesh():
-    # The GPU-trained bunny model (not meeting the targets; see its card) is small, carries its training
-    # envelope, and steps the 1330-node bunny mesh (the FEM scene's mesh in the scan's scale) to finite states.
-    params, graph = _shipped("bunny-128x6")
+@pytest.mark.parametrize("name", ["bunny-128x6", "bunny-dense-128x6"])
+def test_shipped_gpu_bunny_models_load_on_the_bunny_mesh(name):
+    # The GPU-trained bunny models (not meeting the targets; see their cards) are small, carry their training
+    # envelope, and step the 1330-node bunny mesh (the FEM scene's mesh in the scan's scale) to finite states.
+    params, graph = _shipped(name)
     assert graph.nodes["z"].shape == (1330, 12) and {"z_dev_max", "u_max"} <= set(params["norm"])
     assert params["info"]["fem_integrator"] == "implicit"
     from fem import scenes
