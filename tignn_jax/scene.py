@@ -258,8 +258,7 @@ def _run(scene, frames, write, warmup, gc_pause):
         for on_all in ((False, True) if resolves else (False,)):
             jax.block_until_ready(sim_fn(zs, track[0], np.full(len(zs), on_all)))
     fused_frames = 0
-    learned = []   # per timed frame: did the learned step run (not every body at rest or on its fallback)
-    learned_bodies, handed = [], []   # per timed frame: how many bodies ran it; was a body handed over
+    learned_bodies, handed = [], []   # per timed frame: how many bodies the learned step moved; was a body handed over
     for i in range(frames):
         tips = track[i]
         t0 = time.perf_counter()
@@ -304,13 +303,12 @@ def _run(scene, frames, write, warmup, gc_pause):
         if i >= warmup:
             for key, dt in zip(times, (t1 - t0, t2 - t1, t3 - t2, t4 - t3, t4 - t0)):
                 times[key].append(1e3 * dt)
-            learned.append(bool(touched and not on.all()))
             learned_bodies.append(int((~on).sum()) if touched else 0)
             handed.append(bool(touched and np.any(flags)))
+    learned_bodies = np.asarray(learned_bodies, np.int64)
     return zs, Timings(**{k: np.asarray(v) for k, v in times.items()}, reallocations=reallocations,
                        guard_trips=guard_trips, fused_frames=fused_frames,
-                       learned=np.asarray(learned, bool), learned_bodies=np.asarray(learned_bodies, np.int64),
-                       handed=np.asarray(handed, bool))
+                       learned=learned_bodies > 0, learned_bodies=learned_bodies, handed=np.asarray(handed, bool))
 
 
 def _hand_over(fb, prev, f, z0, nxt, bad, cond):
