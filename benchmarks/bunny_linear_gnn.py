@@ -106,7 +106,7 @@ def main(argv=None) -> int:
     f_te, _, f_tr = blf.split_forces(world)
     x, y = blf.transitions(*blf.roll(step, f_tr, h), f_tr)          # [S, dofs, 3], [S, dofs]
     n = x.shape[1] // 3
-    scale = x.reshape(len(x), n, 3, 3).std(axis=(0, 1, 2)) + 1e-30
+    scale = blf.kind_scale(x)
     target = (y - x[..., 0] - h * x[..., 1]).reshape(len(x), n, 3)
     t_scale = target.std()
     xs = (x.reshape(len(x), n, 3, 3) / scale).reshape(len(x), n, 9).astype(np.float32)
@@ -164,7 +164,7 @@ def main(argv=None) -> int:
     one_seen = float(np.linalg.norm(model_step(*np.moveaxis(xs_, -1, 0)) - ys_)
                      / np.linalg.norm(ys_ - xs_[..., 0] - h * xs_[..., 1]))
     seen_u, seen_v = blf.rel_errors(*blf.roll(model_step, f_tr[seen], h), u_s, v_s)
-    radius = spectral_radius(model_step, 3 * n, h)
+    radius = blf.spectral_radius(model_step, 3 * n, h, tol=1e-4, maxiter=3000)
     n_params = int(sum(np.size(a) for a in jax.tree_util.tree_leaves(params)))
     out = {"machine": machine, "args": vars(args), "params": n_params, "train_s": train_s, "curve": curve,
            "one_step_u": one, "one_step_of_kinematic_residual": one / kin, "rollout_u": e_u, "rollout_v": e_v,
@@ -197,20 +197,6 @@ def main(argv=None) -> int:
     (RESULTS / "bunny_linear_gnn.md").write_text("\n".join(lines) + "\n")
     print("\n".join(lines))
     return 0
-
-
-def spectral_radius(model_step, dofs: int, h: float) -> float:
-    """Largest |eigenvalue| of the unforced map (u, v) → (u', v'), by ARPACK on matrix-vector products."""
-    from scipy.sparse.linalg import LinearOperator, eigs
-
-    def matvec(w):
-        w = np.real(np.asarray(w, np.float64)).reshape(-1)
-        u, v = w[:dofs][None], w[dofs:][None]
-        u1 = model_step(u, v, np.zeros_like(u))
-        return np.concatenate([u1, (u1 - u) / h], 1)[0]
-
-    op = LinearOperator((2 * dofs, 2 * dofs), matvec=matvec, dtype=np.float64)
-    return float(np.abs(eigs(op, k=1, which="LM", return_eigenvectors=False, maxiter=3000, tol=1e-4)).max())
 
 
 if __name__ == "__main__":

@@ -109,9 +109,32 @@ def roll(step, f, h):
     return np.stack(us, 1), np.stack(vs, 1)
 
 
-def exact_step(world):
-    P, m, c, h = world["a_inv"], world["mass"], world["c"], world["h"]
+def exact_step(world, a_inv=None):
+    """The world's frame map u_{k+1} = A⁻¹ (f + c M u + M v / h), with ``a_inv`` in place of A₀⁻¹ if given (its
+    truncation, say)."""
+    P = world["a_inv"] if a_inv is None else a_inv
+    m, c, h = world["mass"], world["c"], world["h"]
     return lambda u, v, f: (f + c * m * u + m * v / h) @ P.T
+
+
+def kind_scale(x):
+    """One standard deviation per kind (u, v, f) of features [samples, dofs, 3 kinds]."""
+    return x.reshape(len(x), -1, 3, 3).std(axis=(0, 1, 2)) + 1e-30
+
+
+def spectral_radius(step, dofs: int, h: float, tol: float = 0.0, maxiter: int = 5000) -> float:
+    """Largest |eigenvalue| of a linear frame map's unforced response (u, v) → (u', (u' − u)/h), f = 0, by ARPACK
+    on matrix-vector products; ``step(u, v, f)`` takes [batch, dofs] (above 1: it amplifies some state)."""
+    from scipy.sparse.linalg import LinearOperator, eigs
+
+    def matvec(w):
+        w = np.real(np.asarray(w, np.float64)).reshape(-1)
+        u, v = w[:dofs][None], w[dofs:][None]
+        u1 = step(u, v, np.zeros_like(u))
+        return np.concatenate([u1, (u1 - u) / h], 1)[0]
+
+    op = LinearOperator((2 * dofs, 2 * dofs), matvec=matvec, dtype=np.float64)
+    return float(np.abs(eigs(op, k=1, which="LM", return_eigenvectors=False, maxiter=maxiter, tol=tol)).max())
 
 
 def transitions(u, v, f):
@@ -126,7 +149,7 @@ class LocalMap:
     @staticmethod
     def moments(x, y):
         """(per-kind scale, Gram matrix and cross moments of the standardised features): shared by all fits."""
-        scale = x.reshape(len(x), -1, 3, 3).std(axis=(0, 1, 2)) + 1e-30       # one scale per kind
+        scale = kind_scale(x)
         xs = (x / scale).reshape(len(x), -1)                                   # [samples, dofs*3]
         return scale, xs.T @ xs, xs.T @ y
 
@@ -153,12 +176,7 @@ class LocalMap:
 
     def radius(self, h: float) -> float:
         """Spectral radius of the fitted map's free response (u, v) → (u', v'), f = 0 (the exact map's is < 1)."""
-        from scipy.sparse import bmat, identity
-        from scipy.sparse.linalg import eigs
-
-        wu, wv = self.W[:, 0::3], self.W[:, 1::3]
-        T = bmat([[wu, wv], [(wu - identity(wu.shape[0])) / h, wv / h]]).tocsr()
-        return float(np.abs(eigs(T, k=1, which="LM", return_eigenvectors=False, maxiter=5000)).max())
+        return spectral_radius(self, self.W.shape[0], h)
 
     def __call__(self, u, v, f):
         return (self.W @ np.stack([u, v, f], -1).reshape(len(u), -1).T).T
@@ -195,9 +213,7 @@ def main(argv=None) -> int:
            "ridges": ridges, "truncated_check": {}, "fits": {}}
     for hop in hops:   # the truncation of bunny_reach.py, in this world, for comparison
         Pt = np.where(np.repeat(np.repeat(world["dist"] <= hop, 3, 0), 3, 1), world["a_inv"], 0.0)
-        m, c, h = world["mass"], world["c"], world["h"]
-        out["truncated_check"][hop] = rel_errors(*roll(lambda u, v, f: (f + c * m * u + m * v / h) @ Pt.T,
-                                                       f_test, h), u_t, v_t)
+        out["truncated_check"][hop] = rel_errors(*roll(exact_step(world, Pt), f_test, world["h"]), u_t, v_t)
     xt, yt = transitions(u_t, v_t, f_test)
     kinematic = yt - xt[..., 0] - world["h"] * xt[..., 1]    # what u_k + Δt v_k leaves to predict
     out["kinematic_one_step_u"] = float(np.linalg.norm(kinematic) / np.linalg.norm(yt))
