@@ -1,8 +1,9 @@
 """Per-case rollout errors of a model on a data set: which cases a split's mean hides (a blown-up rollout).
 
-`tignn evaluate` reports each split's mean and median; this writes, per sim id, the mean over snapshots of the
-relative L2 errors of q, v, σ and u (the published "snapshot" measure), rolling out ``--chunk`` cases at a time
-so that the memory stays bounded (all 80 bunny training cases at once take about 17 GB).
+`tignn evaluate` reports each split's mean and median; this writes, per sim id, the mean over snapshots 1..T of
+the relative L2 errors of q, v, σ and u (`evaluate.split_errors`, all nodes: the published "snapshot" measure),
+rolling out ``--chunk`` cases at a time so that the memory stays bounded (all 80 bunny training cases at once take
+about 17 GB).
 
     python scripts/case_errors.py --model bunny-128x6 --data data/bunny.npz --split train --out runs/cases.json
 """
@@ -20,14 +21,12 @@ from tignn_jax import evaluate as EV
 
 
 def case_errors(params: dict, data: D.Dataset, rows, chunk: int = 10) -> dict:
-    """{sim id: {q, v, sigma, u}}: each case's snapshot-mean relative errors (NaN snapshots skipped)."""
+    """{sim id: {q, v, sigma, u}}: each case's mean relative errors over snapshots 1..T (NaN ones skipped)."""
     rows = np.asarray(rows, int)
     out = {}
     for start in range(0, len(rows), chunk):
         part = rows[start:start + chunk]
-        pred = EV.rollout_cases(params, data, part)
-        for r, p in zip(part, pred):
-            e = EV.relative_errors(p, data.z[r], data.q0)        # [T+1, 4]
+        for r, e in zip(part, EV.split_errors(params, data, part)["all"]):    # [T, 4] per case
             out[int(data.sim_id[r])] = {k: float(np.nanmean(e[:, i])) for i, k in enumerate(EV.VARIABLES)}
     return out
 

@@ -37,19 +37,11 @@ def test_dense_positions_keep_their_distance_from_the_held_out_ones():
         _script("bunny_dense_positions").dense_positions(-1.0)
 
 
-def _tiny(n_cases, seed, splits):
-    rng = np.random.default_rng(seed)
-    q0 = rng.normal(size=(4, 3)).astype(np.float32)
-    edges = np.array([[0, 1, 2], [1, 2, 3]], np.int32)
-    return D.Dataset(q0=q0, edges=edges, node_type=np.zeros(4, np.int8),
-                     z=rng.normal(size=(n_cases, 3, 4, 12)).astype(np.float32),
-                     f=rng.normal(size=(n_cases, 2, 4, 3)).astype(np.float32), dt=0.05,
-                     sim_id=np.arange(1, n_cases + 1, dtype=np.int32), splits=splits)
-
-
-def test_concat_train_later(tmp_path, monkeypatch):
-    first = _tiny(5, 0, {"train": np.array([1, 2, 3]), "val": np.array([4]), "test": np.array([5])})
-    later = _tiny(3, 0, {"train": np.array([1]), "val": np.array([2]), "test": np.array([3])})
+def test_concat_train_later(tmp_path):
+    first = D.synthetic_beam(cases=5)._replace(splits={"train": np.array([1, 2, 3]), "val": np.array([4]),
+                                                       "test": np.array([5])})
+    later = D.synthetic_beam(cases=3)._replace(splits={"train": np.array([1]), "val": np.array([2]),
+                                                       "test": np.array([3])})
     later = later._replace(z=later.z + 1.0)
     paths = [D.save(first, tmp_path / "a.npz"), D.save(later, tmp_path / "b.npz")]
     concat = _script("concat_data")
