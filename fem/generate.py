@@ -175,6 +175,13 @@ def default_splits(sim_ids) -> dict:
     return {"train": ids[: n - 2 * k], "val": ids[n - 2 * k: n - k], "test": ids[n - k:]}
 
 
+def held_out_rows(n_cases: int) -> np.ndarray:
+    """0-based case rows of a generated set of ``n_cases`` (sim ids 1..n) that `default_splits` keeps out of
+    training (val, then test): e.g. rows 80–99 of the seeded 100-case bunny set, its positions 81–100."""
+    s = default_splits(np.arange(1, int(n_cases) + 1))
+    return np.concatenate([s["val"], s["test"]]).astype(np.int64) - 1
+
+
 def _version() -> str:
     from importlib.metadata import PackageNotFoundError, version
 

@@ -16,17 +16,18 @@ import sys
 import numpy as np
 
 from fem import cases, scenes
+from fem.generate import held_out_rows
 
 
-def dense_positions(min_distance: float = 5.5, n_cases: int = 100, seed: int = 0, held_out=range(80, 100)):
+def dense_positions(min_distance: float = 5.5, n_cases: int = 100, seed: int = 0):
     """(node ids of the dense set, node ids of the held-out positions): free surface nodes at least
-    ``min_distance`` from every held-out position of the seeded data set."""
+    ``min_distance`` from every held-out position (`fem.generate.held_out_rows`) of the seeded data set."""
     if not (np.isfinite(min_distance) and min_distance >= 0):
         raise ValueError(f"min_distance must be a finite number >= 0, got {min_distance}")
     scene = scenes.bunny_scene()
     surface, _ = cases.free_surface(scene)
     _, picked = cases.point_load_forces(scene, n_cases=n_cases, seed=seed)
-    held = picked[np.asarray(list(held_out))]
+    held = picked[held_out_rows(n_cases)]
     d = np.linalg.norm(scene.points[surface][:, None] - scene.points[held][None], axis=-1).min(axis=1)
     return surface[d >= min_distance], held
 

@@ -265,7 +265,7 @@ def test_bunny_fingertip_cases_stay_on_the_free_surface():
 
 def test_generated_data_carry_train_val_test_splits():
     # The 52 reference cases get the published split; other data a disjoint 80/10/10 split covering all ids.
-    from fem.generate import PUBLISHED_TEST, PUBLISHED_VAL, default_splits
+    from fem.generate import PUBLISHED_TEST, PUBLISHED_VAL, default_splits, held_out_rows
 
     ref = default_splits(np.arange(1, 53))
     assert ref["test"].tolist() == list(PUBLISHED_TEST) and ref["val"].tolist() == list(PUBLISHED_VAL)
@@ -273,6 +273,8 @@ def test_generated_data_carry_train_val_test_splits():
     other = default_splits(np.arange(1, 101))
     assert [len(other[k]) for k in ("train", "val", "test")] == [80, 10, 10]
     assert sorted(np.concatenate(list(other.values())).tolist()) == list(range(1, 101))
+    assert held_out_rows(100).tolist() == list(range(80, 100))   # 0-based rows of val then test
+    assert sorted((held_out_rows(52) + 1).tolist()) == sorted(PUBLISHED_VAL + PUBLISHED_TEST)
 
 
 def test_generate_rejects_a_bad_damping_before_running(tmp_path):
