@@ -272,21 +272,21 @@ def growth_terms(params: dict, z, forces, mode) -> dict:
         g_e, g_s, (l_mat, m_mat), _ = M._potentials_and_grads(weights, config, norm, z_, forces, node_type, topo)
         return g_e, g_s, l_mat, m_mat
 
-    frozen = jax.tree_util.tree_map(jax.lax.stop_gradient, parts(z))
+    at_z, parts_pullback = jax.vjp(parts, z)     # one forward pass; each term's row pulls back through it
+    g_e0, g_s0, l0, m0 = at_z
+    apply_l, apply_m = M._appliers(config, norm, g_e0, g_s0)
 
-    def terms(z_):
-        g_e, g_s, l_mat, m_mat = parts(z_)
-        g_e0, g_s0, l0, m0 = frozen
-        apply_l, apply_m = M._appliers(config, norm, g_e0, g_s0)
+    def terms(p):   # bilinear in (L, ∇E) and (M, ∇S): one factor varies, the other is held at z
+        g_e, g_s, l_mat, m_mat = p
         # (the kinematic prior's constant L₀ adds nothing to the change term's derivative)
         return apply_l(l0, g_e), apply_l(l_mat, g_e0), apply_m(m0, g_s), apply_m(m_mat, g_s0)
 
-    out, pullback = jax.vjp(terms, z)
+    out, terms_pullback = jax.vjp(terms, at_z)
     cotangent = mode * scale / std * free          # the rate in scaled units → state stds, evolved entries only
     result = {}
     for i, name in enumerate(GROWTH_TERMS):
         cts = tuple(cotangent if j == i else jnp.zeros_like(o) for j, o in enumerate(out))
-        (row,) = pullback(cts)
+        (row,) = parts_pullback(terms_pullback(cts)[0])
         result[name] = float(jnp.sum(row * mode * std))
     fn = stepper(params)
     _, step_pullback = jax.vjp(lambda d: fn(z + d * std, forces) / std, jnp.zeros_like(z))
