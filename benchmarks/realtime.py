@@ -147,9 +147,11 @@ def step_variants(name: str, repeats: int) -> dict:
 
 
 def concurrency(name: str, repeats: int, devices: tuple) -> dict:
-    """Step time of the scene's bodies (two copies of its model's mesh) four ways, interleaved: one body alone;
-    both in one batched graph (one program); both as two single-body steps in one program; each on its own
-    CPU device, dispatched together (``Scene.devices``: concurrent, one core each)."""
+    """Step time of the scene's bodies (two copies of its model's mesh) five ways, interleaved: one body alone;
+    both in one batched graph (one program); both as two single-body steps in one program; the same with each
+    step inside its own ``lax.cond`` (what the loop runs without devices, `scene._fused_frames`: a body on its
+    fallback takes the other branch); each on its own CPU device, dispatched together (``Scene.devices``:
+    concurrent, one core each)."""
     from tignn_jax import api
     from tignn_jax.commands_demo import DEFAULT_MODELS
 
@@ -162,9 +164,13 @@ def concurrency(name: str, repeats: int, devices: tuple) -> dict:
     f = jnp.asarray(0.01 * rng.normal(size=(n, 3)), jnp.float32)
     batched = jax.jit(lambda za, zb, fa, fb: jnp.split(two(jnp.concatenate([za, zb]), jnp.concatenate([fa, fb])), 2))
     serial = jax.jit(lambda za, zb, fa, fb: (one(za, fa), one(zb, fb)))
+    keep = lambda z_, f_: z_     # noqa: E731 (the branch not taken)
+    in_cond = jax.jit(lambda za, zb, fa, fb, on: (jax.lax.cond(on, keep, one, za, fa),
+                                                  jax.lax.cond(on, keep, one, zb, fb)))
     placed = [(jax.device_put(z, d), jax.device_put(f, d)) for d in devices[:2]]
     fns = {"one body": lambda: one(z, f), "two bodies, one batched graph": lambda: batched(z, z, f, f),
-           "two bodies, two steps in one program": lambda: serial(z, z, f, f)}
+           "two bodies, two steps in one program": lambda: serial(z, z, f, f),
+           "two bodies, two steps in one program, each in a lax.cond": lambda: in_cond(z, z, f, f, False)}
     if len(devices) > 1:
         fns["two bodies on two devices (concurrent)"] = lambda: [one(a, b) for a, b in placed]
     times = interleaved_ms(fns, repeats)

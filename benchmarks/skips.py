@@ -235,7 +235,7 @@ def held_body_skip(repeats: int) -> dict:
     fb = scene.fallback[0]
     z = jnp.asarray(scene.bodies[0].z, jnp.float32)
     f = jnp.zeros((z.shape[0], 3), jnp.float32)
-    learned, held = jax.jit(scene.step.body_step), jnp.asarray(False)   # one body's learned step
+    learned, held = jax.jit(scene.bodies[0].step_fn), jnp.asarray(False)   # one body's learned step
     t = interleaved({"with": lambda: (jax.block_until_ready(learned(z, f)), fb(z, f, held))[1],
                      "without": lambda: fb(z, f, held)}, repeats * 20)
     return {"skip": "a body on its fallback is stepped by the fallback alone, not by its learned step too "

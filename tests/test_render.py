@@ -457,6 +457,36 @@ def test_guard_with_one_flag_per_body_resets_only_the_flagged_body():
         sc.run(own._replace(guard=guard))
 
 
+def test_one_program_per_frame_runs_a_held_body_on_its_fallback_alone():
+    # Without devices, bodies with their own step and guard run their whole frame in one program per frame:
+    # the hand-over inside it and, for a body held on its fallback, only the fallback (lax.cond): its learned
+    # step is not executed (counted by a callback in it). States and trips equal the stages run one by one.
+    scene, _ = _demo_scene(frames=6)
+    body = scene.bodies[0]
+    calls = []
+
+    def bad_step(z, f):
+        jax.debug.callback(lambda: calls.append(1))
+        return z * jnp.nan
+
+    finite = lambda z: ~jnp.all(jnp.isfinite(z))
+    fb = jax.jit(lambda z, f, restart: z + jnp.where(restart, 1.0, 2.0))
+    handed = scene._replace(bodies=(body._replace(guard=finite), body._replace(step_fn=bad_step, guard=finite)),
+                            skip_rest=False, fallback=(None, fb), fallback_hold=2)
+    fused, tf = sc.run(handed)
+    fused_calls, calls[:] = len(calls), []
+    staged, ts = sc.run(handed._replace(fuse=False))
+    for a, c in zip(fused, staged):
+        np.testing.assert_allclose(np.asarray(a), np.asarray(c), rtol=1e-6, atol=1e-6)
+    # restart (+1) at frames 0 and 3, held (+2) at frames 1, 2, 4, 5
+    np.testing.assert_allclose(np.asarray(fused[1]), body.z + 10.0, rtol=1e-6)
+    assert tf.guard_trips == ts.guard_trips == 2 and tf.fused_frames == 5
+    # learned step of the bad body: the warm-up compile run, then frames 0 and 3 only (the staged loop's
+    # one step over all bodies also runs it while the other body is not held: every frame)
+    assert fused_calls == 1 + 2, fused_calls
+    assert len(calls) > fused_calls
+
+
 def test_guard_hands_flagged_bodies_to_their_fallback_for_the_hold():
     # Two bodies whose step goes bad once touched; the second has a fallback (here: a step that moves every
     # node by one unit in x and marks σ11 with the restart flag). A flagged body is stepped by its fallback from

@@ -115,10 +115,13 @@ class Scene(NamedTuple):
     bodies' steps are dispatched together, so they run concurrently, one core each (XLA runs one program's
     independent parts one after another on a single core); the states return to ``devices[0]`` for forces and
     rendering. Empty (the default): all bodies step in one program on the default device;
-    fuse: once a body is touched, forces, step and guard are dispatched together and awaited once per frame
-    (one program; or with ``devices`` one per body on its device, holding the body's guard and its hand-over,
-    and for a body on its fallback only the fallback step; a scene with devices and a ``Scene.guard`` over all
-    bodies runs its guard after the steps). False: each stage is dispatched and awaited in turn, so the forces
+    fuse: once a body is touched, forces, step and guard are dispatched together and awaited once per frame:
+    one program, or with ``devices`` one per body on its device. Where bodies step on their own (no
+    ``Scene.step``, no ``Scene.guard``) each body's part holds its guard and its hand-over, and a body on its
+    fallback runs only the fallback step (without devices, several bodies: each body's frame in its own
+    ``lax.cond``, which also keeps XLA:CPU from compiling the bodies' steps together: two beams 12.3 against
+    22.6 ms for one batched graph, session 30); a scene with devices and a ``Scene.guard`` over all bodies runs
+    its guard after the steps. False: each stage is dispatched and awaited in turn, so the forces
     are timed on their own (what ``benchmarks/realtime.py`` compares against).
     """
     bodies: tuple
@@ -250,10 +253,13 @@ def _run(scene, frames, write, warmup, gc_pause):
         jax.block_until_ready(guard_fn(zs))
     sim_fn = None
     resolves = False   # does sim_fn also hand flagged bodies over and step those on their fallback?
-    if scene.fuse and not scene.devices:
-        sim_fn = _fused_simulation(forces_fn, step_fn, guard)
-    elif scene.fuse and scene.guard is None:   # per device: each body's whole frame in one program
+    per_body = scene.fuse and scene.guard is None and scene.step is None   # each body's whole frame: learned
+    if per_body and scene.devices:                                         # step, guard, hand-over or fallback
         sim_fn, resolves = _fused_concurrent(forces_fn, _concurrent_frame(scene, fallback, initial)), True
+    elif per_body and len(scene.bodies) > 1:   # (one body: its held frames skip the step anyway, below, and
+        sim_fn, resolves = _fused_frames(forces_fn, scene, fallback, initial), True   # lax.cond cost it 2 %)
+    elif scene.fuse and not scene.devices:
+        sim_fn = _fused_simulation(forces_fn, step_fn, guard)
     if sim_fn is not None:   # compiled now, not at the first touched frame (both programs of each body)
         for on_all in ((False, True) if resolves else (False,)):
             jax.block_until_ready(sim_fn(zs, track[0], np.full(len(zs), on_all)))
@@ -349,27 +355,31 @@ def _fused_concurrent(forces_fn, frame_fn):
     return fn
 
 
+def _body_frames(b: Body, fb, z0):
+    """(learned, held): body ``b``'s simulation frame as ``(z, forces) -> (z_next, flag)``. ``learned`` runs
+    its step and its ``Body.guard`` and, where the guard flags the new state, hands the body over as the loop
+    would after it (`_hand_over`: its fallback from the previous state with the stress restarted, or its initial
+    state ``z0`` without one); ``held`` (None without a fallback) runs only the fallback, for a body on it: its
+    learned step, whose result would be discarded, is not computed."""
+    def learned(z, f):
+        nxt = b.step_fn(z, f)
+        if b.guard is None:
+            return nxt, jnp.asarray(False)
+        bad = jnp.asarray(b.guard(nxt), bool).reshape(())
+        return _hand_over(fb, z, f, z0, nxt, bad, jax.lax.cond), bad
+    held = None if fb is None else (lambda z, f: (_held(fb, z, f), jnp.asarray(False)))
+    return learned, held
+
+
 def _concurrent_frame(scene: Scene, fallback: tuple, initial: tuple):
-    """``frame_fn(zs, forces, on) -> (zs, flags)``: body k's whole simulation frame as one program on
-    ``scene.devices[k % D]``, every body's dispatched before any is awaited. A body not on its fallback
-    (``on[k]`` False) runs its learned step and its ``Body.guard``; where the guard flags the new state the same
-    program hands the body over (its fallback from the previous state with the stress restarted, or its initial
-    state without one), as the loop would do after it. A body on its fallback runs only its fallback: its
-    learned step, whose result the loop would discard, is not computed."""
+    """``frame_fn(zs, forces, on) -> (zs, flags)``: body k's whole simulation frame (`_body_frames`: its learned
+    frame, or its fallback alone where ``on[k]``) as one program on ``scene.devices[k % D]``, every body's
+    dispatched before any is awaited."""
     home, places = scene.devices[0], _places(scene)
-
-    def programs(b, fb, z0):
-        def learned(z, f):
-            nxt = b.step_fn(z, f)
-            if b.guard is None:
-                return nxt, jnp.asarray(False)
-            bad = jnp.asarray(b.guard(nxt), bool).reshape(())
-            return _hand_over(fb, z, f, z0, nxt, bad, jax.lax.cond), bad
-        held = None if fb is None else jax.jit(lambda z, f: (_held(fb, z, f), jnp.asarray(False)))
-        return jax.jit(learned), held
-
-    progs = [programs(b, fb, jax.device_put(z0, d))
-             for b, fb, z0, d in zip(scene.bodies, fallback, initial, places)]
+    progs = []
+    for b, fb, z0, d in zip(scene.bodies, fallback, initial, places):
+        learned, held = _body_frames(b, fb, jax.device_put(z0, d))
+        progs.append((jax.jit(learned), None if held is None else jax.jit(held)))
 
     def frame_fn(zs, forces, on):
         out = [(held if on_k and held is not None else learned)(jax.device_put(z, d), jax.device_put(f, d))
@@ -379,8 +389,26 @@ def _concurrent_frame(scene: Scene, fallback: tuple, initial: tuple):
     return frame_fn
 
 
+def _fused_frames(forces_fn, scene: Scene, fallback: tuple, initial: tuple):
+    """``(zs, tips, on) -> (zs_next, forces, flags)`` for a scene without devices whose bodies step on their
+    own (no ``Scene.step``, no ``Scene.guard``): the forces and every body's whole frame (`_body_frames`; a
+    body on its fallback, ``on[k]``, runs only the fallback, chosen by ``lax.cond`` inside the program) as one
+    program, one dispatch and one wait per frame, with no second dispatch for a hand-over."""
+    frames = [_body_frames(b, fb, z0) for b, fb, z0 in zip(scene.bodies, fallback, initial)]
+
+    @jax.jit
+    def fn(zs, tips, on):
+        forces = forces_fn(zs, tips)
+        out = [learned(z, f) if held is None else jax.lax.cond(on[k], held, learned, z, f)
+               for k, ((learned, held), z, f) in enumerate(zip(frames, zs, forces))]
+        return tuple(z for z, _ in out), forces, jnp.stack([g for _, g in out])
+
+    return lambda zs, tips, on: fn(zs, tips, jnp.asarray(on))
+
+
 def _fused_simulation(forces_fn, step_fn, guard):
-    """``(zs, tips, on) -> (zs_next, forces, flags)``: the loop's simulation stages (forces, step, guard) as one
+    """``(zs, tips, on) -> (zs_next, forces, flags)`` for a scene with a ``Scene.step`` over all bodies or a
+    ``Scene.guard``: the loop's simulation stages (forces, step, guard) as one
     program (every body is stepped, so ``on``, the bodies on their fallback, is not used: the loop hands bodies
     over after it), one dispatch and one wait per frame instead of three (measured on the beam: 7.22 → 6.87 ms p50 for
     the three, `benchmarks/realtime.py` times the loop with it). ``flags`` is what the guard returns (one bool,
