@@ -393,13 +393,15 @@ def _fused_frames(forces_fn, scene: Scene, fallback: tuple, initial: tuple):
     """``(zs, tips, on) -> (zs_next, forces, flags)`` for a scene without devices whose bodies step on their
     own (no ``Scene.step``, no ``Scene.guard``): the forces and every body's whole frame (`_body_frames`; a
     body on its fallback, ``on[k]``, runs only the fallback, chosen by ``lax.cond`` inside the program) as one
-    program, one dispatch and one wait per frame, with no second dispatch for a hand-over."""
+    program, one dispatch and one wait per frame, with no second dispatch for a hand-over. A body without a
+    fallback (never on one) gets the cond too: it keeps XLA:CPU from compiling the bodies' steps together."""
+    keep = lambda z, f: (z, jnp.asarray(False))   # noqa: E731 (never taken: such a body is never held)
     frames = [_body_frames(b, fb, z0) for b, fb, z0 in zip(scene.bodies, fallback, initial)]
 
     @jax.jit
     def fn(zs, tips, on):
         forces = forces_fn(zs, tips)
-        out = [learned(z, f) if held is None else jax.lax.cond(on[k], held, learned, z, f)
+        out = [jax.lax.cond(on[k], keep if held is None else held, learned, z, f)
                for k, ((learned, held), z, f) in enumerate(zip(frames, zs, forces))]
         return tuple(z for z, _ in out), forces, jnp.stack([g for _, g in out])
 
