@@ -147,16 +147,17 @@ def step_variants(name: str, repeats: int) -> dict:
 
 
 def concurrency(name: str, repeats: int, devices: tuple) -> dict:
-    """Step time of the scene's bodies (two copies of its model's mesh) five ways, interleaved: one body alone;
-    both in one batched graph (one program); both as two single-body steps in one program; the same with each
-    step inside its own ``lax.cond`` (what the loop runs without devices, `scene._fused_frames`: a body on its
-    fallback takes the other branch); each on its own CPU device, dispatched together (``Scene.devices``:
-    concurrent, one core each)."""
+    """Step time of the scene's bodies (two copies of its model's mesh) six ways, interleaved: one body alone;
+    both in one batched graph (one program, ``stepper(params, 2, one_graph=True)``); both by ``stepper(params,
+    2)``'s CPU default, one body after another (``lax.map``); both as two single-body steps in one program; the
+    same with each step inside its own ``lax.cond`` (what the loop runs without devices, `scene._fused_frames`:
+    a body on its fallback takes the other branch); each on its own CPU device, dispatched together
+    (``Scene.devices``: concurrent, one core each)."""
     from tignn_jax import api
     from tignn_jax.commands_demo import DEFAULT_MODELS
 
     params, graph = api.load_pretrained(DEFAULT_MODELS[name])
-    one, two = api.stepper(params), api.stepper(params, 2)
+    one, two, mapped = api.stepper(params), api.stepper(params, 2, one_graph=True), api.stepper(params, 2, False)
     rng = np.random.default_rng(0)
     z = jnp.asarray(graph.nodes["z"])
     n = z.shape[0]
@@ -168,7 +169,9 @@ def concurrency(name: str, repeats: int, devices: tuple) -> dict:
     in_cond = jax.jit(lambda za, zb, fa, fb, on: (jax.lax.cond(on, keep, one, za, fa),
                                                   jax.lax.cond(on, keep, one, zb, fb)))
     placed = [(jax.device_put(z, d), jax.device_put(f, d)) for d in devices[:2]]
+    z2, f2 = jnp.concatenate([z, z]), jnp.concatenate([f, f])
     fns = {"one body": lambda: one(z, f), "two bodies, one batched graph": lambda: batched(z, z, f, f),
+           "two bodies, one after another (stepper's lax.map)": lambda: mapped(z2, f2),
            "two bodies, two steps in one program": lambda: serial(z, z, f, f),
            "two bodies, two steps in one program, each in a lax.cond": lambda: in_cond(z, z, f, f, False)}
     if len(devices) > 1:

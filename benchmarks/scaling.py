@@ -280,7 +280,7 @@ def learned_batch_scaling(base: dict, batches, seconds: float) -> list:
     params = model_on_mesh(base, points, edges, node_type)
     fns = {}
     for b in batches:
-        step = api.stepper(params, b)
+        step = api.stepper(params, b, one_graph=True)   # one graph (CPU default: one by one)
         z, f = sample_state(params, b)
         fns[b] = lambda step=step, z=z, f=f: step(z, f)
     timed = time_interleaved(fns, seconds)

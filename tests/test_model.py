@@ -392,9 +392,10 @@ def test_stepper_matches_validated_step(toy):
     params, data = toy["params"], toy["data"]
     graph = G.batch([G.from_state(data.z[0, 2], data.edges, data.node_type)] * 2)
     forces = np.concatenate([data.f[0, 2], 2 * data.f[0, 2]])
-    fn = api.stepper(params, copies=2)
-    np.testing.assert_allclose(fn(graph.nodes["z"], jnp.asarray(forces)),
-                               api.step(params, graph, forces).nodes["z"], rtol=1e-6, atol=1e-6)
+    want = api.step(params, graph, forces).nodes["z"]
+    for one_graph in (None, True, False):   # the backend's default, one graph, one body after another
+        fn = api.stepper(params, copies=2, one_graph=one_graph)
+        np.testing.assert_allclose(fn(graph.nodes["z"], jnp.asarray(forces)), want, rtol=1e-6, atol=1e-6)
     with pytest.raises(ValueError, match="copies"):
         api.stepper(params, copies=0)
 
