@@ -77,9 +77,10 @@ def stepper(params: dict, copies: int = 1, one_graph: bool | None = None):
     else:
         def advance(z, forces):
             return M.step_state(weights, config, norm, z, forces, node_type, topo)
-    n = int(node_type.shape[0]) * int(copies) // tiles
+    m = len(params["mesh"]["node_type"])   # nodes per body
+    n = m * int(copies)
     if tiles != copies:
-        one_body, m = advance, n // int(copies)
+        one_body = advance
 
         def advance(z, forces):
             out = jax.lax.map(lambda zf: one_body(*zf), (z.reshape(-1, m, M.STATE_DIM), forces.reshape(-1, m, 3)))
