@@ -1,4 +1,4 @@
-r"""How far one frame of the beam reaches: why a 3-pass network learns the reference cases and not a fingertip.
+r"""How far one frame of the beam reaches: the FEM's velocity response to a change of load, by edge distance.
 
 A forward-Euler graph network with P message passes computes a node's next state from the states and forces
 within P mesh edges of it. This measures, with the FEM that makes the training data (explicit, the beam scene,
@@ -163,7 +163,9 @@ def format_md(r: dict) -> str:
               "`bunny-128x6` 6. The reference *cases* change their load rate only at frame 0 (a linear ramp "
               "after it), and training starts at frame 2 (`beam`) or from a first state whose finite-difference "
               "velocity already carries the motion (`beam-abaqus`): after that the velocity field persists, "
-              "which is local. The fingertip cases start, stop, release and move their loads mid-case.", "",
+              "which is local. The fingertip cases start, stop, release and move their loads mid-case; "
+              "`--smooth-loads` spreads each such change over several frames (C¹ histories), which makes "
+              "the part a frame cannot see smaller than in this abrupt test (not measured here).", "",
               "Per load (share of a load-rate change's ‖Δv₂‖² beyond 3 edges, and the least error):", ""]
     lines += [f"- {row['load']}: {row['rate_change_share_beyond'].get(3, float('nan')):.3f}, "
               f"bound {row['error_bound'].get(3, float('nan')):.3f}" for row in r["rows"]]
