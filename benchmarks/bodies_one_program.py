@@ -4,7 +4,7 @@ Two beams (`beam-abaqus`, a moving state, small forces), five ways, interleaved 
 alone; both as two plain steps in one program; the same with each step inside its own ``lax.cond`` (what the
 scene loop runs without devices, `scene._fused_frames`); both as one graph (``stepper(params, 2,
 one_graph=True)``); both one after another inside the program (``stepper(params, 2)``'s CPU default,
-``lax.map``). Each configuration runs in a child process of its own, because how XLA:CPU runs a program
+``lax.map``); and 4 and 8 copies, one graph against one after another. Each configuration runs in a child process of its own, because how XLA:CPU runs a program
 depends on how many CPU devices the process made (``tignn demo --cores N`` makes N, see
 `scene.cpu_devices`) and on the cores the process may use:
 
@@ -32,6 +32,7 @@ from _machine import describe, interleaved_ms  # noqa: E402
 
 RESULTS = Path(__file__).resolve().parent / "results"
 CONFIGS = {"one device, two cores": (1, None), "one device, one core": (1, 0), "two devices, two cores": (2, None)}
+COPIES = (4, 8)
 LAYOUTS = ("one body", "two plain steps in one program", "two steps, each in a lax.cond",
            "one graph of both", "one after another (lax.map)")
 
@@ -69,8 +70,14 @@ def child(devices: int, repeats: int) -> dict:
         if not np.allclose(both, np.concatenate([ref, ref]), rtol=1e-5, atol=1e-5):
             raise RuntimeError(f"{name}: the states differ from one body's step")
     times = interleaved_ms(fns, repeats)
+    copies = {}
+    for k in COPIES:   # more bodies: one graph against one after another
+        zk, fk = jnp.concatenate([z] * k), jnp.concatenate([f] * k)
+        fk_fns = {og: (lambda st=api.stepper(params, k, one_graph=og), zk=zk, fk=fk: st(zk, fk)) for og in (True, False)}
+        t = interleaved_ms(fk_fns, max(repeats // 4, 1))
+        copies[k] = {"one graph": float(np.median(t[True])), "one after another": float(np.median(t[False]))}
     return {"devices": len(jax.local_devices()), "p50_ms": {k: float(np.median(v)) for k, v in times.items()},
-            "p99_ms": {k: float(np.percentile(v, 99)) for k, v in times.items()}}
+            "p99_ms": {k: float(np.percentile(v, 99)) for k, v in times.items()}, "copies": copies}
 
 
 def main(argv=None) -> int:
@@ -114,6 +121,14 @@ def format_md(r: dict) -> str:
         cells = [f"{row['p50_ms'][k]:.2f} ms" + ("" if k == "one body" else f" ({base / row['p50_ms'][k]:.2f}×)")
                  for k in LAYOUTS]
         lines.append(f"| {name} | " + " | ".join(cells) + " |")
+    lines += ["", "More copies of the beam, `stepper(params, k)` as one graph against one after another (its CPU "
+              "default; p50 of a quarter as many calls):", "", "| process | " + " | ".join(
+                  f"{k} copies: one graph / one after another" for k in COPIES) + " |", "|---|" + "---|" * len(COPIES)]
+    for name, row in r["rows"].items():
+        c = {int(k): v for k, v in row.get("copies", {}).items()}
+        lines.append(f"| {name} | " + " | ".join(
+            f"{c[k]['one graph']:.1f} / {c[k]['one after another']:.1f} ms "
+            f"({c[k]['one graph'] / c[k]['one after another']:.2f}×)" if k in c else "" for k in COPIES) + " |")
     return "\n".join(lines) + "\n"
 
 

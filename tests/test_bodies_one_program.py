@@ -11,4 +11,5 @@ def test_layouts_agree_and_are_timed():
     assert set(row["p50_ms"]) == set(bop.LAYOUTS) and all(v > 0 for v in row["p50_ms"].values())
     md = bop.format_md({"machine": {"cpu": "x", "cores": 2, "jax": "j", "load_average_1m": 0.0}, "repeats": 1,
                         "rows": {"one device, two cores": row}})
-    assert md.count("\n| one device") == 1 and "(1.00×)" in md
+    assert md.count("\n| one device") == 2 and "(1.00×)" in md   # the two-body table and the copies table
+    assert set(row["copies"]) == set(bop.COPIES) and "8 copies: one graph" in md
