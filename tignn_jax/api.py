@@ -57,9 +57,8 @@ def stepper(params: dict, copies: int = 1, one_graph: bool | None = None):
     ``one_graph``: step the copies as one graph of copies·N nodes (True), or one body after another inside the
     program (``lax.map`` over the copies: False; same states to rounding). Default: one graph on an
     accelerator, where it fills the device (128 beams 9.9x cheaper per body than one, ``scaling_gpu.md``), one
-    body after another on a CPU, where one graph is the slower (``beam-abaqus``, session 30, this 2-core CPU:
-    one body 6.36 ms; 2, 4, 8 copies 21.65, 43.89, 89.89 ms as one graph against 14.61, 27.85, 53.28 one after
-    another, 1.48-1.69x)."""
+    body after another on a CPU, where one graph is the slower (``beam-abaqus`` on this 2-core CPU, session 30,
+    ``bodies_one_program.md``: 2, 4, 8 copies 1.52-1.59x, 1.58-1.79x, 1.66-1.97x faster one after another)."""
     if not isinstance(copies, (int, np.integer)) or copies < 1:
         raise ValueError(f"copies must be a positive integer, got {copies!r}")
     config, weights, norm = _config(params), params["weights"], params["norm"]

@@ -119,8 +119,8 @@ class Scene(NamedTuple):
     one program, or with ``devices`` one per body on its device. Where bodies step on their own (no
     ``Scene.step``, no ``Scene.guard``) each body's part holds its guard and its hand-over, and a body on its
     fallback runs only the fallback step (without devices, several bodies: each body's frame in its own
-    ``lax.cond``, which also keeps XLA:CPU from compiling the bodies' steps together: two beams 12.3 against
-    22.6 ms for one batched graph, session 30); a scene with devices and a ``Scene.guard`` over all bodies runs
+    ``lax.cond``, which also keeps XLA:CPU from running the bodies' steps together, the slower way:
+    ``bodies_one_program.md``); a scene with devices and a ``Scene.guard`` over all bodies runs
     its guard after the steps. False: each stage is dispatched and awaited in turn, so the forces
     are timed on their own (what ``benchmarks/realtime.py`` compares against).
     """
