@@ -172,7 +172,6 @@ def _dynamics(model_name, stand_in, q0, cells, edges, clamped):
     """(one body's step (z, forces) -> z, with attributes ``guard`` (``Body.guard``) and ``fallback``
     (``api.fallback_step``) where the model has them; description; q0 in the model's units; model units per
     mesh unit)."""
-    import jax.numpy as jnp
     import numpy as np
 
     if not stand_in:
