@@ -203,6 +203,24 @@ def test_batched_copies_step_like_separate_graphs(toy):
     _assert_batched_bodies_step_separately(toy["params"], toy["data"])
 
 
+def test_batched_graph_steps_and_rolls_out_alike_as_one_graph_or_body_by_body(toy, monkeypatch):
+    # step and rollout of a batched graph: on a CPU body by body (lax.map), elsewhere as one graph; both layouts
+    # give the same states, and a rollout equals repeated steps.
+    params, data = toy["params"], toy["data"]
+    graph = G.batch([G.from_data(data, 0, 1), G.from_data(data, 1, 2)])
+    f = np.concatenate([data.f[0, 1:3], data.f[1, 2:4]], axis=1)      # [2, 2N, 3]
+    out = {}
+    for one_by_one in (True, False):
+        monkeypatch.setattr(api, "_one_by_one", lambda k, v=one_by_one: v and k > 1)
+        stepped, g = [graph.nodes["z"]], graph
+        for k in range(len(f)):
+            g = api.step(params, g, f[k])
+            stepped.append(g.nodes["z"])
+        out[one_by_one] = (np.asarray(jnp.stack(stepped)), np.asarray(api.rollout(params, graph, f)))
+    for a, b in (out[True], out[False], (out[True][0], out[False][1])):
+        np.testing.assert_allclose(a, b, rtol=1e-5, atol=1e-5)
+
+
 def test_step_rejects_bad_inputs_naming_them(toy):
     # Validation at the public boundary: shapes, NaN forces, and graphs of another mesh.
     data, params = toy["data"], toy["params"]

@@ -32,18 +32,39 @@ def step(params: dict, graph: jraph.GraphsTuple, forces) -> jraph.GraphsTuple:
     """Advance the graph's state one frame Δt under ``forces`` [N,3] (external nodal force during the step).
 
     Returns the graph with the new ``nodes["z"]`` [N,12]. Raises ValueError for wrong shapes, non-finite
-    forces or a graph that is not the model's mesh."""
-    forces, topo = _check(params, graph, forces, seq=False)
-    z = _step_jit(params["weights"], _config(params), params["norm"], graph.nodes["z"], forces,
-                  graph.nodes["node_type"], topo)
+    forces or a graph that is not the model's mesh. A graph of several copies of the mesh steps as one graph,
+    or on a CPU one body after another (as `stepper`; the same states to rounding)."""
+    forces, k = _check(params, graph, forces, seq=False)
+    args = params["weights"], _config(params), params["norm"]
+    z = graph.nodes["z"]
+    if _one_by_one(k):
+        m = len(params["mesh"]["node_type"])
+        z = _bodies_jit(*args, z.reshape(k, m, M.STATE_DIM), forces.reshape(k, m, 3),
+                        jnp.asarray(params["mesh"]["node_type"]), params["topo"]).reshape(z.shape)
+    else:
+        z = _step_jit(*args, z, forces, graph.nodes["node_type"], M.tile_topology(params["topo"], k))
     return G.with_state(graph, z)
 
 
 def rollout(params: dict, graph: jraph.GraphsTuple, forces_seq) -> jax.Array:
-    """States [T+1, N, 12] from the graph's state (first row) under ``forces_seq`` [T, N, 3], by ``lax.scan``."""
-    forces_seq, topo = _check(params, graph, forces_seq, seq=True)
-    return rollout_states(params["weights"], _config(params), params["norm"], graph.nodes["z"], forces_seq,
-                          graph.nodes["node_type"], topo)
+    """States [T+1, N, 12] from the graph's state (first row) under ``forces_seq`` [T, N, 3], by ``lax.scan``
+    (several copies of the mesh as one graph, or on a CPU one body after another, as `step`)."""
+    forces_seq, k = _check(params, graph, forces_seq, seq=True)
+    args = params["weights"], _config(params), params["norm"]
+    z0 = graph.nodes["z"]
+    if not _one_by_one(k):
+        return rollout_states(*args, z0, forces_seq, graph.nodes["node_type"], M.tile_topology(params["topo"], k))
+    m, t = len(params["mesh"]["node_type"]), forces_seq.shape[0]
+    per_body = _rollout_bodies_jit(*args, jnp.asarray(z0).reshape(k, m, M.STATE_DIM),
+                                   jnp.asarray(forces_seq).reshape(t, k, m, 3).swapaxes(0, 1),
+                                   jnp.asarray(params["mesh"]["node_type"]), params["topo"])
+    return per_body.swapaxes(0, 1).reshape(t + 1, k * m, M.STATE_DIM)
+
+
+def _one_by_one(copies: int) -> bool:
+    """Step ``copies`` bodies of one mesh one after another rather than as one graph: on a CPU, where one graph
+    is the slower (``bodies_one_program.md``); an accelerator fills with the one graph."""
+    return copies > 1 and jax.default_backend() == "cpu"
 
 
 def stepper(params: dict, copies: int = 1, one_graph: bool | None = None):
@@ -66,7 +87,7 @@ def stepper(params: dict, copies: int = 1, one_graph: bool | None = None):
         raise ValueError(f"a frame_solve model steps one body per call (its solve is one body's A₀⁻¹), got "
                          f"copies={copies}: call one stepper per body")
     if one_graph is None:
-        one_graph = jax.default_backend() != "cpu"
+        one_graph = not _one_by_one(int(copies))
     tiles = int(copies) if one_graph else 1   # copies in the graph the network sees
     topo = M.tile_topology(params["topo"], tiles)
     node_type = jnp.tile(jnp.asarray(params["mesh"]["node_type"], jnp.int32), tiles)
@@ -619,6 +640,18 @@ def _step_jit(weights, config, norm, z, f, node_type, topo):
     return M.step_state(weights, config, norm, z, f, node_type, topo)
 
 
+@partial(jax.jit, static_argnames="config")
+def _rollout_bodies_jit(weights, config, norm, zs, fs, node_type, topo):
+    """Rollouts [k,T+1,N,12] of the bodies zs [k,N,12] under fs [k,T,N,3], one after another."""
+    return jax.lax.map(lambda zf: rollout_states(weights, config, norm, zf[0], zf[1], node_type, topo), (zs, fs))
+
+
+@partial(jax.jit, static_argnames="config")
+def _bodies_jit(weights, config, norm, zs, fs, node_type, topo):
+    """One step of each of the bodies zs [k,N,12] under fs [k,N,3], one after another (one body's topology)."""
+    return jax.lax.map(lambda zf: M.step_state(weights, config, norm, zf[0], zf[1], node_type, topo), (zs, fs))
+
+
 def _config(params) -> M.ModelConfig:
     return M.ModelConfig(**params["config"])
 
@@ -626,7 +659,7 @@ def _config(params) -> M.ModelConfig:
 def _check(params, graph, forces, seq: bool):
     """Validate a graph against the model's mesh and the forces' shape and values.
 
-    Returns forces (float32) and the graph's Topology (the model's, tiled for k copies of the mesh)."""
+    Returns forces (float32) and k, the graph's number of copies of the mesh."""
     if not isinstance(graph, jraph.GraphsTuple) or not isinstance(graph.nodes, dict) \
             or "z" not in graph.nodes or "node_type" not in graph.nodes:
         raise ValueError("graph must be a jraph.GraphsTuple with nodes {'z': [N,12], 'node_type': [N]}")
@@ -658,5 +691,5 @@ def _check(params, graph, forces, seq: bool):
         raise ValueError(f"{name} contains NaN or infinite values")
     if not np.all(np.isfinite(np.asarray(z))):
         raise ValueError("graph.nodes['z'] contains NaN or infinite values")
-    return forces, M.tile_topology(params["topo"], k)
+    return forces, k
 
