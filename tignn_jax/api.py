@@ -38,9 +38,7 @@ def step(params: dict, graph: jraph.GraphsTuple, forces) -> jraph.GraphsTuple:
     args = params["weights"], _config(params), params["norm"]
     z = graph.nodes["z"]
     if _one_by_one(k):
-        m = len(params["mesh"]["node_type"])
-        z = _bodies_jit(*args, z.reshape(k, m, M.STATE_DIM), forces.reshape(k, m, 3),
-                        jnp.asarray(params["mesh"]["node_type"]), params["topo"]).reshape(z.shape)
+        z = _bodies_jit(*args, z, forces, jnp.asarray(params["mesh"]["node_type"]), params["topo"])
     else:
         z = _step_jit(*args, z, forces, graph.nodes["node_type"], M.tile_topology(params["topo"], k))
     return G.with_state(graph, z)
@@ -100,11 +98,7 @@ def stepper(params: dict, copies: int = 1, one_graph: bool | None = None):
     m = len(params["mesh"]["node_type"])   # nodes per body
     n = m * int(copies)
     if tiles != copies:
-        one_body = advance
-
-        def advance(z, forces):
-            out = jax.lax.map(lambda zf: one_body(*zf), (z.reshape(-1, m, M.STATE_DIM), forces.reshape(-1, m, 3)))
-            return out.reshape(n, M.STATE_DIM)
+        advance = partial(_by_body, advance, m)
 
     @jax.jit
     def fn(z, forces):
@@ -647,9 +641,17 @@ def _rollout_bodies_jit(weights, config, norm, zs, fs, node_type, topo):
 
 
 @partial(jax.jit, static_argnames="config")
-def _bodies_jit(weights, config, norm, zs, fs, node_type, topo):
-    """One step of each of the bodies zs [k,N,12] under fs [k,N,3], one after another (one body's topology)."""
-    return jax.lax.map(lambda zf: M.step_state(weights, config, norm, zf[0], zf[1], node_type, topo), (zs, fs))
+def _bodies_jit(weights, config, norm, z, f, node_type, topo):
+    """One step of the stacked bodies z [k·N,12] under f [k·N,3], one after another (one body's N, topology)."""
+    return _by_body(lambda zb, fb: M.step_state(weights, config, norm, zb, fb, node_type, topo),
+                    node_type.shape[0], z, f)
+
+
+def _by_body(step_fn, m: int, z, f):
+    """``step_fn`` (one body of m nodes: z [m,12], f [m,3] → z [m,12]) applied to the stacked bodies z [k·m,12],
+    f [k·m,3] one after another (``lax.map``), restacked."""
+    out = jax.lax.map(lambda zf: step_fn(*zf), (z.reshape(-1, m, M.STATE_DIM), f.reshape(-1, m, 3)))
+    return out.reshape(z.shape)
 
 
 def _config(params) -> M.ModelConfig:
