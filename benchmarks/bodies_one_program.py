@@ -37,22 +37,19 @@ LAYOUTS = ("one body", "two plain steps in one program", "two steps, each in a l
            "one graph of both", "one after another (lax.map)")
 
 
-def child(devices: int, repeats: int) -> dict:
-    """The five layouts' step times in this process ({layout: p50 ms}); JAX must not have started yet."""
-    from tignn_jax import scene as sc
-
-    sc.real_time_xla_flags()
-    sc.cpu_devices(devices)
+def two_bodies(params):
+    """(z, f, {layout: zero-argument function}) for two bodies of ``params``'s mesh in a moving state under small
+    forces, the ``LAYOUTS`` in order; raises RuntimeError if a layout does not step both bodies to the states of
+    one body's step."""
     import jax
     import jax.numpy as jnp
 
     from tignn_jax import api
 
-    params, graph = api.load_pretrained("beam-abaqus")
     rng = np.random.default_rng(0)
-    z = jnp.asarray(graph.nodes["z"])
-    n = z.shape[0]
-    z = z.at[:, 3:].set(jnp.asarray(0.01 * rng.normal(size=(n, 9)), jnp.float32))
+    n = len(params["mesh"]["node_type"])
+    z = jnp.asarray(np.concatenate([np.asarray(params["mesh"]["q0"]), 0.01 * rng.normal(size=(n, 9))], 1),
+                    jnp.float32)
     f = jnp.asarray(0.01 * rng.normal(size=(n, 3)), jnp.float32)
     one = api.stepper(params)
     keep = lambda z_, f_: z_   # noqa: E731 (the branch not taken)
@@ -69,6 +66,22 @@ def child(devices: int, repeats: int) -> dict:
         both = np.concatenate([np.asarray(x) for x in out]) if isinstance(out, tuple) else np.asarray(out)
         if not np.allclose(both, np.concatenate([ref, ref]), rtol=1e-5, atol=1e-5):
             raise RuntimeError(f"{name}: the states differ from one body's step")
+    return z, f, fns
+
+
+def child(devices: int, repeats: int) -> dict:
+    """The five layouts' step times in this process ({layout: p50 ms}); JAX must not have started yet."""
+    from tignn_jax import scene as sc
+
+    sc.real_time_xla_flags()
+    sc.cpu_devices(devices)
+    import jax
+    import jax.numpy as jnp
+
+    from tignn_jax import api
+
+    params, _ = api.load_pretrained("beam-abaqus")
+    z, f, fns = two_bodies(params)
     times = interleaved_ms(fns, repeats)
     copies = {}
     for k in COPIES:   # more bodies: one graph against one after another

@@ -147,40 +147,27 @@ def step_variants(name: str, repeats: int) -> dict:
 
 
 def concurrency(name: str, repeats: int, devices: tuple) -> dict:
-    """Step time of the scene's bodies (two copies of its model's mesh) six ways, interleaved: one body alone;
-    both in one batched graph (one program, ``stepper(params, 2, one_graph=True)``); both by ``stepper(params,
-    2)``'s CPU default, one body after another (``lax.map``); both as two single-body steps in one program; the
-    same with each step inside its own ``lax.cond`` (what the loop runs without devices, `scene._fused_frames`:
-    a body on its fallback takes the other branch); each on its own CPU device, dispatched together
-    (``Scene.devices``: concurrent, one core each)."""
+    """Step time of the scene's bodies (two copies of its model's mesh), interleaved: the layouts of
+    `bodies_one_program.two_bodies` (one body alone; two plain steps in one program; each in its own ``lax.cond``,
+    what the loop runs without devices; one graph of both; one after another, ``stepper(params, 2)``'s CPU
+    default) and each body on its own CPU device, dispatched together (``Scene.devices``: concurrent, one core
+    each)."""
+    from bodies_one_program import two_bodies
+
     from tignn_jax import api
     from tignn_jax.commands_demo import DEFAULT_MODELS
 
-    params, graph = api.load_pretrained(DEFAULT_MODELS[name])
-    one, two, mapped = api.stepper(params), api.stepper(params, 2, one_graph=True), api.stepper(params, 2, False)
-    rng = np.random.default_rng(0)
-    z = jnp.asarray(graph.nodes["z"])
-    n = z.shape[0]
-    z = z.at[:, 3:].set(jnp.asarray(0.01 * rng.normal(size=(n, 9)), jnp.float32))
-    f = jnp.asarray(0.01 * rng.normal(size=(n, 3)), jnp.float32)
-    batched = jax.jit(lambda za, zb, fa, fb: jnp.split(two(jnp.concatenate([za, zb]), jnp.concatenate([fa, fb])), 2))
-    serial = jax.jit(lambda za, zb, fa, fb: (one(za, fa), one(zb, fb)))
-    keep = lambda z_, f_: z_     # noqa: E731 (the branch not taken)
-    in_cond = jax.jit(lambda za, zb, fa, fb, on: (jax.lax.cond(on, keep, one, za, fa),
-                                                  jax.lax.cond(on, keep, one, zb, fb)))
-    placed = [(jax.device_put(z, d), jax.device_put(f, d)) for d in devices[:2]]
-    z2, f2 = jnp.concatenate([z, z]), jnp.concatenate([f, f])
-    fns = {"one body": lambda: one(z, f), "two bodies, one batched graph": lambda: batched(z, z, f, f),
-           "two bodies, one after another (stepper's lax.map)": lambda: mapped(z2, f2),
-           "two bodies, two steps in one program": lambda: serial(z, z, f, f),
-           "two bodies, two steps in one program, each in a lax.cond": lambda: in_cond(z, z, f, f, False)}
+    params, _ = api.load_pretrained(DEFAULT_MODELS[name])
+    z, f, fns = two_bodies(params)
     if len(devices) > 1:
+        one = api.stepper(params)
+        placed = [(jax.device_put(z, d), jax.device_put(f, d)) for d in devices[:2]]
         fns["two bodies on two devices (concurrent)"] = lambda: [one(a, b) for a, b in placed]
     times = interleaved_ms(fns, repeats)
     p50 = {k: float(np.median(v)) for k, v in times.items()}
     return {"model": DEFAULT_MODELS[name], "devices": len(devices), "step_p50_ms": p50,
             "step_p99_ms": {k: float(np.percentile(v, 99)) for k, v in times.items()},
-            "speedup_vs_batched": {k: p50["two bodies, one batched graph"] / v for k, v in p50.items()}}
+            "speedup_vs_batched": {k: p50["one graph of both"] / v for k, v in p50.items()}}
 
 
 # the bunny runs of session 10: traction, port and load-context features, 16 clusters with dense mixing, rest shift
