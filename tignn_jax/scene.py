@@ -145,11 +145,13 @@ class Timings(NamedTuple):
     """Milliseconds per frame for each stage (arrays over frames) and the frames' overflow count.
 
     ``fused_frames``: timed frames whose forces, step and guard were dispatched together and awaited once
-    (``Scene.fuse``, once a body is touched and, without devices, not every body is on its fallback); their
+    (``Scene.fuse``, once a body is touched and, with a ``Scene.step`` or ``Scene.guard`` or a single body, not
+    every body is on its fallback); their
     forces time is 0 and counted in ``step``, so forces + step is the simulation time of every frame.
     ``learned`` (bool per frame): the learned step ran in that frame, i.e. some body was touched and not on its
     fallback (None: not recorded). ``learned_bodies`` (int per frame): how many bodies the learned step
-    moved (touched and not on their fallback; in a single program a held body's step is computed and discarded);
+    moved (touched and not on their fallback; with a ``Scene.step`` or ``Scene.guard`` a held body's step is still
+    computed and discarded);
     ``handed`` (bool per frame): a guard handed some body over in that frame."""
     forces: np.ndarray
     step: np.ndarray
