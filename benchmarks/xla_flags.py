@@ -33,10 +33,16 @@ OPTIONS = {"default": "", "YNNPACK fusions off": _YNN_OFF,
            "YNNPACK fusions off + concurrency-optimised scheduler":
                f"{_YNN_OFF} --xla_cpu_enable_concurrency_optimized_scheduler=true",
            "YNNPACK fusions off, single-threaded": f"{_YNN_OFF} --xla_cpu_multi_thread_eigen=false "
-                                                  "intra_op_parallelism_threads=1"}
+                                                  "intra_op_parallelism_threads=1",
+           "YNNPACK fusions off + oneDNN dot fusion": f"{_YNN_OFF} --xla_cpu_experimental_onednn_fusion_type=dot",
+           "YNNPACK fusions off + 512-bit vectors": f"{_YNN_OFF} --xla_cpu_prefer_vector_width=512",
+           "YNNPACK fusions off, pinned to one core": _YNN_OFF}
+PINNED = {"YNNPACK fusions off, pinned to one core"}
 
 
-def child(model: str, out: str) -> None:
+def child(model: str, out: str, pin: bool = False) -> None:
+    if pin:   # before JAX creates its threads: they all inherit the one core
+        os.sched_setaffinity(0, {sorted(os.sched_getaffinity(0))[0]})
     import jax.numpy as jnp
 
     from tignn_jax import api
@@ -64,9 +70,10 @@ def main(argv=None) -> int:
     ap.add_argument("--rounds", type=int, default=3)
     ap.add_argument("--model", default="beam-abaqus")
     ap.add_argument("--child", nargs=2, metavar=("MODEL", "OUT"), help=argparse.SUPPRESS)
+    ap.add_argument("--pin", action="store_true", help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
     if args.child:
-        child(*args.child)
+        child(*args.child, pin=args.pin)
         return 0
     if args.rounds < 1:
         raise SystemExit(f"--rounds must be positive, got {args.rounds}")
@@ -78,7 +85,8 @@ def main(argv=None) -> int:
             for i, (name, flags) in enumerate(OPTIONS.items()):
                 out = str(Path(tmp) / f"{r}_{i}.npy")
                 env = dict(os.environ, XLA_FLAGS=flags)
-                done = subprocess.run([sys.executable, __file__, "--child", args.model, out], env=env,
+                pin = ["--pin"] if name in PINNED else []
+                done = subprocess.run([sys.executable, __file__, "--child", args.model, out, *pin], env=env,
                                       capture_output=True, text=True, check=True, timeout=600)
                 runs[name].append(json.loads(done.stdout.strip().splitlines()[-1]))
                 outputs.setdefault(name, np.load(out))
@@ -101,7 +109,8 @@ def main(argv=None) -> int:
              f"Machine: {machine['cpu']}, {machine['cores']} cores, jax {machine['jax']}; load average "
              f"{machine['load_average_1m']} at start, {machine['load_average_1m_at_end']} at end. Each option in its "
              f"own process (XLA reads XLA_FLAGS once), {args.rounds} rounds alternating the options; per process "
-             "the median of 300 calls after 20 untimed.", "",
+             "the median of 300 calls after 20 untimed; \"pinned to one core\": the child process and all its "
+             "threads on one core (`os.sched_setaffinity`).", "",
              "| option | XLA_FLAGS | step p50 per round (ms) | p50 (median of rounds) | p99 | × default | "
              "largest state difference vs default (relative) |", "|---|---|---|---|---|---|---|"]
     for name, r in rows.items():
