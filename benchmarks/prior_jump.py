@@ -37,10 +37,9 @@ def jump_ratios(params: dict, z, f) -> np.ndarray:
     import jax
     import jax.numpy as jnp
 
-    from tignn_jax import framesolve as FS
+    from tignn_jax import api
 
-    norm, nt, q0 = params["norm"], jnp.asarray(params["mesh"]["node_type"]), jnp.asarray(params["mesh"]["q0"])
-    step = jax.jit(jax.vmap(lambda a, b: a + FS.prior_step(norm, a, b, jnp.zeros_like(a), nt, q0)))
+    step = jax.jit(jax.vmap(api.stepper(params)))   # the model's own step (the linearised solve alone, if zero)
     num = np.zeros((z.shape[1] - 1, len(GROUPS)))
     den = np.zeros_like(num)
     for zc, fc in zip(z, f):
