@@ -27,6 +27,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from tignn_jax import convex as CV
 from tignn_jax import framesolve as FS
 
 STATE_DIM = 12
@@ -136,7 +137,14 @@ class ModelConfig(NamedTuple):
     (``step_growth_terms.md``, session 26): it is not a fix by itself. `beam-abaqus`'s weights with it grow
     1.12–1.19 but lose the dynamics (test u 0.92), and fine-tuned with it the network moved the growth into M
     (M∇²S 0.88 at rest with ``rest_equilibrium``: a learned entropy convex along the mode), its test rollouts
-    blown up (relative errors ~1e6). No shipped model uses it.
+    blown up (relative errors ~1e6). No shipped model uses it; convex: thermodynamic stability built in
+    (``tignn_jax.convex``): L and M static (from the rest mesh only) and coupling neighbouring nodes, E convex
+    and S concave in the state (input-convex networks over features linear in z, with their minimum / maximum
+    at rest), forces through a port. Uses ``hidden`` (the feature and network width), ``mlp_layers`` (the
+    convex networks' depth) and ``integrator``; combined with any other architecture option it raises;
+    free_energy (with convex): the free-energy form of GENERIC, dz/dt = (L − M)∇F + B f with one convex F
+    (what GENERIC reduces to at a fixed temperature under exact degeneracy; stable in continuous time without
+    a degeneracy loss, which it does not use: see ``tignn_jax.convex``).
     """
     hidden: int = 32
     mlp_layers: int = 2
@@ -163,6 +171,8 @@ class ModelConfig(NamedTuple):
     correction_scale: float = 0.01
     integrator: str = "euler"
     static_l: bool = False
+    convex: bool = False
+    free_energy: bool = False
 
 
 INTEGRATORS = ("euler", "heun")
@@ -185,13 +195,15 @@ class Rates(NamedTuple):
 
     dw: [N,12] increment (clamped q,v rows zero); grad_e, grad_s: [N,12] ∇_w E, ∇_w S;
     deg_l: [N,12] L ∇S; deg_m: [N,12] M ∇E (both zero for an exactly degenerate model);
-    entropy_rate: [] ∇Sᵀ dw summed over free and clamped nodes (≥ 0 when degenerate)."""
+    entropy_rate: [] ∇Sᵀ dw summed over free and clamped nodes (≥ 0 when degenerate);
+    dissipation: [] ∇Sᵀ M ∇S (≥ 0: M is PSD)."""
     dw: jax.Array
     grad_e: jax.Array
     grad_s: jax.Array
     deg_l: jax.Array
     deg_m: jax.Array
     entropy_rate: jax.Array
+    dissipation: jax.Array
 
 
 def step_state(weights, config: ModelConfig, norm: dict, z, f, node_type, topo):
@@ -220,13 +232,18 @@ def rates(weights, config: ModelConfig, norm: dict, z, f, node_type, topo) -> Ra
     dw, g_e, g_s, (l_mat, m_mat) = _generic(weights, config, norm, z, f, node_type, topo)
     apply_l, apply_m = _appliers(config, norm, g_e, g_s)
     deg_l = apply_l(l_mat, g_s)
-    deg_m = apply_m(m_mat, g_e)
-    return Rates(dw=dw, grad_e=g_e, grad_s=g_s, deg_l=deg_l, deg_m=deg_m, entropy_rate=jnp.sum(g_s * dw))
+    m_s = apply_m(m_mat, g_s)
+    return Rates(dw=dw, grad_e=g_e, grad_s=g_s, deg_l=deg_l, deg_m=apply_m(m_mat, g_e),
+                 entropy_rate=jnp.sum(g_s * dw), dissipation=jnp.sum(g_s * m_s))
 
 
 def operators(weights, config: ModelConfig, norm: dict, z, f, node_type, topo):
     """Per-node L [N,12,12] (skew-symmetric) and M [N,12,12] (symmetric PSD) at state z (projected when
-    ``config.exact_degeneracy``)."""
+    ``config.exact_degeneracy``). A ``convex`` model's operators also couple neighbouring nodes: see
+    ``dense_operators``."""
+    if config.convex:
+        raise ValueError("a convex model's L and M couple neighbouring nodes, so they have no per-node form; "
+                         "use dense_operators")
     g_e, g_s, (l_mat, m_mat), _ = _potentials_and_grads(weights, config, norm, z, f, node_type, topo)
     l_op, m_op = l_mat - jnp.swapaxes(l_mat, 1, 2), m_mat @ jnp.swapaxes(m_mat, 1, 2)
     if config.kinematic_prior:
@@ -237,8 +254,21 @@ def operators(weights, config: ModelConfig, norm: dict, z, f, node_type, topo):
     return l_op, m_op
 
 
+def dense_operators(weights, config: ModelConfig, norm: dict, z, f, node_type, topo):
+    """The whole graph's L and M [N·12, N·12] at state z, in the scaled coordinates (node-major), by applying
+    the model's operators to every unit vector: for tests and diagnostics on small meshes."""
+    g_e, g_s, (l_mat, m_mat), _ = _potentials_and_grads(weights, config, norm, z, f, node_type, topo)
+    apply_l, apply_m = _appliers(config, norm, g_e, g_s)
+    n = z.shape[0] * STATE_DIM
+    basis = jnp.eye(n, dtype=z.dtype).reshape(n, -1, STATE_DIM)
+    cols = lambda apply, ops: jax.vmap(lambda e: apply(ops, e).reshape(-1))(basis).T
+    return cols(apply_l, l_mat), cols(apply_m, m_mat)
+
+
 def energy_entropy(weights, config: ModelConfig, norm: dict, z, f, node_type, topo):
     """Total E and S [2] of the graph at state z (the potentials whose gradients drive the dynamics)."""
+    if config.convex:
+        return CV.energy_entropy(weights, config, norm, z, node_type, topo)
     out = _network_out(weights, config, norm, z, f, node_type, topo)
     e, s_ = out[:, 0].sum(), out[:, 1].sum()
     if config.kinematic_prior:
@@ -263,6 +293,8 @@ def with_rest(weights, config: ModelConfig, norm: dict, node_type, topo) -> dict
     stiffnesses ("spring_edges" [R,K]) and ``port_hops``' edge coefficients ("spread_edges" [H,R,K,2]). They
     depend on the weights and the rest mesh only; ``norm`` is unchanged for models without these options."""
     extra = {}
+    if config.convex:
+        extra.update(CV.static(weights, config, norm, node_type, topo))
     if config.rest_equilibrium:
         extra["rest_grads"] = rest_gradients(weights, config, norm, node_type, topo)
     if config.force_port and config.elastic_port:
@@ -299,6 +331,8 @@ def _rest_state(norm: dict, topo, option: str):
 
 def init_weights(key, config: ModelConfig, norm: dict, z, f, node_type, topo):
     """Flax parameters of the network for graphs like the example (z [N,12], f [N,3])."""
+    if config.convex or config.free_energy:   # (free_energy alone: the convex module's error)
+        return CV.init_weights(key, config)
     return Network(config).init(key, *_inputs(config, norm, z, f, node_type, topo), topo,
                                 _coarse_inputs(config, norm, z, topo))["params"]
 
@@ -600,7 +634,7 @@ def _generic(weights, config, norm, z, f, node_type, topo):
     g_e, g_s, (l_mat, m_mat), port = _potentials_and_grads(weights, config, norm, z, f, node_type, topo)
     apply_l, apply_m = _appliers(config, norm, g_e, g_s)
     dw = apply_l(l_mat, g_e) + apply_m(m_mat, g_s)
-    if config.force_port:
+    if config.force_port or config.convex:
         if config.elastic_port:
             f = f + spring_force(weights, norm, z, topo)
         if config.port_hops:
@@ -620,6 +654,8 @@ def _potentials_and_grads(weights, config, norm, z, f, node_type, topo):
 
     The decoder's last layer is applied in two parts (E, S columns | l, m columns) so the reverse pass only
     runs through the two potential columns; l and m are read out of the heads with a gather (no matmul)."""
+    if config.convex:
+        return CV.potentials_and_grads(weights, config, norm, z, f, node_type, topo)
     def potentials(z_):
         es, heads = _network_out(weights, config, norm, z_, f, node_type, topo, split=True)
         return jnp.stack([es[:, 0].sum(), es[:, 1].sum()]), heads
@@ -766,7 +802,10 @@ def _canonical_matrix(norm):
 
 def _appliers(config, norm, g_e, g_s):
     """(l, g) -> L g and (m, g) -> M g, with the canonical L₀ added for ``kinematic_prior`` and through the
-    degeneracy projections when the config asks for them."""
+    degeneracy projections when the config asks for them. A ``convex`` model's operator data is its
+    ``convex.Ops`` (in both places of the pair) and its appliers are its own."""
+    if config.convex:
+        return CV.apply_l, CV.apply_m
     base_l = _apply_l
     if config.kinematic_prior:
         l_0 = _canonical_matrix(norm)

@@ -98,6 +98,8 @@ class TrainConfig(NamedTuple):
     correction_scale: float = 0.01
     integrator: str = "euler"
     static_l: bool = False
+    convex: bool = False
+    free_energy: bool = False
     residual_scale: bool = False
     lr: float = 3e-3
     lr_end: float = 2e-5

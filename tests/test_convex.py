@@ -1,0 +1,148 @@
+"""The convex GENERIC model (``ModelConfig(convex=True)``, ``tignn_jax.convex``): static brackets that couple
+neighbours and stay skew / PSD, convex E and concave S with their extremum at rest, the free-energy form, the
+cache of the static part, saving, and a tiny training run."""
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from tignn_jax import api
+from tignn_jax import data as D
+from tignn_jax import model as M
+from tignn_jax import train as T
+
+CONVEX = M.ModelConfig(hidden=8, mlp_layers=2, convex=True)
+FREE = CONVEX._replace(free_energy=True)
+
+
+@pytest.fixture(scope="module")
+def bar():
+    data = D.synthetic_beam(nx=4, ny=2, nz=2, cases=3, frames=4)
+    norm = {k: jnp.asarray(v) for k, v in D.normalization(data, D.split_rows(data, "train")).items()}
+    topo = M.topology(data.edges[0], data.edges[1], len(data.q0), q0=data.q0)
+    nt = jnp.asarray(data.node_type, jnp.int32)
+    z, f = jnp.asarray(data.z[0, 2]), jnp.asarray(data.f[0, 2])
+    weights = {c: M.init_weights(jax.random.PRNGKey(1), c, norm, z, f, nt, topo) for c in (CONVEX, FREE)}
+    rest = jnp.concatenate([topo.x0, jnp.zeros((len(data.q0), 9))], axis=1)
+    return dict(data=data, norm=norm, topo=topo, nt=nt, z=z, f=f, weights=weights, rest=rest)
+
+
+def _args(bar, config, z=None, f=None):
+    return (bar["weights"][config], config, bar["norm"], bar["z"] if z is None else z,
+            bar["f"] if f is None else f, bar["nt"], bar["topo"])
+
+
+@pytest.mark.parametrize("config", [CONVEX, FREE], ids=["convex", "free_energy"])
+def test_brackets_are_skew_and_psd_couple_neighbours_and_do_not_depend_on_the_state(bar, config):
+    big_l, big_m = (np.asarray(a, np.float64) for a in M.dense_operators(*_args(bar, config)))
+    scale_l, scale_m = np.abs(big_l).max(), np.abs(big_m).max()
+    assert scale_l > 0 and scale_m > 0
+    assert np.abs(big_l + big_l.T).max() <= 1e-6 * scale_l
+    assert np.abs(big_m - big_m.T).max() <= 1e-6 * scale_m
+    assert np.linalg.eigvalsh(big_m).min() >= -1e-6 * scale_m
+    # entries between different nodes: the edge blocks of L and M are there
+    n = big_l.shape[0] // M.STATE_DIM
+    off = ~np.kron(np.eye(n, dtype=bool), np.ones((M.STATE_DIM, M.STATE_DIM), bool))
+    assert np.abs(big_l[off]).max() > 1e-3 * scale_l and np.abs(big_m[off]).max() > 1e-3 * scale_m
+    # static: the same operators at another state under another force
+    other_l, other_m = M.dense_operators(*_args(bar, config, z=bar["rest"], f=jnp.zeros_like(bar["f"])))
+    np.testing.assert_array_equal(np.asarray(other_l, np.float64), big_l)
+    np.testing.assert_array_equal(np.asarray(other_m, np.float64), big_m)
+    with pytest.raises(ValueError, match="dense_operators"):
+        M.operators(*_args(bar, config))
+
+
+@pytest.mark.parametrize("config", [CONVEX, FREE], ids=["convex", "free_energy"])
+def test_energy_is_convex_and_entropy_concave_along_lines(bar, config):
+    w, _, norm, z, f, nt, topo = _args(bar, config)
+    potentials = jax.jit(jax.vmap(lambda zz: M.energy_entropy(w, config, norm, zz, f, nt, topo)))
+    rng = np.random.default_rng(0)
+    ts = jnp.linspace(-4.0, 4.0, 33)
+    for _ in range(4):
+        d = jnp.asarray(rng.normal(size=z.shape), jnp.float32) * norm["z_std"]
+        vals = np.asarray(potentials(z[None] + ts[:, None, None] * d[None]), np.float64)
+        second = vals[2:] - 2 * vals[1:-1] + vals[:-2]
+        tol = 1e-4 * np.abs(vals).max()
+        assert second[:, 0].min() >= -tol and second[:, 1].max() <= tol
+        if config.free_energy:
+            np.testing.assert_allclose(vals[:, 1], -vals[:, 0])
+
+
+@pytest.mark.parametrize("config", [CONVEX, FREE], ids=["convex", "free_energy"])
+def test_rest_is_the_extremum_of_the_potentials_and_a_fixed_point(bar, config):
+    zero = jnp.zeros_like(bar["f"])
+    rt = M.rates(*_args(bar, config, z=bar["rest"], f=zero))
+    assert float(jnp.abs(rt.grad_e).max()) < 1e-5 and float(jnp.abs(rt.grad_s).max()) < 1e-5
+    moved = M.step_state(*_args(bar, config, z=bar["rest"], f=zero)) - bar["rest"]
+    assert float(jnp.abs(moved).max()) <= 1e-6 * float(jnp.abs(bar["rest"]).max())
+    es = M.energy_entropy(*_args(bar, config, z=bar["rest"], f=zero))
+    others = M.energy_entropy(*_args(bar, config))
+    assert float(others[0]) >= float(es[0]) and float(others[1]) <= float(es[1])
+
+
+@pytest.mark.parametrize("config", [CONVEX, FREE], ids=["convex", "free_energy"])
+def test_gradients_match_finite_differences(bar, config):
+    w, _, norm, z, f, nt, topo = _args(bar, config)
+    with jax.enable_x64(True):
+        w64 = jax.tree_util.tree_map(lambda x: jnp.asarray(x, jnp.float64), w)
+        n64 = {k: jnp.asarray(v, jnp.float64) for k, v in norm.items()}
+        z64, f64 = jnp.asarray(z, jnp.float64), jnp.asarray(f, jnp.float64)
+        rt = M.rates(w64, config, n64, z64, f64, nt, topo)
+        scale = M.state_scale(n64)
+        rng = np.random.default_rng(1)
+        for _ in range(3):
+            direction = jnp.asarray(rng.normal(size=z.shape)) * scale
+            h = 1e-6
+            pot = lambda zz: M.energy_entropy(w64, config, n64, zz, f64, nt, topo)
+            fd = (pot(z64 + h * direction) - pot(z64 - h * direction)) / (2 * h)
+            analytic = jnp.stack([jnp.sum(rt.grad_e * direction / scale), jnp.sum(rt.grad_s * direction / scale)])
+            np.testing.assert_allclose(np.asarray(analytic), np.asarray(fd), rtol=1e-6, atol=1e-9)
+
+
+def test_free_energy_form_produces_entropy_without_forces_or_clamps(bar):
+    # dz/dt = (L − M)∇F: with no port and no clamped rows, ∇Sᵀ dw = ∇Fᵀ M ∇F ≥ 0 exactly
+    w, _, norm, z, _, _, topo = _args(bar, FREE)
+    free_nodes = jnp.zeros_like(bar["nt"])
+    rt = M.rates(w, FREE, norm, z, jnp.zeros_like(bar["f"]), free_nodes, topo)
+    assert float(rt.dissipation) > 0
+    np.testing.assert_allclose(float(rt.entropy_rate), float(rt.dissipation), rtol=1e-4)
+
+
+def test_cached_static_part_and_a_saved_model_step_the_same(bar, tmp_path):
+    w, config, norm, z, f, nt, topo = _args(bar, CONVEX)
+    cached = M.with_rest(w, config, norm, nt, topo)
+    assert {"convex_c", "convex_p", "convex_a"} <= set(cached)
+    direct = M.step_state(w, config, norm, z, f, nt, topo)
+    np.testing.assert_array_equal(np.asarray(M.step_state(w, config, cached, z, f, nt, topo)), np.asarray(direct))
+    data = bar["data"]
+    params = api.make_params(config, {k: np.asarray(v) for k, v in norm.items()}, w, data.q0, data.edges,
+                             data.node_type)
+    loaded = api.load_model(api.save_model(params, tmp_path / "model.npz"))
+    _, graph = api.load_pretrained(str(tmp_path / "model.npz"))
+    graph = graph._replace(nodes={**graph.nodes, "z": z})
+    np.testing.assert_allclose(np.asarray(api.step(loaded, graph, f).nodes["z"]), np.asarray(direct),
+                               rtol=1e-6, atol=1e-6)
+
+
+def test_options_it_does_not_combine_with_are_named():
+    z, f, nt = jnp.zeros((2, 12)), jnp.zeros((2, 3)), jnp.zeros(2, jnp.int32)
+    with pytest.raises(ValueError, match="force_port"):
+        M.init_weights(jax.random.PRNGKey(0), CONVEX._replace(force_port=True), {}, z, f, nt, None)
+    with pytest.raises(ValueError, match="needs convex"):
+        M.init_weights(jax.random.PRNGKey(0), CONVEX._replace(convex=False, free_energy=True), {}, z, f, nt, None)
+
+
+def test_tiny_convex_training_reduces_the_loss_and_rolls_out(bar, tmp_path):
+    data = bar["data"]
+    cfg = T.CONFIGS["tiny"]._replace(convex=True, free_energy=True, deg_weight=0.0, epochs=8, passes=1)
+    quiet = dict(progress=False, log=lambda *a, **k: None)
+    first = T.train(data, cfg, tmp_path / "a", stop_after_epoch=1, **quiet)
+    trained = T.train(data, cfg, tmp_path / "b", **quiet)
+    lines = [l for l in (tmp_path / "b" / "metrics.jsonl").read_text().splitlines()]
+    import json
+    mse = [json.loads(l)["mse"] for l in lines]
+    assert mse[-1] < 0.7 * mse[0]
+    _, graph = api.load_pretrained(str(tmp_path / "b" / "best" / "model.npz"))
+    states = api.rollout(trained, graph, jnp.asarray(data.f[0]))
+    assert np.isfinite(np.asarray(states)).all()
+    assert first["config"]["convex"] and trained["config"]["free_energy"]
