@@ -44,6 +44,10 @@ def test_brackets_are_skew_and_psd_couple_neighbours_and_do_not_depend_on_the_st
     n = big_l.shape[0] // M.STATE_DIM
     off = ~np.kron(np.eye(n, dtype=bool), np.ones((M.STATE_DIM, M.STATE_DIM), bool))
     assert np.abs(big_l[off]).max() > 1e-3 * scale_l and np.abs(big_m[off]).max() > 1e-3 * scale_m
+    # the clamped nodes' q and v are prescribed: their rows and columns are zero (P L P, P M P)
+    fixed = np.asarray(M.prescribed(bar["nt"])).reshape(-1)
+    assert fixed.any() and not np.abs(big_l[fixed]).any() and not np.abs(big_l[:, fixed]).any()
+    assert not np.abs(big_m[fixed]).any() and not np.abs(big_m[:, fixed]).any()
     # static: the same operators at another state under another force
     other_l, other_m = M.dense_operators(*_args(bar, config, z=bar["rest"], f=jnp.zeros_like(bar["f"])))
     np.testing.assert_array_equal(np.asarray(other_l, np.float64), big_l)

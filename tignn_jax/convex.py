@@ -29,6 +29,12 @@ real eigenvalue above zero). This model closes each of those channels by constru
   A convex function of an affine map is convex, so E is convex and S concave in z, and their gradients vanish
   at rest: the rest state is E's minimum and S's maximum, and it is a fixed point of the unloaded step.
 * **Forces through the port**: B f = g_i f_i in node i's velocity rows with a per-node gain (``force_term``).
+* **Clamps as a projection**: the clamped nodes' q and v are prescribed, so both brackets act as P L P and
+  P M P, with P zeroing those entries (rows and columns). Zeroing only the rows, as the plain model does,
+  lets a clamped node's energy gradient (its reaction) drive the free entries through L, and the linearised
+  step then need not keep the structure: a first convex model trained that way grew by 1.22 per step along a
+  real eigenvalue at a clamped node's stress. With P on both sides the free block of the linearised rate is
+  (P L P − P M P) ∇²F restricted to the free entries, whose eigenvalues have real part ≤ 0 for a convex F.
 
 The rate is dz/dt = L∇E + M∇S + B f as in every model here, stepped by forward Euler (or Heun). Linearised at
 any state, L∇²E has imaginary eigenvalues (skew times PSD) and M∇²S real ones ≤ 0; what forward Euler's own
@@ -225,11 +231,13 @@ def potentials(weights, config, st, norm, z, topo):
 
 
 class Ops:
-    """What the appliers need: the static arrays, the topology and the statistics (for L₀). A convex model's
-    ``model._potentials_and_grads`` hands it on twice, in the places of the plain model's (l, m) pair."""
+    """What the appliers need: the static arrays, the topology, the statistics (for L₀) and which state entries
+    are prescribed. A convex model's ``model._potentials_and_grads`` hands it on twice, in the places of the
+    plain model's (l, m) pair."""
 
-    def __init__(self, st, topo, norm):
+    def __init__(self, st, topo, norm, node_type):
         self.st, self.topo, self.norm = st, topo, norm
+        self.free = (~M.prescribed(node_type)).astype(norm["z_std"].dtype)
         self.l_mat, self.m_mat = M._matrices(st["convex_heads"][:, :M.N_L + M.N_M])
 
 
@@ -239,23 +247,26 @@ def potentials_and_grads(weights, config, norm, z, f, node_type, topo):
     _, pullback = jax.vjp(lambda z_: potentials(weights, config, st, norm, z_, topo), z)
     (grads,) = jax.vmap(pullback)(jnp.eye(2, dtype=z.dtype))
     scale = M.state_scale(norm)
-    ops = Ops(st, topo, norm)
+    ops = Ops(st, topo, norm, node_type)
     return grads[0] * scale, grads[1] * scale, (ops, ops), st["convex_heads"][:, M.N_L + M.N_M:]
 
 
 def apply_l(ops: Ops, g):
-    """L g [N,12]: canonical + per-node skew blocks + the skew edge blocks."""
+    """L g [N,12]: canonical + per-node skew blocks + the skew edge blocks, applied as P L P with P the
+    projection onto the evolved entries (module docstring: clamps as a projection)."""
+    g = g * ops.free
     out = M._apply_l(ops.l_mat, g) + g @ M._canonical_matrix(ops.norm).T
     edge = jnp.einsum("rkij,rkj->ri", ops.st["convex_c"], M.gather_neighbors(g, ops.topo))
-    return out + M.reduce_rows(edge, ops.topo)
+    return (out + M.reduce_rows(edge, ops.topo)) * ops.free
 
 
 def apply_m(ops: Ops, g):
-    """M g [N,12]: per-node m mᵀ + the edge Laplacian Σ_j P Pᵀ (g_i − g_j)."""
+    """M g [N,12]: per-node m mᵀ + the edge Laplacian Σ_j P Pᵀ (g_i − g_j), applied as P M P."""
+    g = g * ops.free
     p = ops.st["convex_p"]
     diff = M.expand_rows(g, ops.topo)[:, None, :] - M.gather_neighbors(g, ops.topo)
     edge = jnp.einsum("rkcs,rks->rc", p, jnp.einsum("rkcs,rkc->rks", p, diff))
-    return M._apply_m(ops.m_mat, g) + M.reduce_rows(edge, ops.topo)
+    return (M._apply_m(ops.m_mat, g) + M.reduce_rows(edge, ops.topo)) * ops.free
 
 
 def energy_entropy(weights, config, norm, z, node_type, topo):
