@@ -353,6 +353,8 @@ def main(argv=None) -> int:
                 models[label] = model_runs(name, model, args.steps, args.fem_steps)
             except ValueError as err:
                 print(f"{label}: skipped ({err})")
+    if not models:
+        raise SystemExit("no model ran (see the skipped lines above)")
     result = {"machine": machine, "steps": args.steps, "models": models, "fem_limit": fem_limit()}
     RESULTS.mkdir(parents=True, exist_ok=True)
     (RESULTS / f"{stem}.json").write_text(json.dumps(result))

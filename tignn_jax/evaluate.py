@@ -126,10 +126,8 @@ def _structure_many(weights, config, norm, states, forces, node_type, topo):
     def one(z, f):
         rt = M.rates(weights, config, norm, z, f, node_type, topo)
         size = jnp.linalg.norm(rt.dw) + 1e-12
-        _, m_op = M.operators(weights, config, norm, z, f, node_type, topo)
-        dissipation = jnp.einsum("ni,nij,nj->", rt.grad_s, m_op, rt.grad_s)
         return jnp.stack([jnp.linalg.norm(rt.deg_l) / size, jnp.linalg.norm(rt.deg_m) / size,
-                          rt.entropy_rate, dissipation])
+                          rt.entropy_rate, rt.dissipation])
 
     # cases one after another (lax.map), frames vectorised: the per-node 12x12 operators and the second-order
     # passes of every state at once need ~0.5 GB per bunny case (71 cases: 35 GB, out of memory)
