@@ -10,6 +10,7 @@ from tignn_jax import api
 from tignn_jax import data as D
 from tignn_jax import model as M
 from tignn_jax import train as T
+from test_model import _assert_gradients_match_finite_differences
 
 CONVEX = M.ModelConfig(hidden=8, mlp_layers=2, convex=True)
 FREE = CONVEX._replace(free_energy=True)
@@ -86,21 +87,7 @@ def test_rest_is_the_extremum_of_the_potentials_and_a_fixed_point(bar, config):
 
 @pytest.mark.parametrize("config", [CONVEX, FREE], ids=["convex", "free_energy"])
 def test_gradients_match_finite_differences(bar, config):
-    w, _, norm, z, f, nt, topo = _args(bar, config)
-    with jax.enable_x64(True):
-        w64 = jax.tree_util.tree_map(lambda x: jnp.asarray(x, jnp.float64), w)
-        n64 = {k: jnp.asarray(v, jnp.float64) for k, v in norm.items()}
-        z64, f64 = jnp.asarray(z, jnp.float64), jnp.asarray(f, jnp.float64)
-        rt = M.rates(w64, config, n64, z64, f64, nt, topo)
-        scale = M.state_scale(n64)
-        rng = np.random.default_rng(1)
-        for _ in range(3):
-            direction = jnp.asarray(rng.normal(size=z.shape)) * scale
-            h = 1e-6
-            pot = lambda zz: M.energy_entropy(w64, config, n64, zz, f64, nt, topo)
-            fd = (pot(z64 + h * direction) - pot(z64 - h * direction)) / (2 * h)
-            analytic = jnp.stack([jnp.sum(rt.grad_e * direction / scale), jnp.sum(rt.grad_s * direction / scale)])
-            np.testing.assert_allclose(np.asarray(analytic), np.asarray(fd), rtol=1e-6, atol=1e-9)
+    _assert_gradients_match_finite_differences(*_args(bar, config))
 
 
 def test_free_energy_form_produces_entropy_without_forces_or_clamps(bar):
