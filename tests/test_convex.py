@@ -1,6 +1,8 @@
 """The convex GENERIC model (``ModelConfig(convex=True)``, ``tignn_jax.convex``): static brackets that couple
 neighbours and stay skew / PSD, convex E and concave S with their extremum at rest, the free-energy form, the
 cache of the static part, saving, and a tiny training run."""
+import json
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -108,8 +110,7 @@ def test_cached_static_part_and_a_saved_model_step_the_same(bar, tmp_path):
     data = bar["data"]
     params = api.make_params(config, {k: np.asarray(v) for k, v in norm.items()}, w, data.q0, data.edges,
                              data.node_type)
-    loaded = api.load_model(api.save_model(params, tmp_path / "model.npz"))
-    _, graph = api.load_pretrained(str(tmp_path / "model.npz"))
+    loaded, graph = api.load_pretrained(str(api.save_model(params, tmp_path / "model.npz")))
     graph = graph._replace(nodes={**graph.nodes, "z": z})
     np.testing.assert_allclose(np.asarray(api.step(loaded, graph, f).nodes["z"]), np.asarray(direct),
                                rtol=1e-6, atol=1e-6)
@@ -127,13 +128,11 @@ def test_tiny_convex_training_reduces_the_loss_and_rolls_out(bar, tmp_path):
     data = bar["data"]
     cfg = T.CONFIGS["tiny"]._replace(convex=True, free_energy=True, deg_weight=0.0, epochs=8, passes=1)
     quiet = dict(progress=False, log=lambda *a, **k: None)
-    first = T.train(data, cfg, tmp_path / "a", stop_after_epoch=1, **quiet)
     trained = T.train(data, cfg, tmp_path / "b", **quiet)
-    lines = [l for l in (tmp_path / "b" / "metrics.jsonl").read_text().splitlines()]
-    import json
+    lines = (tmp_path / "b" / "metrics.jsonl").read_text().splitlines()
     mse = [json.loads(l)["mse"] for l in lines]
     assert mse[-1] < 0.7 * mse[0]
     _, graph = api.load_pretrained(str(tmp_path / "b" / "best" / "model.npz"))
     states = api.rollout(trained, graph, jnp.asarray(data.f[0]))
     assert np.isfinite(np.asarray(states)).all()
-    assert first["config"]["convex"] and trained["config"]["free_energy"]
+    assert trained["config"]["convex"] and trained["config"]["free_energy"]
