@@ -149,9 +149,7 @@ def _geometry(topo):
     with the vector reversed; and with its absolute components (symmetric in i, j)."""
     if topo.dx0 is None or topo.x0 is None:
         raise ValueError("a convex model needs the rest mesh: build its Topology with q0")
-    length = M._last_norm(topo.dx0)
-    mean_len = jnp.sum(length[..., 0] * topo.mask) / jnp.sum(topo.mask)
-    dx, ell = topo.dx0 / mean_len, length / mean_len
+    dx, ell, _ = M.scaled_rest_edges(topo)
     return (jnp.concatenate([dx, ell], -1), jnp.concatenate([-dx, ell], -1),
             jnp.concatenate([jnp.abs(dx), ell], -1))
 

@@ -709,14 +709,20 @@ def _edge_mlp(w, x, n_out):
     return h @ w[5:5 + SPRING_HIDDEN, :n_out] + w[5 + SPRING_HIDDEN, :n_out]
 
 
-def _rest_edge_geometry(topo: Topology):
-    """([R,K,4] |X_j − X_i| and its absolute components over the mean rest edge length (symmetric in i, j),
-    [R,K,1] rest lengths)."""
+def scaled_rest_edges(topo: Topology):
+    """([R,K,3] X_j − X_i and [R,K,1] |X_j − X_i|, both over the mean rest edge length; [R,K,1] rest lengths)."""
     if topo.dx0 is None:
         raise ValueError("this model needs the rest edge vectors: build the Topology with q0")
     rest = _last_norm(topo.dx0)
     mean_len = jnp.sum(rest[..., 0] * topo.mask) / jnp.sum(topo.mask)
-    return jnp.concatenate([rest, jnp.abs(topo.dx0)], axis=-1) / mean_len, rest
+    return topo.dx0 / mean_len, rest / mean_len, rest
+
+
+def _rest_edge_geometry(topo: Topology):
+    """([R,K,4] |X_j − X_i| and its absolute components over the mean rest edge length (symmetric in i, j),
+    [R,K,1] rest lengths)."""
+    dx, ell, rest = scaled_rest_edges(topo)
+    return jnp.concatenate([ell, jnp.abs(dx)], axis=-1), rest
 
 
 def _spread_coefficients(weights, topo: Topology, hops: int):
