@@ -1114,6 +1114,43 @@ def test_guarded_stepper_never_returns_non_finite_or_out_of_envelope_states(toy)
         api.guarded_stepper(params, tolerance=-1.0)
 
 
+@pytest.mark.parametrize("integrator,terms", [("euler", 1), ("heun", 2), ("rk4", 4)])
+def test_runge_kutta_on_a_linear_rate_is_the_truncated_exponential(integrator, terms):
+    """For a linear rate Δw = A w, an explicit Runge-Kutta method of order p ≤ 4 with p stages steps by the
+    Taylor polynomial of exp(A) of degree p: Σ_{k=1..p} A^k / k! w (the known stability function)."""
+    rng = np.random.default_rng(0)
+    a = rng.normal(size=(6, 6)) * 0.4
+    w = rng.normal(size=6)
+    got, stages = M.runge_kutta(integrator, lambda x: (a @ x,), w, 1.0)
+    want, term = np.zeros(6), w.copy()
+    for k in range(1, terms + 1):
+        term = a @ term / k
+        want += term
+    assert len(stages) == terms
+    np.testing.assert_allclose(got, want, rtol=1e-10, atol=1e-12)
+
+
+def test_rk4_step_composes_four_network_rates_and_keeps_clamps(toy):
+    """The rk4 step is z + (k1 + 2k2 + 2k3 + k4)/6 in state units with k_i the network's increments at the
+    classical stages; clamped nodes keep their position and velocity; the stability function at a large
+    dissipative eigenvalue (λΔt = −2.2, where forward Euler grows by 1.2) is below 1."""
+    w, _, norm, z, f, nt, topo = _args(toy)
+    rk4 = CONFIG._replace(integrator="rk4")
+    s = M.state_scale(norm)
+    k = lambda x: M._generic(w, CONFIG, norm, x, f, nt, topo)[0]
+    k1 = k(z)
+    k2 = k(z + 0.5 * k1 * s)
+    k3 = k(z + 0.5 * k2 * s)
+    k4 = k(z + k3 * s)
+    want = z + (k1 + 2 * k2 + 2 * k3 + k4) / 6 * s
+    z_r = M.step_state(w, rk4, norm, z, f, nt, topo)
+    np.testing.assert_allclose(np.asarray(z_r), np.asarray(want), rtol=1e-5, atol=1e-6)
+    clamped = np.asarray(toy["nt"]) != 0
+    np.testing.assert_array_equal(np.asarray(z_r)[clamped, :6], np.asarray(z)[clamped, :6])
+    growth = abs(1 + float(M.runge_kutta("rk4", lambda x: (-2.2 * x,), np.ones(1), 1.0)[0][0]))
+    assert growth < 0.5 and abs(1 - 2.2) > 1.19
+
+
 def test_heun_step_is_the_mean_of_the_state_and_two_euler_steps(toy):
     """The explicit trapezoidal rule z + ½(Δw(z) + Δw(z + Δw(z))) equals ½(z + Euler(Euler(z))); clamped nodes
     keep their position and velocity; the option saves, loads and steps; bad combinations are clear errors."""
@@ -1129,7 +1166,7 @@ def test_heun_step_is_the_mean_of_the_state_and_two_euler_steps(toy):
     params = api.make_params(heun, {k: np.asarray(v) for k, v in toy["norm"].items()}, w, data.q0, data.edges,
                              data.node_type)
     with pytest.raises(ValueError, match="integrator must be one of"):
-        api.make_params(CONFIG._replace(integrator="rk4"), toy["norm"], w, data.q0, data.edges, data.node_type)
+        api.make_params(CONFIG._replace(integrator="rk5"), toy["norm"], w, data.q0, data.edges, data.node_type)
     with pytest.raises(ValueError, match="the W-method is the step's integrator"):
         M.check_integrator(CONFIG._replace(integrator="heun", frame_solve=True))
     graph = G.rest_graph(data.q0, data.edges, data.node_type)

@@ -222,11 +222,11 @@ def loss_fn(weights, batch: Batch, key, norm, cfg: TrainConfig, node_type, topo)
     def one_step(z_in, xs):
         f_j, z_true, rel_j = xs
         rates_of = jax.vmap(lambda z, f: M.rates(weights, cfg.model, norm, z, f, node_type, topo))
-        rt = rates_of(z_in, f_j)
-        if cfg.model.integrator == "heun":   # the step the model will be used with: Heun's two rates
-            rt2 = rates_of(z_in + dw_bounded(rt.dw) * s, f_j)   # the mid-stage bounded like the step (bptt)
-            rt = rt._replace(dw=0.5 * (rt.dw + rt2.dw), deg_l=jnp.concatenate([rt.deg_l, rt2.deg_l], axis=1),
-                             deg_m=jnp.concatenate([rt.deg_m, rt2.deg_m], axis=1))
+        # the step the model will be used with: every Runge-Kutta stage's rates, each stage's shift bounded
+        # like the step (bptt); the degeneracy residuals of all stages enter the loss
+        dw, stages = M.runge_kutta(cfg.model.integrator, lambda x: rates_of(x, f_j), z_in, s, dw_bounded)
+        rt = stages[0]._replace(dw=dw, deg_l=jnp.concatenate([o.deg_l for o in stages], axis=1),
+                                deg_m=jnp.concatenate([o.deg_m for o in stages], axis=1))
         dw = dw_bounded(rt.dw)
         z_next = z_in + (step_of(dw, z_in, f_j) if cfg.frame_solve else dw * s)
         sq = ((z_next - z_true) / state_unit) ** 2 * keep
