@@ -101,6 +101,25 @@ def test_free_energy_form_produces_entropy_without_forces_or_clamps(bar):
     np.testing.assert_allclose(float(rt.entropy_rate), float(rt.dissipation), rtol=1e-4)
 
 
+def test_free_energy_rest_linearisation_is_damped_and_rk4_keeps_it(bar):
+    """Linearised at rest, the free-energy form's rate (L − M)∇²F has eigenvalues with real part ≤ 0 (the
+    model's continuous-time stability, clamps included); with the step scaled so that its stiffest mode sits at
+    |λΔt| = 2.5, RK4's step at rest contracts every mode (|R(λΔt)| < 1), where forward Euler's grows along some
+(this random model's spectrum is nearly imaginary: an undamped oscillator, which Euler amplifies)."""
+    w, config, norm, _, _, nt, topo = _args(bar, FREE)
+    shape, s = bar["rest"].shape, M.state_scale(norm)
+    rate = lambda zf: (M._generic(w, config, norm, zf.reshape(shape), jnp.zeros_like(bar["f"]), nt, topo)[0]
+                       * s).reshape(-1)
+    jac = np.asarray(jax.jacrev(rate)(bar["rest"].reshape(-1)), np.float64)
+    lam = np.linalg.eigvals(jac)
+    radius = np.abs(lam).max()
+    assert radius > 0 and lam.real.max() <= 1e-4 * radius
+    x = lam * (2.5 / radius)
+    euler, rk4 = np.abs(1 + x), np.abs(1 + x + x ** 2 / 2 + x ** 3 / 6 + x ** 4 / 24)
+    assert rk4.max() <= 1 + 1e-4 and rk4[np.abs(x) > 0.5].max() < 0.999   # the clamped entries' zero modes: 1
+    assert euler.max() > 1.05
+
+
 def test_cached_static_part_and_a_saved_model_step_the_same(bar, tmp_path):
     w, config, norm, z, f, nt, topo = _args(bar, CONVEX)
     cached = M.with_rest(w, config, norm, nt, topo)

@@ -36,7 +36,8 @@ real eigenvalue above zero). This model closes each of those channels by constru
   real eigenvalue at a clamped node's stress. With P on both sides the free block of the linearised rate is
   (P L P − P M P) ∇²F restricted to the free entries, whose eigenvalues have real part ≤ 0 for a convex F.
 
-The rate is dz/dt = L∇E + M∇S + B f as in every model here, stepped by forward Euler (or Heun). Linearised at
+The rate is dz/dt = L∇E + M∇S + B f as in every model here, stepped by forward Euler, Heun or RK4
+(``ModelConfig.integrator``). Linearised at
 any state, L∇²E has imaginary eigenvalues (skew times PSD) and M∇²S real ones ≤ 0; what forward Euler's own
 amplification of an undamped oscillation, √(1 + (ωΔt)²), leaves is for the learned dissipation to beat: no
 term of the step's Jacobian can grow with the state's rotation of an operator. The degeneracy conditions are
@@ -50,8 +51,13 @@ dz/dt = (L − M/T)∇F with the free energy F = E − T S, and that form needs 
 dF/dt = −∇Fᵀ M ∇F / T + ∇Fᵀ B f. With ``free_energy`` the model learns F alone (the energy network, T = 1 in the
 scaled units) and reports E = F, S = −F: the rate is L∇F − M∇F, the entropy production ∇Sᵀ(dw) = ∇FᵀM∇F ≥ 0
 (before the clamped rows and the port), and the degeneracy residuals are not meaningful (E and S are not
-separately identified; train with ``deg_weight=0``). Continuous-time stability is then built in; forward Euler's
-own amplification of the undamped part, √(1 + (ωΔt)²) per step, still has to be beaten by the learned M.
+separately identified; train with ``deg_weight=0``). Continuous-time stability is then built in: linearised at
+rest, the rate's matrix (L − M)∇²F has eigenvalues with real part ≤ 0 (similar to ∇²F^½(L − M)∇²F^½, whose
+symmetric part −∇²F^½ M ∇²F^½ is negative semi-definite). Whether a step keeps it is the integrator's business:
+forward Euler amplifies every undamped oscillation by √(1 + (ωΔt)²) and overshoots any decay faster than
+−2/Δt (the first such model trained, 64 wide, grew by 1.21 per step along a decay at λΔt ≈ −2.2), while RK4's
+stability region holds the imaginary axis up to |ωΔt| < 2√2 and the real one down to −2.78, so with
+``integrator="rk4"`` every rest mode within that range decays.
 
 All state-independent arrays (the edge blocks, the per-node operators and biases, the rest gradients) are
 computed once per mesh by ``static`` (``model.with_rest`` caches them in ``norm`` under ``convex_*`` keys), so a
