@@ -16,6 +16,7 @@ from test_model import _assert_gradients_match_finite_differences
 
 CONVEX = M.ModelConfig(hidden=8, mlp_layers=2, convex=True)
 FREE = CONVEX._replace(free_energy=True)
+DYN = FREE._replace(dynamic_l=True)
 
 
 @pytest.fixture(scope="module")
@@ -25,7 +26,9 @@ def bar():
     topo = M.topology(data.edges[0], data.edges[1], len(data.q0), q0=data.q0)
     nt = jnp.asarray(data.node_type, jnp.int32)
     z, f = jnp.asarray(data.z[0, 2]), jnp.asarray(data.f[0, 2])
-    weights = {c: M.init_weights(jax.random.PRNGKey(1), c, norm, z, f, nt, topo) for c in (CONVEX, FREE)}
+    weights = {c: M.init_weights(jax.random.PRNGKey(1), c, norm, z, f, nt, topo) for c in (CONVEX, FREE, DYN)}
+    gate = weights[DYN]["bracket_gate"]["layer1"]   # zero at initialisation (the static brackets): perturb it
+    gate["w"] = jax.random.normal(jax.random.PRNGKey(2), gate["w"].shape) * 0.5
     rest = jnp.concatenate([topo.x0, jnp.zeros((len(data.q0), 9))], axis=1)
     return dict(data=data, norm=norm, topo=topo, nt=nt, z=z, f=f, weights=weights, rest=rest)
 
@@ -59,7 +62,7 @@ def test_brackets_are_skew_and_psd_couple_neighbours_and_do_not_depend_on_the_st
         M.operators(*_args(bar, config))
 
 
-@pytest.mark.parametrize("config", [CONVEX, FREE], ids=["convex", "free_energy"])
+@pytest.mark.parametrize("config", [CONVEX, FREE, DYN], ids=["convex", "free_energy", "dynamic_l"])
 def test_energy_is_convex_and_entropy_concave_along_lines(bar, config):
     w, _, norm, z, f, nt, topo = _args(bar, config)
     potentials = jax.jit(jax.vmap(lambda zz: M.energy_entropy(w, config, norm, zz, f, nt, topo)))
@@ -75,7 +78,7 @@ def test_energy_is_convex_and_entropy_concave_along_lines(bar, config):
             np.testing.assert_allclose(vals[:, 1], -vals[:, 0])
 
 
-@pytest.mark.parametrize("config", [CONVEX, FREE], ids=["convex", "free_energy"])
+@pytest.mark.parametrize("config", [CONVEX, FREE, DYN], ids=["convex", "free_energy", "dynamic_l"])
 def test_rest_is_the_extremum_of_the_potentials_and_a_fixed_point(bar, config):
     zero = jnp.zeros_like(bar["f"])
     rt = M.rates(*_args(bar, config, z=bar["rest"], f=zero))
@@ -87,26 +90,28 @@ def test_rest_is_the_extremum_of_the_potentials_and_a_fixed_point(bar, config):
     assert float(others[0]) >= float(es[0]) and float(others[1]) <= float(es[1])
 
 
-@pytest.mark.parametrize("config", [CONVEX, FREE], ids=["convex", "free_energy"])
+@pytest.mark.parametrize("config", [CONVEX, FREE, DYN], ids=["convex", "free_energy", "dynamic_l"])
 def test_gradients_match_finite_differences(bar, config):
     _assert_gradients_match_finite_differences(*_args(bar, config))
 
 
-def test_free_energy_form_produces_entropy_without_forces_or_clamps(bar):
-    # dz/dt = (L − M)∇F: with no port and no clamped rows, ∇Sᵀ dw = ∇Fᵀ M ∇F ≥ 0 exactly
-    w, _, norm, z, _, _, topo = _args(bar, FREE)
+@pytest.mark.parametrize("config", [FREE, DYN], ids=["free_energy", "dynamic_l"])
+def test_free_energy_form_produces_entropy_without_forces_or_clamps(bar, config):
+    # dz/dt = (L − M)∇F: with no port and no clamped rows, ∇Sᵀ dw = ∇Fᵀ M ∇F ≥ 0 exactly (L(z) skew or not)
+    w, _, norm, z, _, _, topo = _args(bar, config)
     free_nodes = jnp.zeros_like(bar["nt"])
-    rt = M.rates(w, FREE, norm, z, jnp.zeros_like(bar["f"]), free_nodes, topo)
+    rt = M.rates(w, config, norm, z, jnp.zeros_like(bar["f"]), free_nodes, topo)
     assert float(rt.dissipation) > 0
     np.testing.assert_allclose(float(rt.entropy_rate), float(rt.dissipation), rtol=1e-4)
 
 
-def test_free_energy_rest_linearisation_is_damped_and_rk4_keeps_it(bar):
+@pytest.mark.parametrize("config", [FREE, DYN], ids=["free_energy", "dynamic_l"])
+def test_free_energy_rest_linearisation_is_damped_and_rk4_keeps_it(bar, config):
     """Linearised at rest, the free-energy form's rate (L − M)∇²F has eigenvalues with real part ≤ 0 (the
     model's continuous-time stability, clamps included); with the step scaled so that its stiffest mode sits at
     |λΔt| = 2.5, RK4's step at rest contracts every mode (|R(λΔt)| < 1), where forward Euler's grows along some
 (this random model's spectrum is nearly imaginary: an undamped oscillator, which Euler amplifies)."""
-    w, config, norm, _, _, nt, topo = _args(bar, FREE)
+    w, config, norm, _, _, nt, topo = _args(bar, config)
     shape, s = bar["rest"].shape, M.state_scale(norm)
     rate = lambda zf: (M._generic(w, config, norm, zf.reshape(shape), jnp.zeros_like(bar["f"]), nt, topo)[0]
                        * s).reshape(-1)
@@ -118,6 +123,24 @@ def test_free_energy_rest_linearisation_is_damped_and_rk4_keeps_it(bar):
     euler, rk4 = np.abs(1 + x), np.abs(1 + x + x ** 2 / 2 + x ** 3 / 6 + x ** 4 / 24)
     assert rk4.max() <= 1 + 1e-4 and rk4[np.abs(x) > 0.5].max() < 0.999   # the clamped entries' zero modes: 1
     assert euler.max() > 1.05
+
+
+def test_dynamic_l_is_skew_at_every_state_and_turns_with_it(bar):
+    """With dynamic_l, L(z) is skew-symmetric at every state with the clamped rows and columns zero, differs
+    between two states, and M stays static; an untrained model (zero gates) has the static model's L."""
+    big = lambda z: tuple(np.asarray(a, np.float64) for a in M.dense_operators(*_args(bar, DYN, z=z)))
+    (l_a, m_a), (l_b, m_b) = big(bar["z"]), big(bar["rest"])
+    for l_op in (l_a, l_b):
+        assert np.abs(l_op + l_op.T).max() <= 1e-6 * np.abs(l_op).max()
+    fixed = np.asarray(M.prescribed(bar["nt"])).reshape(-1)
+    assert not np.abs(l_a[fixed]).any() and not np.abs(l_a[:, fixed]).any()
+    assert np.abs(l_a - l_b).max() > 1e-3 * np.abs(l_a).max()
+    np.testing.assert_array_equal(m_a, m_b)
+    w, _, norm, z, f, nt, topo = _args(bar, DYN)
+    untrained = M.init_weights(jax.random.PRNGKey(1), DYN, norm, z, f, nt, topo)
+    static_l, _ = M.dense_operators(bar["weights"][FREE], FREE, norm, z, f, nt, topo)
+    np.testing.assert_allclose(np.asarray(M.dense_operators(untrained, DYN, norm, z, f, nt, topo)[0]),
+                               np.asarray(static_l), rtol=1e-6, atol=1e-7)
 
 
 def test_cached_static_part_and_a_saved_model_step_the_same(bar, tmp_path):
@@ -141,6 +164,8 @@ def test_options_it_does_not_combine_with_are_named():
         M.init_weights(jax.random.PRNGKey(0), CONVEX._replace(force_port=True), {}, z, f, nt, None)
     with pytest.raises(ValueError, match="needs convex"):
         M.init_weights(jax.random.PRNGKey(0), CONVEX._replace(convex=False, free_energy=True), {}, z, f, nt, None)
+    with pytest.raises(ValueError, match="dynamic_l=True needs"):
+        M.init_weights(jax.random.PRNGKey(0), CONVEX._replace(dynamic_l=True), {}, z, f, nt, None)
 
 
 def test_tiny_convex_training_reduces_the_loss_and_rolls_out(bar, tmp_path):
@@ -151,7 +176,16 @@ def test_tiny_convex_training_reduces_the_loss_and_rolls_out(bar, tmp_path):
     lines = (tmp_path / "b" / "metrics.jsonl").read_text().splitlines()
     mse = [json.loads(l)["mse"] for l in lines]
     assert mse[-1] < 0.7 * mse[0]
-    _, graph = api.load_pretrained(str(tmp_path / "b" / "best" / "model.npz"))
+    best, graph = api.load_pretrained(str(tmp_path / "b" / "best" / "model.npz"))
     states = api.rollout(trained, graph, jnp.asarray(data.f[0]))
     assert np.isfinite(np.asarray(states)).all()
     assert trained["config"]["convex"] and trained["config"]["free_energy"]
+    # a warm start may switch dynamic_l on: the parent's weights are kept, the gates start at zero, so the
+    # untrained child steps as its parent (the run folder's best model)
+    child = T.train(data, cfg._replace(dynamic_l=True), tmp_path / "c", stop_after_epoch=0,
+                    init_from=tmp_path / "b", **quiet)
+    assert set(child["weights"]) == set(best["weights"]) | {"bracket_basis", "bracket_gate"}
+    z0, f0 = jnp.asarray(data.z[0, 2]), jnp.asarray(data.f[0, 2])
+    graph = graph._replace(nodes={**graph.nodes, "z": z0})
+    np.testing.assert_allclose(np.asarray(api.step(child, graph, f0).nodes["z"]),
+                               np.asarray(api.step(best, graph, f0).nodes["z"]), rtol=1e-5, atol=1e-6)

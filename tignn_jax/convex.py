@@ -74,7 +74,9 @@ from tignn_jax import model as M
 EDGE_HIDDEN = 32     # width of the edge MLPs (F, P, A) and the node MLP
 RANK = 6             # columns of an edge's dissipation factor P
 CONTEXT = 5          # node context: type one-hot (2), rest position over its std (3)
+GATES = 8            # basis blocks of the state-dependent edge blocks of L (``dynamic_l``)
 STATIC_KEYS = ("convex_c", "convex_p", "convex_a", "convex_heads", "convex_bias", "convex_grad0", "convex_phi0")
+DYNAMIC_KEYS = ("convex_basis_f", "convex_basis_b")   # with ``dynamic_l``: the bases at X_j − X_i and X_i − X_j
 
 
 # --- parameters ----------------------------------------------------------------------------------------------
@@ -118,7 +120,7 @@ def init_weights(key, config) -> dict:
     """The parameters of a ``convex`` model (a plain dict of arrays, saved like a flax tree)."""
     check_config(config)
     d, width = config.hidden, config.hidden
-    ks = jax.random.split(key, 6)
+    ks = jax.random.split(key, 8)
     return {
         **({} if config.free_energy else {"entropy": _icnn_init(ks[5], feature_dim(config), width, config.mlp_layers)}),
         "bracket": _mlp_init(ks[0], (4, EDGE_HIDDEN, EDGE_HIDDEN, M.STATE_DIM ** 2), 0.1),
@@ -126,6 +128,10 @@ def init_weights(key, config) -> dict:
         "features": _mlp_init(ks[2], (4, EDGE_HIDDEN, EDGE_HIDDEN, d * M.STATE_DIM), 1.0),
         "node": _mlp_init(ks[3], (CONTEXT, EDGE_HIDDEN, EDGE_HIDDEN, M.N_L + M.N_M + 1), 0.1),
         "energy": _icnn_init(ks[4], feature_dim(config), width, config.mlp_layers),
+        **({"bracket_basis": _mlp_init(ks[6], (4, EDGE_HIDDEN, EDGE_HIDDEN, GATES * M.STATE_DIM ** 2), 0.1),
+            # zero last layer: an untrained dynamic_l model has the static brackets
+            "bracket_gate": _mlp_init(ks[7], (4 + 2 * M.STATE_DIM, EDGE_HIDDEN, GATES), 0.0)}
+           if config.dynamic_l else {}),
     }
 
 
@@ -144,6 +150,9 @@ def check_config(config) -> None:
                          "brackets, features, force port, kinetic term and rest equilibrium)")
     if config.free_energy and not config.convex:
         raise ValueError("free_energy=True needs convex=True")
+    if config.dynamic_l and not config.free_energy:
+        raise ValueError("dynamic_l=True needs convex=True and free_energy=True (only there is the free energy a "
+                         "Lyapunov function whatever the skew L: with E and S apart a state-dependent L can grow)")
     if config.mlp_layers < 1 or config.hidden < 1:
         raise ValueError(f"convex needs hidden >= 1 and mlp_layers >= 1, got {config.hidden}, {config.mlp_layers}")
 
@@ -196,7 +205,12 @@ def static(weights, config, norm, node_type, topo) -> dict:
     phi0, pullback = jax.vjp(phi, zero)   # φ_n depends on h_n only: one cotangent per potential gives ∇φ_n(0)
     eye = jnp.eye(len(names), dtype=zero.dtype)
     (grad0,) = jax.vmap(pullback)(eye[:, :, None] * jnp.ones_like(phi0)[None])
+    dynamic = {}
+    if config.dynamic_l:
+        basis = lambda g: _mlp(weights["bracket_basis"], g).reshape(r, k, GATES, n, n) * mask[..., None, :, :]
+        dynamic = {"convex_basis_f": basis(signed), "convex_basis_b": basis(flipped)}
     return {
+        **dynamic,
         "convex_c": (forward - jnp.swapaxes(backward, -1, -2)) * mask,
         "convex_p": _mlp(weights["dissipation"], sym).reshape(r, k, n, s) * mask,
         "convex_a": _mlp(weights["features"], signed).reshape(r, k, d, n) * mask / M.max_degree(topo),
@@ -208,17 +222,23 @@ def static(weights, config, norm, node_type, topo) -> dict:
 
 
 def _static(weights, config, norm, node_type, topo) -> dict:
-    if all(key in norm for key in STATIC_KEYS):
-        return {key: norm[key] for key in STATIC_KEYS}
+    keys = STATIC_KEYS + (DYNAMIC_KEYS if config.dynamic_l else ())
+    if all(key in norm for key in keys):
+        return {key: norm[key] for key in keys}
     return static(weights, config, norm, node_type, topo)
 
 
 # --- the state-dependent part ---------------------------------------------------------------------------------
 
+def _deviation(norm, z, topo):
+    """x [N,12]: the state's deviation from rest over z_std."""
+    return (z - jnp.concatenate([topo.x0, jnp.zeros_like(z[:, 3:])], axis=1)) / norm["z_std"]
+
+
 def features(st, norm, z, topo):
     """h [N, 12 + D]: the node's state deviation from rest over z_std and the A-weighted sum of its
     neighbours' differences (both linear in z)."""
-    x = (z - jnp.concatenate([topo.x0, jnp.zeros_like(z[:, 3:])], axis=1)) / norm["z_std"]
+    x = _deviation(norm, z, topo)
     diff = M.gather_neighbors(x, topo) - M.expand_rows(x, topo)[:, None, :]
     a = M.reduce_rows(jnp.einsum("rkdc,rkc->rd", st["convex_a"], diff), topo)
     return jnp.concatenate([x, a], axis=1)
@@ -239,8 +259,9 @@ class Ops:
     are prescribed. A convex model's ``model._potentials_and_grads`` hands it on twice, in the places of the
     plain model's (l, m) pair."""
 
-    def __init__(self, st, topo, norm, node_type):
+    def __init__(self, st, topo, norm, node_type, c=None):
         self.st, self.topo, self.norm = st, topo, norm
+        self.c = st["convex_c"] if c is None else c     # L's edge blocks [R,K,12,12], at the state with dynamic_l
         self.free = (~M.prescribed(node_type)).astype(norm["z_std"].dtype)
         self.l_mat, self.m_mat = M._matrices(st["convex_heads"][:, :M.N_L + M.N_M])
 
@@ -251,8 +272,23 @@ def potentials_and_grads(weights, config, norm, z, f, node_type, topo):
     _, pullback = jax.vjp(lambda z_: potentials(weights, config, st, norm, z_, topo), z)
     (grads,) = jax.vmap(pullback)(jnp.eye(2, dtype=z.dtype))
     scale = M.state_scale(norm)
-    ops = Ops(st, topo, norm, node_type)
+    ops = Ops(st, topo, norm, node_type, dynamic_blocks(weights, st, norm, z, topo) if config.dynamic_l else None)
     return grads[0] * scale, grads[1] * scale, (ops, ops), st["convex_heads"][:, M.N_L + M.N_M:]
+
+
+def dynamic_blocks(weights, st, norm, z, topo):
+    """L's edge blocks at state z with ``dynamic_l`` [R,K,12,12]: the static C_ij plus
+    Σ_a s_a(X_j − X_i, x_i, x_j) B_a(X_j − X_i) − s_a(X_i − X_j, x_j, x_i) B_a(X_i − X_j)ᵀ, with the bases B_a
+    (12×12) from the rest edge and the gates s_a from an MLP of the edge and both nodes' deviations from rest.
+    Swapping i and j gives minus the transpose, so L(z) is skew-symmetric at every state."""
+    signed, flipped, _ = _geometry(topo)
+    x = _deviation(norm, z, topo)
+    x_i = jnp.broadcast_to(M.expand_rows(x, topo)[:, None, :], topo.mask.shape + (M.STATE_DIM,))
+    x_j = M.gather_neighbors(x, topo)
+    gate_f = _mlp(weights["bracket_gate"], jnp.concatenate([signed, x_i, x_j], -1))
+    gate_b = _mlp(weights["bracket_gate"], jnp.concatenate([flipped, x_j, x_i], -1))
+    return (st["convex_c"] + jnp.einsum("rkg,rkgij->rkij", gate_f, st["convex_basis_f"])
+            - jnp.einsum("rkg,rkgji->rkij", gate_b, st["convex_basis_b"]))
 
 
 def apply_l(ops: Ops, g):
@@ -260,7 +296,7 @@ def apply_l(ops: Ops, g):
     projection onto the evolved entries (module docstring: clamps as a projection)."""
     g = g * ops.free
     out = M._apply_l(ops.l_mat, g) + g @ M._canonical_matrix(ops.norm).T
-    edge = jnp.einsum("rkij,rkj->ri", ops.st["convex_c"], M.gather_neighbors(g, ops.topo))
+    edge = jnp.einsum("rkij,rkj->ri", ops.c, M.gather_neighbors(g, ops.topo))
     return (out + M.reduce_rows(edge, ops.topo)) * ops.free
 
 

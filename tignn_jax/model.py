@@ -147,7 +147,10 @@ class ModelConfig(NamedTuple):
     convex networks' depth) and ``integrator``; combined with any other architecture option it raises;
     free_energy (with convex): the free-energy form of GENERIC, dz/dt = (L − M)∇F + B f with one convex F
     (what GENERIC reduces to at a fixed temperature under exact degeneracy; stable in continuous time without
-    a degeneracy loss, which it does not use: see ``tignn_jax.convex``).
+    a degeneracy loss, which it does not use: see ``tignn_jax.convex``); dynamic_l (with free_energy): L's edge
+    blocks also depend on the two nodes' states through gated bases, skew at every state (the free energy
+    stays a Lyapunov function, dF/dt = −∇FᵀM∇F + ∇Fᵀ B f, and at rest ∇F = 0 removes L's change from the
+    linearisation), so the brackets can carry state-dependent couplings such as the rotation of the stress.
     """
     hidden: int = 32
     mlp_layers: int = 2
@@ -176,6 +179,7 @@ class ModelConfig(NamedTuple):
     static_l: bool = False
     convex: bool = False
     free_energy: bool = False
+    dynamic_l: bool = False
 
 
 # explicit Runge-Kutta tableaus: stage i is evaluated at w + Σ_j a[i][j] Δw_j (a[0] is the start), the step's

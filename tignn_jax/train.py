@@ -100,6 +100,7 @@ class TrainConfig(NamedTuple):
     static_l: bool = False
     convex: bool = False
     free_energy: bool = False
+    dynamic_l: bool = False
     residual_scale: bool = False
     lr: float = 3e-3
     lr_end: float = 2e-5
@@ -465,7 +466,8 @@ def train(data: D.Dataset, cfg: TrainConfig, run_dir: str | Path, train_split="t
     weights = M.init_weights(jax.random.PRNGKey(cfg.seed), cfg.model, norm, jnp.asarray(data.z[rows[0], 0]),
                              jnp.asarray(data.f[rows[0], 0]), node_type, topo)
     if parent is not None:
-        weights = jax.tree.map(lambda a, b: jnp.asarray(b, a.dtype), weights, parent["weights"])
+        weights = {**weights, **jax.tree.map(lambda a, b: jnp.asarray(b, a.dtype),
+                                             {k: weights[k] for k in parent["weights"]}, parent["weights"])}
     state = {"step": jnp.zeros((), jnp.int32), "weights": weights, "opt_state": optimizer.init(weights)}
     if anchors is not None:   # the power iterations' probes are part of the state (a resume reproduces them)
         n_probes = 1 + int(cfg.stability_data) + int(cfg.stability_anchors)
@@ -541,11 +543,15 @@ def train(data: D.Dataset, cfg: TrainConfig, run_dir: str | Path, train_split="t
 # model options that change how the weights are used but not their shapes: a warm start may switch them
 WEIGHT_FREE = ("exact_degeneracy", "kinematic_prior", "rest_equilibrium", "correction_scale", "integrator",
                "static_l")
+# options a warm start may switch on: the parent's weights are kept and the ones the option adds start at their
+# initialisation (dynamic_l's gates at zero: the parent's function)
+ADDS_WEIGHTS = ("dynamic_l",)
 
 
 def _parent(init_from, cfg: TrainConfig) -> dict:
     """Weights and normalisation of the model a warm-started run begins from, checked against ``cfg``'s
-    architecture (every ModelConfig field but those in ``WEIGHT_FREE`` must agree)."""
+    architecture (every ModelConfig field but those in ``WEIGHT_FREE`` must agree, and those in
+    ``ADDS_WEIGHTS`` may be on where the parent's are off)."""
     path = Path(init_from)
     if path.is_dir():
         path = path / "best" / "model.npz"
@@ -554,6 +560,7 @@ def _parent(init_from, cfg: TrainConfig) -> dict:
     params = api.load_model(path)
     mine = {k: v for k, v in cfg.model._asdict().items() if k not in WEIGHT_FREE}
     theirs = {k: params["config"].get(k, M.ModelConfig._field_defaults[k]) for k in mine}
+    theirs.update({k: mine[k] for k in ADDS_WEIGHTS if mine[k] and not theirs[k]})
     if theirs != mine:
         diff = {k: (theirs[k], mine[k]) for k in mine if theirs[k] != mine[k]}
         raise ValueError(f"init_from {str(init_from)!r}: architecture differs from the config (parent, config): {diff}")
