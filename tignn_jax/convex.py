@@ -128,7 +128,7 @@ def init_weights(key, config) -> dict:
         "features": _mlp_init(ks[2], (4, EDGE_HIDDEN, EDGE_HIDDEN, d * M.STATE_DIM), 1.0),
         "node": _mlp_init(ks[3], (CONTEXT, EDGE_HIDDEN, EDGE_HIDDEN, M.N_L + M.N_M + 1), 0.1),
         "energy": _icnn_init(ks[4], feature_dim(config), width, config.mlp_layers),
-        **({"bracket_basis": _mlp_init(ks[6], (4, EDGE_HIDDEN, EDGE_HIDDEN, GATES * M.STATE_DIM ** 2), 0.1),
+        **({"bracket_basis": _mlp_init(ks[6], (4, EDGE_HIDDEN, EDGE_HIDDEN, GATES * 6 * 3), 0.1),
             # zero last layer: an untrained dynamic_l model has the static brackets
             "bracket_gate": _mlp_init(ks[7], (4 + 2 * M.STATE_DIM, EDGE_HIDDEN, GATES), 0.0)}
            if config.dynamic_l else {}),
@@ -207,7 +207,7 @@ def static(weights, config, norm, node_type, topo) -> dict:
     (grad0,) = jax.vmap(pullback)(eye[:, :, None] * jnp.ones_like(phi0)[None])
     dynamic = {}
     if config.dynamic_l:
-        basis = lambda g: _mlp(weights["bracket_basis"], g).reshape(r, k, GATES, n, n) * mask[..., None, :, :]
+        basis = lambda g: _mlp(weights["bracket_basis"], g).reshape(r, k, GATES, 6, 3) * mask[..., None, :, :]
         dynamic = {"convex_basis_f": basis(signed), "convex_basis_b": basis(flipped)}
     return {
         **dynamic,
@@ -277,18 +277,25 @@ def potentials_and_grads(weights, config, norm, z, f, node_type, topo):
 
 
 def dynamic_blocks(weights, st, norm, z, topo):
-    """L's edge blocks at state z with ``dynamic_l`` [R,K,12,12]: the static C_ij plus
-    Σ_a s_a(X_j − X_i, x_i, x_j) B_a(X_j − X_i) − s_a(X_i − X_j, x_j, x_i) B_a(X_i − X_j)ᵀ, with the bases B_a
-    (12×12) from the rest edge and the gates s_a from an MLP of the edge and both nodes' deviations from rest.
-    Swapping i and j gives minus the transpose, so L(z) is skew-symmetric at every state."""
+    """L's edge blocks at state z with ``dynamic_l`` [R,K,12,12]: the static C_ij plus E_ij − E_jiᵀ, where
+    E_ij holds D_ij = Σ_a s_a(X_j − X_i, x_i, x_j) B_a(X_j − X_i) in its stress rows and velocity columns, with
+    the bases B_a (6×3) from the rest edge and the gates s_a from an MLP of the edge and both nodes' deviations
+    from rest. Swapping i and j gives minus the transpose, so L(z) is skew-symmetric at every state. The
+    stress–velocity coupling is where the state enters the bracket of finite elasticity (the stress rate's
+    rotation terms, Wσ − σW with W from the velocity gradient, and their transpose in the momentum balance);
+    restricting the bases to it keeps the per-edge work at the static blocks' size."""
     signed, flipped, _ = _geometry(topo)
     x = _deviation(norm, z, topo)
     x_i = jnp.broadcast_to(M.expand_rows(x, topo)[:, None, :], topo.mask.shape + (M.STATE_DIM,))
     x_j = M.gather_neighbors(x, topo)
     gate_f = _mlp(weights["bracket_gate"], jnp.concatenate([signed, x_i, x_j], -1))
     gate_b = _mlp(weights["bracket_gate"], jnp.concatenate([flipped, x_j, x_i], -1))
-    return (st["convex_c"] + jnp.einsum("rkg,rkgij->rkij", gate_f, st["convex_basis_f"])
-            - jnp.einsum("rkg,rkgji->rkij", gate_b, st["convex_basis_b"]))
+    d_f = jnp.einsum("rkg,rkgij->rkij", gate_f, st["convex_basis_f"])          # [R,K,6,3] σ_i ← v_j
+    d_b = jnp.einsum("rkg,rkgij->rkji", gate_b, st["convex_basis_b"])          # [R,K,3,6] −(v_i ← σ_j)
+    zeros = lambda rows, cols: jnp.zeros(d_f.shape[:2] + (rows, cols), d_f.dtype)
+    rows_v = jnp.concatenate([zeros(3, 6), -d_b], axis=-1)                        # [R,K,3,12]
+    rows_s = jnp.concatenate([zeros(6, 3), d_f, zeros(6, 6)], axis=-1)            # [R,K,6,12]
+    return st["convex_c"] + jnp.concatenate([zeros(3, M.STATE_DIM), rows_v, rows_s], axis=-2)
 
 
 def apply_l(ops: Ops, g):
