@@ -246,7 +246,7 @@ def linear_model(like: dict, scene, damping: float | None = None) -> tuple[dict,
     norm["dt"] = np.array([scene.frame_dt], np.float32)
     config = M.ModelConfig(**{**like["config"], "hidden": 8, "passes": 2, "frame_solve": True,
                               "linear_prior": True, "convex": False,
-                              "free_energy": False, "dynamic_l": False})
+                              "free_energy": False, "dynamic_l": False, "integrator": "euler"})
     edges = np.stack([like["mesh"]["senders"], like["mesh"]["receivers"]])
     shell = api.make_params(config, norm, None, q0, edges, node_type)
     z = jnp.concatenate([jnp.asarray(q0, jnp.float32), jnp.zeros((len(q0), M.STATE_DIM - 3))], axis=1)
