@@ -275,10 +275,10 @@ def test_exact_force_correction_is_the_ceiling_the_bunny_benchmark_measures(bar_
     assert large["exact force", "u"] > large["prior", "u"]
 
 
-def _untrained_net(data):
-    """(params, normalisation) of an untrained forward-Euler 8×1 network on the data's mesh, with the envelope."""
+def _untrained_net(data, config=M.ModelConfig(hidden=8, passes=1)):
+    """(params, normalisation) of an untrained network on the data's mesh (forward Euler, 8×1 unless ``config``
+    says otherwise), with the envelope."""
     norm_np = D.normalization(data, np.arange(len(data.sim_id)))
-    config = M.ModelConfig(hidden=8, passes=1)
     nt = jnp.asarray(data.node_type, jnp.int32)
     topo = M.model_topology(config, data.edges[0], data.edges[1], len(data.node_type), data.q0)
     w = M.init_weights(jax.random.PRNGKey(0), config, {k: jnp.asarray(v) for k, v in norm_np.items()},
@@ -346,6 +346,13 @@ def test_fallback_stepper_hands_flagged_bodies_to_the_rest_linearised_fem(bar_da
         fn(zz, ff, jnp.zeros(3, jnp.int32))
     with pytest.raises(ValueError, match="not on the"):
         FS.linear_model(net, _scene()._replace(points=_scene().points * 2.0))
+    # the linear map does not depend on the parent's architecture: a parent with a force port (whose gain is 1
+    # at zero weights) and RK4 gives the same step (the port's B f would count the force twice)
+    ported, _ = _untrained_net(data, M.ModelConfig(hidden=8, passes=1, force_port=True, integrator="rk4"))
+    other, _ = FS.linear_model(ported, _scene())
+    assert other["config"] == linear["config"]
+    np.testing.assert_allclose(np.asarray(api.stepper(other)(z, f)), np.asarray(lin_step(z, f)), rtol=1e-5,
+                               atol=1e-6 * float(jnp.abs(z).max()))
 
 
 def test_consistency_bound_flags_a_step_that_departs_from_the_linear_one(bar_data, bar_fallback):

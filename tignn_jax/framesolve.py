@@ -244,9 +244,9 @@ def linear_model(like: dict, scene, damping: float | None = None) -> tuple[dict,
     norm = {k: np.asarray(v, np.float32) for k, v in like["norm"].items() if k not in DERIVED}
     norm.update({k: np.asarray(v, np.float32) for k, v in norm_entries(lin).items()})
     norm["dt"] = np.array([scene.frame_dt], np.float32)
-    config = M.ModelConfig(**{**like["config"], "hidden": 8, "passes": 2, "frame_solve": True,
-                              "linear_prior": True, "convex": False,
-                              "free_energy": False, "dynamic_l": False, "integrator": "euler"})
+    # the zero network's own architecture, not the parent's: options that act with zero weights (force_port's
+    # unit gain, an integrator other than the W-method, a convex model's brackets) would change the linear map
+    config = M.ModelConfig(hidden=8, passes=2, frame_solve=True, linear_prior=True)
     edges = np.stack([like["mesh"]["senders"], like["mesh"]["receivers"]])
     shell = api.make_params(config, norm, None, q0, edges, node_type)
     z = jnp.concatenate([jnp.asarray(q0, jnp.float32), jnp.zeros((len(q0), M.STATE_DIM - 3))], axis=1)
