@@ -259,9 +259,9 @@ class Ops:
     are prescribed. A convex model's ``model._potentials_and_grads`` hands it on twice, in the places of the
     plain model's (l, m) pair."""
 
-    def __init__(self, st, topo, norm, node_type, c=None):
+    def __init__(self, st, topo, norm, node_type, dynamic=None):
         self.st, self.topo, self.norm = st, topo, norm
-        self.c = st["convex_c"] if c is None else c     # L's edge blocks [R,K,12,12], at the state with dynamic_l
+        self.dynamic = dynamic     # with dynamic_l: the state's stress–velocity edge blocks (``dynamic_blocks``)
         self.free = (~M.prescribed(node_type)).astype(norm["z_std"].dtype)
         self.l_mat, self.m_mat = M._matrices(st["convex_heads"][:, :M.N_L + M.N_M])
 
@@ -277,10 +277,11 @@ def potentials_and_grads(weights, config, norm, z, f, node_type, topo):
 
 
 def dynamic_blocks(weights, st, norm, z, topo):
-    """L's edge blocks at state z with ``dynamic_l`` [R,K,12,12]: the static C_ij plus E_ij − E_jiᵀ, where
-    E_ij holds D_ij = Σ_a s_a(X_j − X_i, x_i, x_j) B_a(X_j − X_i) in its stress rows and velocity columns, with
-    the bases B_a (6×3) from the rest edge and the gates s_a from an MLP of the edge and both nodes' deviations
-    from rest. Swapping i and j gives minus the transpose, so L(z) is skew-symmetric at every state. The
+    """With ``dynamic_l``, (D_f, D_b) [R,K,6,3] per edge slot: L's edge blocks at state z are the static C_ij
+    plus E_ij − E_jiᵀ, where E_ij holds D_ij = Σ_a s_a(X_j − X_i, x_i, x_j) B_a(X_j − X_i) in its stress rows
+    and velocity columns (D_f is D_ij, D_b is D_ji seen from slot ij), with the bases B_a (6×3) from the rest
+    edge and the gates s_a from an MLP of the edge and both nodes' deviations from rest (``apply_l`` applies
+    them). Swapping i and j gives minus the transpose, so L(z) is skew-symmetric at every state. The
     stress–velocity coupling is where the state enters the bracket of finite elasticity (the stress rate's
     rotation terms, Wσ − σW with W from the velocity gradient, and their transpose in the momentum balance);
     restricting the bases to it keeps the per-edge work at the static blocks' size."""
@@ -290,12 +291,8 @@ def dynamic_blocks(weights, st, norm, z, topo):
     x_j = M.gather_neighbors(x, topo)
     gate_f = _mlp(weights["bracket_gate"], jnp.concatenate([signed, x_i, x_j], -1))
     gate_b = _mlp(weights["bracket_gate"], jnp.concatenate([flipped, x_j, x_i], -1))
-    d_f = jnp.einsum("rkg,rkgij->rkij", gate_f, st["convex_basis_f"])          # [R,K,6,3] σ_i ← v_j
-    d_b = jnp.einsum("rkg,rkgij->rkji", gate_b, st["convex_basis_b"])          # [R,K,3,6] −(v_i ← σ_j)
-    zeros = lambda rows, cols: jnp.zeros(d_f.shape[:2] + (rows, cols), d_f.dtype)
-    rows_v = jnp.concatenate([zeros(3, 6), -d_b], axis=-1)                        # [R,K,3,12]
-    rows_s = jnp.concatenate([zeros(6, 3), d_f, zeros(6, 6)], axis=-1)            # [R,K,6,12]
-    return st["convex_c"] + jnp.concatenate([zeros(3, M.STATE_DIM), rows_v, rows_s], axis=-2)
+    return (jnp.einsum("rkg,rkgij->rkij", gate_f, st["convex_basis_f"]),
+            jnp.einsum("rkg,rkgij->rkij", gate_b, st["convex_basis_b"]))
 
 
 def apply_l(ops: Ops, g):
@@ -303,7 +300,12 @@ def apply_l(ops: Ops, g):
     projection onto the evolved entries (module docstring: clamps as a projection)."""
     g = g * ops.free
     out = M._apply_l(ops.l_mat, g) + g @ M._canonical_matrix(ops.norm).T
-    edge = jnp.einsum("rkij,rkj->ri", ops.c, M.gather_neighbors(g, ops.topo))
+    g_j = M.gather_neighbors(g, ops.topo)
+    edge = jnp.einsum("rkij,rkj->ri", ops.st["convex_c"], g_j)
+    if ops.dynamic is not None:   # σ_i ← D_f v_j and v_i ← −D_bᵀ σ_j
+        d_f, d_b = ops.dynamic
+        edge = (edge.at[:, 6:].add(jnp.einsum("rkij,rkj->ri", d_f, g_j[..., 3:6]))
+                .at[:, 3:6].add(-jnp.einsum("rkji,rkj->ri", d_b, g_j[..., 6:])))
     return (out + M.reduce_rows(edge, ops.topo)) * ops.free
 
 
