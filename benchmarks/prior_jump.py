@@ -62,7 +62,7 @@ def main(argv=None) -> int:
     if not Path(args.data).exists():
         print(f"{args.data} not found: nothing to measure")
         return 1
-    params = api.load_model(args.model) if Path(args.model).exists() else api.load_pretrained(args.model)[0]
+    params = api.load_pretrained(args.model)[0]   # a shipped name, a model folder or a model.npz
     if not params["config"].get("linear_prior"):
         raise ValueError(f"{args.model} is not a linear_prior model")
     data = D.load(args.data)
