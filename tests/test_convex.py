@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 
 from tignn_jax import api
+from tignn_jax import convex as CV
 from tignn_jax import data as D
 from tignn_jax import model as M
 from tignn_jax import train as T
@@ -125,6 +126,64 @@ def test_free_energy_rest_linearisation_is_damped_and_rk4_keeps_it(bar, config):
     assert euler.max() > 1.05
 
 
+def _stiff_rk4(bar, reach):
+    """The free-energy model's RK4 step with its rate scaled so that the rest linearisation's stiffest mode sits
+    at |λΔt| = ``reach`` (a step that many times longer), and F."""
+    w, _, norm, z, f, nt, topo = _args(bar, FREE)
+    rk4 = FREE._replace(integrator="rk4")
+    shape, s = bar["rest"].shape, M.state_scale(norm)
+    rate = lambda zf: (M._generic(w, rk4, norm, zf.reshape(shape), jnp.zeros_like(f), nt, topo)[0] * s).reshape(-1)
+    k = reach / np.abs(np.linalg.eigvals(np.asarray(jax.jacrev(rate)(bar["rest"].reshape(-1)), np.float64))).max()
+    scaled = lambda f_: lambda x: (lambda o: (k * o[0],) + o[1:])(M._generic(w, rk4, norm, x, f_, nt, topo))
+    relaxed = rk4._replace(relaxation=True)
+    gamma = lambda z_, f_, dw, st: CV.relaxation(w, relaxed, norm, z_, k * f_, dw, st, nt, topo)
+    energy = lambda z_: M.energy_entropy(w, rk4, norm, z_, f, nt, topo)[0]
+    return scaled, gamma, energy, s
+
+
+def test_relaxation_keeps_the_discrete_second_law_and_leaves_accurate_steps_alone(bar):
+    """The limited relaxation step z + γΔz: γ = 1 for a short step (the RK4 step unchanged), and for steps
+    beyond RK4's stability region γ < 1 with F(z + γΔz) − F(z) ≤ γW (W: the forces' positive work over the
+    stages), γ
+    the largest such value to the bisection's resolution. Left alone without forces from a loaded state, the
+    unlimited stiff step creates free energy and the limited one never does; two sub-steps of the same long
+    step keep the dynamics inside RK4's region (γ = 1 throughout, F falling)."""
+    z, f = bar["z"], bar["f"]
+    tol = 1e-5
+    for reach, short in ((0.05, True), (6.0, False), (12.0, False)):
+        scaled, gamma, energy, s = _stiff_rk4(bar, reach)
+        dw, stages = M.runge_kutta("rk4", scaled(f), z, s)
+        g = float(gamma(z, f, dw, stages))
+        port = CV._static(bar["weights"][FREE], FREE, bar["norm"], bar["nt"], bar["topo"])["convex_heads"]
+        force = jnp.where(M.prescribed(bar["nt"]), 0.0, M.force_term(port[:, M.N_L + M.N_M:], f, bar["norm"]))
+        work = max(float(sum(c * jnp.sum(o[1] * force) for c, o in zip(M.TABLEAUS["rk4"][1], stages))), 0.0)
+        r = lambda t: float(energy(z + t * dw * s) - energy(z))
+        scale_f = abs(float(energy(z))) + abs(work)
+        assert r(g) <= g * work + tol * scale_f
+        if short:
+            assert g == 1.0
+        else:
+            assert g < 1.0
+            above = min(g + 2.0 ** (1 - CV.RELAX_ITERS), 1.0)
+            assert r(above) > above * work   # the largest admissible γ to the bisection's resolution
+    scaled, gamma, energy, s = _stiff_rk4(bar, 4.0)
+    none = jnp.zeros_like(f)
+
+    def roll(limited, substeps=1):
+        limit = (lambda z_, dw, st: gamma(z_, none, dw, st)) if limited else None
+        one = jax.jit(lambda z_: z_ + M.runge_kutta("rk4", scaled(none), z_, s, substeps=substeps,
+                                                        limit=limit)[0] * s)
+        zs = [z]
+        for _ in range(40):
+            zs.append(one(zs[-1]))
+        return np.array([float(energy(x)) for x in zs])
+
+    free, limited, sub = roll(False), roll(True), roll(False, substeps=2)
+    assert not (np.diff(free) <= tol * free[0]).all()                  # the long step creates free energy
+    assert (np.diff(limited) <= tol * limited[0]).all()                # the limited one never does
+    assert (np.diff(sub) <= tol * sub[0]).all() and sub[-1] < 0.5 * sub[0]
+
+
 def test_dynamic_l_is_skew_at_every_state_and_turns_with_it(bar):
     """With dynamic_l, L(z) is skew-symmetric at every state with the clamped rows and columns zero, differs
     between two states, and M stays static; an untrained model (zero gates) has the static model's L."""
@@ -189,3 +248,25 @@ def test_tiny_convex_training_reduces_the_loss_and_rolls_out(bar, tmp_path):
     graph = graph._replace(nodes={**graph.nodes, "z": z0})
     np.testing.assert_allclose(np.asarray(api.step(child, graph, f0).nodes["z"]),
                                np.asarray(api.step(best, graph, f0).nodes["z"]), rtol=1e-5, atol=1e-6)
+
+
+def test_training_with_substeps_and_relaxation_steps_as_the_model_does(bar, tmp_path):
+    """A warm start may switch on rk4 with two sub-steps and relaxation (no new weights); one epoch trains with
+    the step the model is used with, and the saved model steps by that step (``step_state``)."""
+    data = bar["data"]
+    cfg = T.CONFIGS["tiny"]._replace(convex=True, free_energy=True, deg_weight=0.0, epochs=2, passes=1)
+    quiet = dict(progress=False, log=lambda *a, **k: None)
+    T.train(data, cfg, tmp_path / "p", stop_after_epoch=1, **quiet)
+    child_cfg = cfg._replace(integrator="rk4", substeps=2, relaxation=True, epochs=1)
+    child = T.train(data, child_cfg, tmp_path / "c", init_from=tmp_path / "p", **quiet)
+    line = json.loads((tmp_path / "c" / "metrics.jsonl").read_text().splitlines()[-1])
+    assert np.isfinite(line["mse"]) and np.isfinite(line["val_u"])
+    model = M.ModelConfig(**child["config"])
+    assert model.substeps == 2 and model.relaxation
+    z0, f0 = jnp.asarray(data.z[0, 2]), jnp.asarray(data.f[0, 2])
+    _, graph = api.load_pretrained(str(tmp_path / "c" / "best" / "model.npz"))
+    graph = graph._replace(nodes={**graph.nodes, "z": z0})
+    np.testing.assert_allclose(
+        np.asarray(api.step(child, graph, f0).nodes["z"]),
+        np.asarray(M.step_state(child["weights"], model, child["norm"], z0, f0, graph.nodes["node_type"],
+                                child["topo"])), rtol=1e-5, atol=1e-6)

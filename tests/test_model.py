@@ -1130,6 +1130,35 @@ def test_runge_kutta_on_a_linear_rate_is_the_truncated_exponential(integrator, t
     np.testing.assert_allclose(got, want, rtol=1e-10, atol=1e-12)
 
 
+@pytest.mark.parametrize("integrator,terms", [("euler", 1), ("rk4", 4)])
+def test_runge_kutta_substeps_compose_the_stability_function_of_the_shorter_step(integrator, terms):
+    """n sub-steps of a linear rate A w (A per whole step) give P(A/n)^n w, with P the method's Taylor
+    polynomial of degree p; on a decay at λΔt = −4, beyond RK4's real stability limit (−2.78), one RK4 step
+    grows by R(−4) = 5 and two sub-steps contract by R(−2)² = 1/9; bad sub-step counts are clear errors."""
+    rng = np.random.default_rng(1)
+    a = rng.normal(size=(5, 5)) * 0.6
+    w = rng.normal(size=5)
+    got, stages = M.runge_kutta(integrator, lambda x: (a @ x,), w, 1.0, substeps=3)
+    x = w.copy()
+    for _ in range(3):
+        term, inc = x.copy(), np.zeros(5)
+        for k in range(1, terms + 1):
+            term = a @ term / (3 * k)
+            inc += term
+        x = x + inc
+    assert len(stages) == 3 * terms
+    np.testing.assert_allclose(got, x - w, rtol=1e-10, atol=1e-12)
+    growth = lambda n: abs(1 + float(M.runge_kutta("rk4", lambda v: (-4.0 * v,), np.ones(1), 1.0, substeps=n)[0][0]))
+    np.testing.assert_allclose([growth(1), growth(2)], [5.0, 1 / 9], rtol=1e-12)   # R(−4) = 5, R(−2)² = 1/9
+    for bad in (0, 2.5):
+        with pytest.raises(ValueError, match="substeps must be"):
+            M.check_integrator(M.ModelConfig(substeps=bad))
+    with pytest.raises(ValueError, match="substeps=2 with frame_solve"):
+        M.check_integrator(M.ModelConfig(substeps=2, frame_solve=True))
+    with pytest.raises(ValueError, match="relaxation=True needs"):
+        M.check_integrator(M.ModelConfig(relaxation=True, integrator="rk4"))
+
+
 def test_rk4_step_composes_four_network_rates_and_keeps_clamps(toy):
     """The rk4 step is z + (k1 + 2k2 + 2k3 + k4)/6 in state units with k_i the network's increments at the
     classical stages; clamped nodes keep their position and velocity; the stability function at a large

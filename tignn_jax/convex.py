@@ -238,7 +238,11 @@ def _deviation(norm, z, topo):
 def features(st, norm, z, topo):
     """h [N, 12 + D]: the node's state deviation from rest over z_std and the A-weighted sum of its
     neighbours' differences (both linear in z)."""
-    x = _deviation(norm, z, topo)
+    return _linear_features(st, _deviation(norm, z, topo), topo)
+
+
+def _linear_features(st, x, topo):
+    """h of a deviation x [N,12] (already over z_std): the linear map of ``features``."""
     diff = M.gather_neighbors(x, topo) - M.expand_rows(x, topo)[:, None, :]
     a = M.reduce_rows(jnp.einsum("rkdc,rkc->rd", st["convex_a"], diff), topo)
     return jnp.concatenate([x, a], axis=1)
@@ -252,6 +256,47 @@ def potentials(weights, config, st, norm, z, topo):
                for i, pot in enumerate(_names(config))]
     e = shifted[0] + 0.5 * jnp.sum((z[:, 3:6] / M.state_scale(norm)[3:6]) ** 2)
     return jnp.stack([e, -e if config.free_energy else -shifted[1]])
+
+
+RELAX_ITERS = 12   # bisection steps of ``relaxation`` on (0, 1]: γ to 2⁻¹² of the step
+
+
+def relaxation(weights, config, norm, z, f, dw, stages, node_type, topo):
+    """γ ∈ [0, 1] [] of the limited relaxation step z + γ Δz (``ModelConfig.relaxation``).
+
+    dw [N,12] is the step's scaled increment Σ b_i ΔW_i and ``stages`` the stages' ``_generic`` outputs (their
+    ΔW_i and ∇_w F). With W = max(0, Σ b_i ∇F(Z_i)·B f), the forces' work over the step as the stages estimate
+    it where it is positive (where it is negative, F must not rise: the stages of a step beyond the method's
+    stability region are far from the path, and their estimate can be large either way),
+    r(γ) = F(z + γΔz) − F(z) − γW is convex in γ with r(0) = 0, so its chord slope r(γ)/γ is non-decreasing and
+    {γ > 0: r(γ) ≤ 0} is an interval (0, γ*]. Returns 1 when r(1) ≤ 0 (the step unchanged), else γ* from below
+    by bisection (0 where r'(0) ≥ 0: no step along this direction obeys the inequality). The features are
+    linear in z, so F along the line costs the per-node convex networks only; the change of F is summed node
+    by node (not as a difference of two totals), and the kinetic term's change is exact."""
+    st = _static(weights, config, norm, node_type, topo)
+    scale = M.state_scale(norm)
+    b = M.TABLEAUS[config.integrator][1]
+    force = jnp.where(M.prescribed(node_type), 0.0, M.force_term(st["convex_heads"][:, M.N_L + M.N_M:], f, norm))
+    work = jnp.maximum(sum(c * jnp.sum(out[1] * force) for c, out in zip(b, stages)), 0.0)
+    d = dw * scale
+    h0, hd = features(st, norm, z, topo), _linear_features(st, d / norm["z_std"], topo)
+    p, bias, grad0 = weights["energy"], st["convex_bias"][0], st["convex_grad0"][0]
+    phi_0 = _icnn(p, bias, h0)
+    w_v, d_v = z[:, 3:6] / scale[3:6], dw[:, 3:6]
+    lin, quad = jnp.sum(w_v * d_v) - jnp.sum(grad0 * hd), 0.5 * jnp.sum(d_v ** 2)
+
+    def slope(g):   # r(γ)/γ
+        return jnp.sum(_icnn(p, bias, h0 + g * hd) - phi_0) / g + lin + g * quad - work
+
+    def bisect(_, bracket):
+        lo, hi = bracket
+        mid = 0.5 * (lo + hi)
+        ok = slope(mid) <= 0
+        return jnp.where(ok, mid, lo), jnp.where(ok, hi, mid)
+
+    one = jnp.ones((), z.dtype)
+    search = lambda: jax.lax.fori_loop(0, RELAX_ITERS, bisect, (jnp.zeros((), z.dtype), one))[0]
+    return jax.lax.cond(slope(one) <= 0, lambda: one, search)
 
 
 class Ops:

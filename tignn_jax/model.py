@@ -150,7 +150,20 @@ class ModelConfig(NamedTuple):
     a degeneracy loss, which it does not use: see ``tignn_jax.convex``); dynamic_l (with free_energy): L's edge
     blocks also depend on the two nodes' states through gated bases, skew at every state (the free energy
     stays a Lyapunov function, dF/dt = −∇FᵀM∇F + ∇Fᵀ B f, and at rest ∇F = 0 removes L's change from the
-    linearisation), so the brackets can carry state-dependent couplings such as the rotation of the stress.
+    linearisation), so the brackets can carry state-dependent couplings such as the rotation of the stress;
+    relaxation (with free_energy and integrator "heun" or "rk4"): the relaxation Runge-Kutta step (Ketcheson
+    2019; Ranocha et al. 2020) limited to γ ≤ 1, z + γ Δz with γ the largest value in (0, 1] for which the
+    free energy obeys the discrete second law F(z + γΔz) ≤ F(z) + γ max(0, Σ b_i ∇F(Z_i)·B f) (no free energy
+    beyond the forces' work as the stages estimate it). A step that already obeys it is the Runge-Kutta step
+    unchanged; a step that would create free energy (a stiff mode outside the method's stability region) is
+    shortened. With a convex F whose minimum is rest, the unloaded state then stays in the sublevel set of its
+    initial free energy: bounded by construction (``tignn_jax.convex.relaxation``). Crediting the stages'
+    estimated dissipation as well, as relaxation methods do, froze the trained beam after a release (the
+    stiff stages promise dissipation the step does not deliver); where a stiff mode dominates, even this
+    inequality can only be met by γ = 0, a frozen body, so ``substeps`` is what keeps the dynamics; substeps:
+    the integrator's sub-steps per step (each of Δt / substeps, the network's rate unchanged): the step
+    integrates the same learned vector field more finely, which brings stiff learned modes into the method's
+    stability region (a model is trained with the sub-steps it is used with).
     """
     hidden: int = 32
     mlp_layers: int = 2
@@ -180,6 +193,8 @@ class ModelConfig(NamedTuple):
     convex: bool = False
     free_energy: bool = False
     dynamic_l: bool = False
+    relaxation: bool = False
+    substeps: int = 1
 
 
 # explicit Runge-Kutta tableaus: stage i is evaluated at w + Σ_j a[i][j] Δw_j (a[0] is the start), the step's
@@ -192,17 +207,29 @@ TABLEAUS = {
 INTEGRATORS = tuple(TABLEAUS)
 
 
-def runge_kutta(integrator: str, rate, z, scale, bound=lambda dw: dw):
-    """The explicit Runge-Kutta combination of ``integrator``'s stages: ``rate(z)`` returns a stage's output, a
-    tuple whose first element is its scaled increment Δw (``scale`` maps it to state units);
-    ``bound`` is applied to each stage's Δw before it moves the next stage (training with bptt bounds them).
-    Returns (the step's scaled increment Σ b_i Δw_i, the stages' outputs)."""
+def runge_kutta(integrator: str, rate, z, scale, bound=lambda dw: dw, substeps: int = 1, limit=None):
+    """The explicit Runge-Kutta combination of ``integrator``'s stages over ``substeps`` equal sub-steps of the
+    step: ``rate(z)`` returns a stage's output, a tuple whose first element is its scaled increment Δw over the
+    whole step (``scale`` maps it to state units); ``bound`` is applied to each stage's and sub-step's increment
+    before it moves the state (training with bptt bounds them); ``limit(z, dw, stages)`` (``relaxation``)
+    returns a factor γ for each sub-step's increment dw given its stages' outputs.
+    Returns (the step's scaled increment, the stages' outputs of every sub-step)."""
     a, b = TABLEAUS[integrator]
-    outs = [rate(z)]
-    for row in a:
-        shift = sum(c * bound(o[0]) for c, o in zip(row, outs) if c != 0.0)
-        outs.append(rate(z + shift * scale))
-    return sum(c * o[0] for c, o in zip(b, outs)), outs
+    h = 1.0 / substeps
+    total, every = 0.0, []
+    for _ in range(substeps):
+        outs = [rate(z)]
+        for row in a:
+            shift = sum(c * bound(h * o[0]) for c, o in zip(row, outs) if c != 0.0)
+            outs.append(rate(z + shift * scale))
+        dw = h * sum(c * o[0] for c, o in zip(b, outs))
+        if limit is not None:
+            dw = dw * limit(z, dw, outs)
+        if substeps > 1:
+            dw = bound(dw)
+            z = z + dw * scale
+        total, every = total + dw, every + outs
+    return total, every
 
 
 def check_integrator(config: ModelConfig) -> None:
@@ -211,6 +238,15 @@ def check_integrator(config: ModelConfig) -> None:
         raise ValueError(f"integrator must be one of {INTEGRATORS}, got {config.integrator!r}")
     if config.integrator != "euler" and config.frame_solve:
         raise ValueError(f"integrator={config.integrator!r} with frame_solve: the W-method is the step's integrator")
+    if not isinstance(config.substeps, int) or config.substeps < 1:
+        raise ValueError(f"substeps must be an integer >= 1, got {config.substeps!r}")
+    if config.substeps > 1 and config.frame_solve:
+        raise ValueError(f"substeps={config.substeps} with frame_solve: the W-method takes the whole step")
+    if config.relaxation and not (config.convex and config.free_energy and config.integrator != "euler"):
+        raise ValueError("relaxation=True needs convex=True, free_energy=True and integrator 'heun' or 'rk4' (got "
+                         f"convex={config.convex}, free_energy={config.free_energy}, "
+                         f"integrator={config.integrator!r}): it limits the step by the learned free energy, "
+                         "and forward Euler's estimate of dF is never met by a convex F")
 
 
 SPRING_HIDDEN = 16     # width of elastic_port's stiffness MLP ψ
@@ -237,8 +273,18 @@ def step_state(weights, config: ModelConfig, norm: dict, z, f, node_type, topo):
     """One step (forward Euler, Heun or classical Runge-Kutta, see ``ModelConfig.integrator``, or the W-method
     of ``frame_solve``): z [N,12], f [N,3] (force during the step), node_type [N] → z_next [N,12]."""
     dw, _ = runge_kutta(config.integrator, lambda x: _generic(weights, config, norm, x, f, node_type, topo), z,
-                        state_scale(norm))
+                        state_scale(norm), substeps=config.substeps, limit=relaxation_limit(weights, config, norm, f,
+                                                                                            node_type, topo))
     return z + increment(config, norm, dw, z, f, node_type, topo)
+
+
+def relaxation_limit(weights, config: ModelConfig, norm: dict, f, node_type, topo):
+    """``runge_kutta``'s ``limit`` for a model with ``relaxation`` (None otherwise): each sub-step's γ from
+    ``convex.relaxation``, with the forces' work over that sub-step."""
+    if not config.relaxation:
+        return None
+    h = 1.0 / config.substeps
+    return lambda z, dw, stages: CV.relaxation(weights, config, norm, z, h * f, dw, stages, node_type, topo)
 
 
 def increment(config: ModelConfig, norm: dict, dw, z, f, node_type, topo):

@@ -101,6 +101,8 @@ class TrainConfig(NamedTuple):
     convex: bool = False
     free_energy: bool = False
     dynamic_l: bool = False
+    relaxation: bool = False
+    substeps: int = 1
     residual_scale: bool = False
     lr: float = 3e-3
     lr_end: float = 2e-5
@@ -220,12 +222,20 @@ def loss_fn(weights, batch: Batch, key, norm, cfg: TrainConfig, node_type, topo)
     step_of = jax.vmap(lambda dw, z, f: M.increment(cfg.model, norm, dw, z, f, node_type, topo))
     state_unit = norm["fs_dz_std"] if cfg.frame_solve else c
 
+    def limit_of(f):   # relaxation, per sample of the batch
+        limit = lambda z, dw, stages, f: M.relaxation_limit(weights, cfg.model, norm, f, node_type, topo)(
+            z, dw, stages)
+        if not cfg.model.relaxation:
+            return None
+        return lambda z, dw, stages: jax.vmap(limit)(z, dw, stages, f)[:, None, None]
+
     def one_step(z_in, xs):
         f_j, z_true, rel_j = xs
         rates_of = jax.vmap(lambda z, f: M.rates(weights, cfg.model, norm, z, f, node_type, topo))
         # the step the model will be used with: every Runge-Kutta stage's rates, each stage's shift bounded
         # like the step (bptt); the degeneracy residuals of all stages enter the loss
-        dw, stages = M.runge_kutta(cfg.model.integrator, lambda x: rates_of(x, f_j), z_in, s, dw_bounded)
+        dw, stages = M.runge_kutta(cfg.model.integrator, lambda x: rates_of(x, f_j), z_in, s, dw_bounded,
+                                   cfg.model.substeps, limit_of(f_j))
         rt = stages[0]._replace(dw=dw, deg_l=jnp.concatenate([o.deg_l for o in stages], axis=1),
                                 deg_m=jnp.concatenate([o.deg_m for o in stages], axis=1))
         dw = dw_bounded(rt.dw)
@@ -542,7 +552,7 @@ def train(data: D.Dataset, cfg: TrainConfig, run_dir: str | Path, train_split="t
 
 # model options that change how the weights are used but not their shapes: a warm start may switch them
 WEIGHT_FREE = ("exact_degeneracy", "kinematic_prior", "rest_equilibrium", "correction_scale", "integrator",
-               "static_l")
+               "static_l", "relaxation", "substeps")
 # options a warm start may switch on: the parent's weights are kept and the ones the option adds start at their
 # initialisation (dynamic_l's gates at zero: the parent's function)
 ADDS_WEIGHTS = ("dynamic_l",)
