@@ -4,7 +4,7 @@ comparing devices on the same models: the paper's 9 ms (beam) and 11 ms (bunny) 
 For each model (a shipped name or a model file): ``api.stepper`` (one body, jit-compiled, static graph data
 closed over) from the rest state with zero forces; the median and 99th percentile of ``--repeats`` calls
 after compilation, each synchronised (``block_until_ready``), by the wall clock. Writes
-benchmarks/results/device_step_<backend>.{json,md} (``--out`` for another folder).
+benchmarks/results/device_step_<backend>[_TAG].{json,md} (``--out`` for another folder, ``--tag`` for a suffix).
 
     python benchmarks/device_step.py beam-abaqus beam [path/to/model.npz ...] [--repeats 300]
     XLA_FLAGS="--xla_cpu_multi_thread_eigen=false intra_op_parallelism_threads=1" python benchmarks/device_step.py ...
@@ -46,8 +46,29 @@ def time_model(name: str, repeats: int) -> dict:
     cfg = params["config"]
     return {"model": name, "nodes": int(z.shape[0]), "edges": int(len(params["mesh"]["senders"])),
             "hidden": int(cfg["hidden"]), "passes": int(cfg["passes"]), "compile_s": compile_s,
+            "integrator": _integrator(cfg),
             "median_ms": 1e3 * float(np.median(times)), "p99_ms": 1e3 * float(np.percentile(times, 99)),
             "repeats": repeats}
+
+
+def _integrator(cfg: dict) -> str:
+    """The step's integrator in words: e.g. "rk4 × 2 sub-steps, relaxation"."""
+    if cfg.get("frame_solve"):
+        return "W-method"
+    text = cfg.get("integrator", "euler")
+    if cfg.get("substeps", 1) > 1:
+        text += f" × {cfg['substeps']} sub-steps"
+    return text + (", relaxation" if cfg.get("relaxation") else "")
+
+
+def _label(model: str) -> str:
+    """A model's name for the table: the shipped name, or the file's folder for a ``model.npz``."""
+    path = Path(model)
+    if not model.endswith(".npz"):
+        return model
+    if path.stem != "model":
+        return path.stem
+    return f"{path.parent.parent.name}/best" if path.parent.name == "best" else path.parent.name
 
 
 def main(argv=None) -> int:
@@ -55,6 +76,7 @@ def main(argv=None) -> int:
     ap.add_argument("models", nargs="+", help="shipped model names or model files")
     ap.add_argument("--repeats", type=int, default=300)
     ap.add_argument("--out", default=None, help="output folder (default benchmarks/results)")
+    ap.add_argument("--tag", default="", help="write device_step_<backend>_TAG.* instead of device_step_<backend>.*")
     args = ap.parse_args(argv)
     if args.repeats < 10:
         raise SystemExit(f"--repeats must be at least 10, got {args.repeats}")
@@ -65,17 +87,18 @@ def main(argv=None) -> int:
     backend = machine["backend"]
     out = Path(args.out) if args.out else RESULTS
     out.mkdir(parents=True, exist_ok=True)
-    (out / f"device_step_{backend}.json").write_text(json.dumps({"machine": machine, "rows": rows}, indent=1))
+    name = f"device_step_{backend}" + (f"_{args.tag}" if args.tag else "")
+    (out / f"{name}.json").write_text(json.dumps({"machine": machine, "rows": rows}, indent=1))
     lines = [f"# Learned step time on {machine['device']} ({backend})", "",
              f"Host {machine['cpu']}, {machine['cores']} cores, jax {machine['jax']}, load average "
              f"{machine['load_average_1m']} at start, XLA_FLAGS=\"{machine['xla_flags']}\". One body, "
              f"`api.stepper`, rest state, zero forces; wall clock per synchronised call after compilation.", "",
-             "| model | nodes | edges | hidden × passes | median ms | p99 ms | compile s |", "|---|---|---|---|---|---|---|"]
+             "| model | nodes | edges | hidden × passes | integrator | median ms | p99 ms | compile s |",
+             "|---|---|---|---|---|---|---|---|"]
     for r in rows:
-        lines.append(f"| {Path(r['model']).stem if r['model'].endswith('.npz') else r['model']} | {r['nodes']} | "
-                     f"{r['edges']} | {r['hidden']} × {r['passes']} | {r['median_ms']:.3f} | {r['p99_ms']:.3f} | "
-                     f"{r['compile_s']:.1f} |")
-    (out / f"device_step_{backend}.md").write_text("\n".join(lines) + "\n")
+        lines.append(f"| {_label(r['model'])} | {r['nodes']} | {r['edges']} | {r['hidden']} × {r['passes']} | "
+                     f"{r['integrator']} | {r['median_ms']:.3f} | {r['p99_ms']:.3f} | {r['compile_s']:.1f} |")
+    (out / f"{name}.md").write_text("\n".join(lines) + "\n")
     print("\n".join(lines))
     return 0
 
