@@ -151,7 +151,7 @@ class ModelConfig(NamedTuple):
     blocks also depend on the two nodes' states through gated bases, skew at every state (the free energy
     stays a Lyapunov function, dF/dt = −∇FᵀM∇F + ∇Fᵀ B f, and at rest ∇F = 0 removes L's change from the
     linearisation), so the brackets can carry state-dependent couplings such as the rotation of the stress;
-    relaxation (with free_energy and integrator "heun" or "rk4"): the relaxation Runge-Kutta step (Ketcheson
+    relaxation (with free_energy): the relaxation Runge-Kutta step (Ketcheson
     2019; Ranocha et al. 2020) limited to γ ≤ 1, z + γ Δz with γ the largest value in (0, 1] for which the
     free energy obeys the discrete second law F(z + γΔz) ≤ F(z) + γ max(0, Σ b_i ∇F(Z_i)·B f) (no free energy
     beyond the forces' work as the stages estimate it). A step that already obeys it is the Runge-Kutta step
@@ -242,11 +242,10 @@ def check_integrator(config: ModelConfig) -> None:
         raise ValueError(f"substeps must be an integer >= 1, got {config.substeps!r}")
     if config.substeps > 1 and config.frame_solve:
         raise ValueError(f"substeps={config.substeps} with frame_solve: the W-method takes the whole step")
-    if config.relaxation and not (config.convex and config.free_energy and config.integrator != "euler"):
-        raise ValueError("relaxation=True needs convex=True, free_energy=True and integrator 'heun' or 'rk4' (got "
-                         f"convex={config.convex}, free_energy={config.free_energy}, "
-                         f"integrator={config.integrator!r}): it limits the step by the learned free energy, "
-                         "and forward Euler's estimate of dF is never met by a convex F")
+    if config.relaxation and not (config.convex and config.free_energy):
+        raise ValueError("relaxation=True needs convex=True and free_energy=True (got convex="
+                         f"{config.convex}, free_energy={config.free_energy}): it limits the step by the learned "
+                         "free energy, which only that model has")
 
 
 SPRING_HIDDEN = 16     # width of elastic_port's stiffness MLP ψ

@@ -222,12 +222,12 @@ def loss_fn(weights, batch: Batch, key, norm, cfg: TrainConfig, node_type, topo)
     step_of = jax.vmap(lambda dw, z, f: M.increment(cfg.model, norm, dw, z, f, node_type, topo))
     state_unit = norm["fs_dz_std"] if cfg.frame_solve else c
 
-    def limit_of(f):   # relaxation, per sample of the batch
-        limit = lambda z, dw, stages, f: M.relaxation_limit(weights, cfg.model, norm, f, node_type, topo)(
-            z, dw, stages)
+    def limit_of(f):   # relaxation: each sample's γ under its own force
         if not cfg.model.relaxation:
             return None
-        return lambda z, dw, stages: jax.vmap(limit)(z, dw, stages, f)[:, None, None]
+        one = lambda z, dw, stages, f_: M.relaxation_limit(weights, cfg.model, norm, f_, node_type, topo)(
+            z, dw, stages)
+        return lambda z, dw, stages: jax.vmap(one)(z, dw, stages, f)[:, None, None]
 
     def one_step(z_in, xs):
         f_j, z_true, rel_j = xs
