@@ -179,7 +179,7 @@ def test_relaxation_keeps_the_discrete_second_law_and_leaves_accurate_steps_alon
         return np.array([float(energy(x)) for x in zs])
 
     free, limited, sub = roll(False), roll(True), roll(False, substeps=2)
-    assert not (np.diff(free) <= tol * free[0]).all()                  # the long step creates free energy
+    assert np.nanmax(free[1:]) > 1e3 * free[0]                       # the long step creates free energy
     assert (np.diff(limited) <= tol * limited[0]).all()                # the limited one never does
     assert (np.diff(sub) <= tol * sub[0]).all() and sub[-1] < 0.5 * sub[0]
 
