@@ -258,6 +258,11 @@ def potentials(weights, config, st, norm, z, topo):
     return jnp.stack([e, -e if config.free_energy else -shifted[1]])
 
 
+def _port(st):
+    """[N,1]: the force port's per-node column of the node heads (after the l and m entries)."""
+    return st["convex_heads"][:, M.N_L + M.N_M:]
+
+
 RELAX_ITERS = 12   # bisection steps of ``relaxation`` on (0, 1]: γ to 2⁻¹² of the step
 
 
@@ -276,7 +281,7 @@ def relaxation(weights, config, norm, z, f, dw, stages, node_type, topo):
     st = _static(weights, config, norm, node_type, topo)
     scale = M.state_scale(norm)
     b = M.TABLEAUS[config.integrator][1]
-    force = jnp.where(M.prescribed(node_type), 0.0, M.force_term(st["convex_heads"][:, M.N_L + M.N_M:], f, norm))
+    force = jnp.where(M.prescribed(node_type), 0.0, M.force_term(_port(st), f, norm))
     work = jnp.maximum(sum(c * jnp.sum(out[1] * force) for c, out in zip(b, stages)), 0.0)
     d = dw * scale
     h0, hd = features(st, norm, z, topo), _linear_features(st, d / norm["z_std"], topo)
@@ -318,7 +323,7 @@ def potentials_and_grads(weights, config, norm, z, f, node_type, topo):
     (grads,) = jax.vmap(pullback)(jnp.eye(2, dtype=z.dtype))
     scale = M.state_scale(norm)
     ops = Ops(st, topo, norm, node_type, dynamic_blocks(weights, st, norm, z, topo) if config.dynamic_l else None)
-    return grads[0] * scale, grads[1] * scale, (ops, ops), st["convex_heads"][:, M.N_L + M.N_M:]
+    return grads[0] * scale, grads[1] * scale, (ops, ops), _port(st)
 
 
 def dynamic_blocks(weights, st, norm, z, topo):
