@@ -67,6 +67,17 @@ def errors(params, data, rows) -> dict:
     return out
 
 
+def describe_model(m: dict) -> str:
+    """The table's config column: the architecture and step, or that the model is the linear FEM step."""
+    if not m["learned"]:
+        return "the FEM's rest-linearised backward-Euler step (not learned)"
+    c = m["config"]
+    text = f"{c['hidden']}×{c['passes']}, {c['integrator']}"
+    text += f"×{c['substeps']}" if (c.get("substeps") or 1) > 1 else ""
+    text += ", convex free energy" if c.get("convex") else ""
+    return text + (", relaxation" if c.get("relaxation") else "")
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--models", default="beam", help="comma-separated shipped names or model paths")
@@ -93,6 +104,7 @@ def main(argv=None) -> int:
         rows = {f"{s}/{g}": errors(params, data, r) for s, g, data, r in found}
         cfg = params["config"]
         result["models"][name] = {"groups": rows, "seconds": time.perf_counter() - t0,
+                                  "learned": not api.network_is_zero(params),
                                   "config": {k: cfg.get(k) for k in ("hidden", "passes", "integrator", "substeps",
                                                                      "relaxation", "convex", "free_energy")}}
         print(name, json.dumps({g: round(r["u"], 4) for g, r in rows.items()}), flush=True)
@@ -107,9 +119,7 @@ def main(argv=None) -> int:
              "u max: the largest u error at any snapshot; finite: rollouts with no NaN/Inf.", "",
              "| model | config | split/group | cases | finite | u | v | σ | q | u max |", "|---|---|---|---|---|---|---|---|---|---|"]
     for name, m in result["models"].items():
-        c = m["config"]
-        text = f"{c['hidden']}×{c['passes']}, {c['integrator']}" + (f"×{c['substeps']}" if (c.get("substeps") or 1) > 1 else "") \
-            + (", convex free energy" if c.get("convex") else "") + (", relaxation" if c.get("relaxation") else "")
+        text = describe_model(m)
         for g, r in m["groups"].items():
             lines.append(f"| {name} | {text} | {g} | {r['cases']} | {r['finite']} | {r['u']:.3g} | {r['v']:.3g} | "
                          f"{r['sigma']:.3g} | {r['q']:.3g} | {r['u_max']:.3g} |")
