@@ -60,9 +60,8 @@ def errors(params, data, rows) -> dict:
     pred = EV.rollout_cases(params, data, rows)
     finite = np.all(np.isfinite(pred), axis=(1, 2, 3))
     e = EV.relative_errors(pred, data.z[rows], data.q0, reference="peak")[:, 1:]
-    order = {"q": 0, "v": 1, "sigma": 2, "u": 3}
-    out = {name: float(np.mean(e[..., order[name]])) for name in VARS}
-    out["u_max"] = float(np.max(e[..., 3]))
+    out = {name: float(np.mean(e[..., EV.VARIABLES.index(name)])) for name in VARS}
+    out["u_max"] = float(np.max(e[..., EV.VARIABLES.index("u")]))
     out.update(cases=int(len(rows)), finite=int(finite.sum()))
     return out
 
