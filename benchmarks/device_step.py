@@ -46,12 +46,12 @@ def time_model(name: str, repeats: int) -> dict:
     cfg = params["config"]
     return {"model": name, "nodes": int(z.shape[0]), "edges": int(len(params["mesh"]["senders"])),
             "hidden": int(cfg["hidden"]), "passes": int(cfg["passes"]), "compile_s": compile_s,
-            "integrator": _integrator(cfg),
+            "integrator": integrator_text(cfg),
             "median_ms": 1e3 * float(np.median(times)), "p99_ms": 1e3 * float(np.percentile(times, 99)),
             "repeats": repeats}
 
 
-def _integrator(cfg: dict) -> str:
+def integrator_text(cfg: dict) -> str:
     """The step's integrator in words: e.g. "rk4 × 2 sub-steps, relaxation"."""
     if cfg.get("frame_solve"):
         return "W-method"
@@ -61,7 +61,7 @@ def _integrator(cfg: dict) -> str:
     return text + (", relaxation" if cfg.get("relaxation") else "")
 
 
-def _label(model: str) -> str:
+def model_label(model: str) -> str:
     """A model's name for the table: the shipped name, or the file's folder for a ``model.npz``."""
     path = Path(model)
     if not model.endswith(".npz"):
@@ -96,7 +96,7 @@ def main(argv=None) -> int:
              "| model | nodes | edges | hidden × passes | integrator | median ms | p99 ms | compile s |",
              "|---|---|---|---|---|---|---|---|"]
     for r in rows:
-        lines.append(f"| {_label(r['model'])} | {r['nodes']} | {r['edges']} | {r['hidden']} × {r['passes']} | "
+        lines.append(f"| {model_label(r['model'])} | {r['nodes']} | {r['edges']} | {r['hidden']} × {r['passes']} | "
                      f"{r['integrator']} | {r['median_ms']:.3f} | {r['p99_ms']:.3f} | {r['compile_s']:.1f} |")
     (out / f"{name}.md").write_text("\n".join(lines) + "\n")
     print("\n".join(lines))

@@ -24,6 +24,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _machine import describe  # noqa: E402
+from device_step import integrator_text, model_label  # noqa: E402
 
 RESULTS = Path(__file__).resolve().parent / "results"
 ROOT = Path(__file__).resolve().parents[1]
@@ -71,10 +72,7 @@ def describe_model(m: dict) -> str:
     if not m["learned"]:
         return "the FEM's rest-linearised backward-Euler step (not learned)"
     c = m["config"]
-    text = f"{c['hidden']}×{c['passes']}, {c['integrator']}"
-    text += f"×{c['substeps']}" if (c.get("substeps") or 1) > 1 else ""
-    text += ", convex free energy" if c.get("convex") else ""
-    return text + (", relaxation" if c.get("relaxation") else "")
+    return f"{c['hidden']}×{c['passes']}, {integrator_text(c)}" + (", convex free energy" if c.get("convex") else "")
 
 
 def main(argv=None) -> int:
@@ -105,7 +103,8 @@ def main(argv=None) -> int:
         result["models"][name] = {"groups": rows, "seconds": time.perf_counter() - t0,
                                   "learned": not api.network_is_zero(params),
                                   "config": {k: cfg.get(k) for k in ("hidden", "passes", "integrator", "substeps",
-                                                                     "relaxation", "convex", "free_energy")}}
+                                                                     "relaxation", "frame_solve", "convex",
+                                                                     "free_energy")}}
         print(name, json.dumps({g: round(r["u"], 4) for g, r in rows.items()}), flush=True)
 
     RESULTS.mkdir(parents=True, exist_ok=True)
@@ -116,12 +115,13 @@ def main(argv=None) -> int:
              f"Data: `{args.reference}` (reference cases) and `{args.interactions}` (fingertip cases; profiles from "
              f"`{args.profiles}`). Errors relative to each case's largest true norm, mean over cases and snapshots; "
              "u max: the largest u error at any snapshot; finite: rollouts with no NaN/Inf.", "",
-             "| model | config | split/group | cases | finite | u | v | σ | q | u max |", "|---|---|---|---|---|---|---|---|---|---|"]
+             "| model | config | split/group | cases | finite | u | v | σ | q | u max |",
+             "|---|---|---|---|---|---|---|---|---|---|"]
     for name, m in result["models"].items():
         text = describe_model(m)
         for g, r in m["groups"].items():
-            lines.append(f"| {name} | {text} | {g} | {r['cases']} | {r['finite']} | {r['u']:.3g} | {r['v']:.3g} | "
-                         f"{r['sigma']:.3g} | {r['q']:.3g} | {r['u_max']:.3g} |")
+            lines.append(f"| {model_label(name)} | {text} | {g} | {r['cases']} | {r['finite']} | {r['u']:.3g} | "
+                         f"{r['v']:.3g} | {r['sigma']:.3g} | {r['q']:.3g} | {r['u_max']:.3g} |")
     (RESULTS / f"{stem}.md").write_text("\n".join(lines) + "\n")
     print(f"wrote {RESULTS / stem}.{{json,md}}")
     return 0
