@@ -11,9 +11,17 @@ cases, the shipped `beam-linear` step from the true z_k under the true f_k again
 summed over nodes, components and train cases: the one-step error of the prior relative to the increment a
 correction would start from. A correction network must cancel the part above ~1 before it can add anything.
 
-    python benchmarks/prior_jump.py [--data ../shared/data/abaqus_beam.npz] [--model beam-linear]
+Where the jump comes from (`stress_split`): the prior's stress S₀u at a true displacement u against the true
+stress σ, each split into its hydrostatic part p = (σ₁₁ + σ₂₂ + σ₃₃)/3 and the rest (the deviatoric normal
+components and the shears). For a nearly incompressible material (the beam: bulk modulus 2/D1 = 2e7 against a
+shear modulus 2(C10 + C01) = 3.1e5) the linear pressure K div u is wrong at second order in the displacement
+gradient: a rigid rotation by θ has div u = 2(cos θ − 1) and no stress, yet S₀u carries the pressure
+(2/D1)·2(cos θ − 1) (−2e5 at θ = 0.1, tested). The true states of a bending beam rotate, so their S₀u is a
+spurious pressure, and K₀u the matching spurious force: a correction must cancel both.
 
-Writes benchmarks/results/prior_jump.{json,md}.
+    python benchmarks/prior_jump.py [--data ../shared/data/abaqus_beam.npz] [--model beam-linear] [--tag T]
+
+Writes benchmarks/results/prior_jump[_T].{json,md}.
 """
 from __future__ import annotations
 
@@ -51,6 +59,28 @@ def jump_ratios(params: dict, z, f) -> np.ndarray:
     return np.sqrt(num / np.maximum(den, 1e-300))
 
 
+def _split(s):
+    """[..., 6] stresses (S11 S22 S33 S12 S13 S23) → (hydrostatic [...], deviatoric remainder [..., 6])."""
+    p = s[..., :3].mean(-1)
+    return p, np.concatenate([s[..., :3] - p[..., None], s[..., 3:]], axis=-1)
+
+
+def stress_split(params: dict, z) -> np.ndarray:
+    """[T+1, 4] rms over cases and nodes, per snapshot of z [C,T+1,N,12]: the true hydrostatic stress, the prior's
+    hydrostatic stress S₀u at the true displacement, the true deviatoric remainder and the prior's (see the module
+    docstring). S₀ is the model's rest linearisation (``norm["fs_s*"]``)."""
+    import jax.numpy as jnp
+
+    from tignn_jax import framesolve as FS
+
+    norm = {k: jnp.asarray(params["norm"][k]) for k in ("fs_s_rows", "fs_s_cols", "fs_s")}
+    q0 = np.asarray(params["mesh"]["q0"], np.float32)
+    lin = np.stack([np.stack([np.asarray(FS.apply_s(norm, jnp.asarray(zk[:, :3] - q0))) for zk in zc]) for zc in z])
+    (p_true, d_true), (p_lin, d_lin) = _split(np.asarray(z[..., 6:], np.float64)), _split(lin.astype(np.float64))
+    rms = lambda a, axes: np.sqrt(np.mean(a ** 2, axis=axes))
+    return np.stack([rms(p_true, (0, 2)), rms(p_lin, (0, 2)), rms(d_true, (0, 2, 3)), rms(d_lin, (0, 2, 3))], axis=1)
+
+
 def main(argv=None) -> int:
     from tignn_jax import api
     from tignn_jax import data as D
@@ -58,6 +88,7 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--data", default=str(D.reference_path()), help="data set on the model's mesh")
     ap.add_argument("--model", default="beam-linear", help="a linear_prior model (shipped name or path)")
+    ap.add_argument("--tag", default="", help="results go to prior_jump_TAG.{json,md}")
     args = ap.parse_args(argv)
     if not Path(args.data).exists():
         print(f"{args.data} not found: nothing to measure")
@@ -69,10 +100,14 @@ def main(argv=None) -> int:
     rows = D.split_rows(data, "train")
     z, f = np.asarray(data.z[rows], np.float32), np.asarray(data.f[rows], np.float32)
     ratios = jump_ratios(params, z, f)
+    split = stress_split(params, z)
     out = {"machine": describe(), "data": Path(args.data).name, "model": args.model, "cases": len(rows),
-           "ratio_per_frame": {k: ratios[:, j].round(4).tolist() for j, k in enumerate(GROUPS)}}
+           "ratio_per_frame": {k: ratios[:, j].round(4).tolist() for j, k in enumerate(GROUPS)},
+           "stress_rms_per_snapshot": {k: split[:, j].round(2).tolist() for j, k in enumerate(
+               ("true_hydrostatic", "prior_hydrostatic", "true_deviatoric", "prior_deviatoric"))}}
+    name = "prior_jump" + (f"_{args.tag}" if args.tag else "")
     RESULTS.mkdir(parents=True, exist_ok=True)
-    (RESULTS / "prior_jump.json").write_text(json.dumps(out, indent=1))
+    (RESULTS / f"{name}.json").write_text(json.dumps(out, indent=1))
     lines = [f"# The rest-linearised step from true states ({args.model} on {out['data']}, {len(rows)} train cases)",
              "", "One step of the prior from the true state z_k under f_k; RMS error against z_{k+1} over the RMS "
              "true increment z_{k+1} − z_k (1 = as large as the increment itself). The reference data's velocities are "
@@ -81,7 +116,18 @@ def main(argv=None) -> int:
              "as it deflects.", "",
              "| frame k | q | v | σ |", "|---|---|---|---|"]
     lines += [f"| {k} | {r[0]:.3g} | {r[1]:.3g} | {r[2]:.3g} |" for k, r in enumerate(ratios)]
-    (RESULTS / "prior_jump.md").write_text("\n".join(lines) + "\n")
+    lines += ["", "## The prior's stress at the true displacements", "",
+              "S₀u against the true σ at each snapshot k of the same cases, split into the hydrostatic part "
+              "p = (σ₁₁ + σ₂₂ + σ₃₃)/3 and the deviatoric remainder (rms over cases and nodes; see the module "
+              "docstring: the linearised pressure of a nearly incompressible material is wrong at second order in "
+              "the rotation).", "",
+              "| snapshot k | true p | prior p | ratio | true deviatoric | prior deviatoric | ratio |",
+              "|---|---|---|---|---|---|---|"]
+    lines += [f"| {k} | {r[0]:.4g} | {r[1]:.4g} | {r[1] / max(r[0], 1e-30):.3g} | {r[2]:.4g} | {r[3]:.4g} | "
+              f"{r[3] / max(r[2], 1e-30):.3g} |" for k, r in enumerate(split)]
+    m = out["machine"]
+    lines += ["", f"Machine: {m['cpu']}, {m['cores']} cores, jax {m['jax']} ({m['backend']})."]
+    (RESULTS / f"{name}.md").write_text("\n".join(lines) + "\n")
     print("\n".join(lines))
     return 0
 

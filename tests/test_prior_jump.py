@@ -44,3 +44,25 @@ def test_the_prior_jumps_from_deflected_reference_states(linear):
     v = ratios[:, 1]
     assert v[0] > 1.0 and v[-1] > 10 * v[0], v
     assert ratios[0, 0] < 0.2, ratios[0]      # positions: the first frame's step is close
+
+
+def test_the_prior_stress_of_a_rigid_rotation_is_the_linearised_pressure(linear):
+    # A rigid rotation by θ about z has no stress, but div u = 2(cos θ − 1), so the rest linearisation's stress S₀u
+    # is the pressure (2/D1)·2(cos θ − 1) in every node (uniform strain: the nodal average is exact), with a
+    # deviatoric part of the shear modulus' order, 2μ(cos θ − 1)·2/3 (the beam: D1 = 1e-7, μ = 2(C10 + C01)).
+    params, _ = linear
+    q0 = np.asarray(params["mesh"]["q0"], np.float64)
+    theta = 0.1
+    rot = np.array([[np.cos(theta), -np.sin(theta), 0.0], [np.sin(theta), np.cos(theta), 0.0], [0.0, 0.0, 1.0]])
+    z = np.zeros((1, 2, len(q0), 12), np.float32)
+    z[0, 0, :, :3] = q0
+    z[0, 1, :, :3] = (q0 - q0.mean(0)) @ rot.T + q0.mean(0)
+    split = pj.stress_split(params, z)
+    assert split.shape == (2, 4)
+    np.testing.assert_allclose(split[0], 0.0, atol=1e-6)     # at rest: nothing
+    true_p, prior_p, true_dev, prior_dev = split[1]
+    assert true_p == 0.0 and true_dev == 0.0                   # the stored (true) stress of a rigid motion
+    pressure = (2 / 1e-7) * 2 * (np.cos(theta) - 1)
+    np.testing.assert_allclose(prior_p, abs(pressure), rtol=0.02)
+    mu = 2 * (1.5e5 + 5e3)
+    assert prior_dev < 0.05 * abs(pressure) and prior_dev < 10 * mu * (1 - np.cos(theta))
