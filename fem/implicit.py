@@ -224,15 +224,23 @@ class RestLinearization(NamedTuple):
     free: np.ndarray
 
 
+def force_and_stress(problem: sv.Problem, material: Material):
+    """(f_int, σ): the elastic scene's internal nodal force u [N,3] → [N,3] (hourglass control included) and
+    nodal Cauchy stress u [N,3] → [N,6] (Voigt order S11 S22 S33 S12 S13 S23, as the data store it) at a
+    displacement, as pure jit-able functions; `rest_linearization` differentiates them at u = 0."""
+    check_scope(problem, material)
+    arr, cfg = problem.arrays, problem.config
+    force = _force_fn(arr, material, cfg, sv._hourglass_for(arr, material, cfg))
+    return force, lambda u: sv._nodal_stress(arr, sv._element_stress(arr, material, u, (), cfg))
+
+
 def rest_linearization(problem: sv.Problem, material: Material, chunk: int = 128) -> RestLinearization:
     """`RestLinearization` of an elastic scene: the columns of K₀ and S₀ by one `jax.jvp` per degree of freedom
     (``chunk`` at a time) of the internal force and the nodal stress together, in the problem's precision
     (dense columns: meant for meshes of a few thousand nodes; the bunny's 1330 take about 3 minutes)."""
-    check_scope(problem, material)
-    arr, cfg = problem.arrays, problem.config
+    arr = problem.arrays
     n = arr.points.shape[0]
-    force = _force_fn(arr, material, cfg, sv._hourglass_for(arr, material, cfg))
-    stress = lambda u: sv._nodal_stress(arr, sv._element_stress(arr, material, u, (), cfg))
+    force, stress = force_and_stress(problem, material)
     kc, sc = _jvp_columns(lambda u: (force(u), stress(u)), n, arr.points.dtype, chunk)
     # column 3b + j holds ∂(out_a)_i/∂u_bj at [a, i]: reorder to blocks [a, b, i, j]
     K = kc.reshape(n, 3, n, 3).transpose(2, 0, 3, 1)

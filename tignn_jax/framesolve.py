@@ -39,10 +39,9 @@ KEYS = ("fs_k_rows", "fs_k_cols", "fs_k", "fs_s_rows", "fs_s_cols", "fs_s", "fs_
 DERIVED = ("fs_ainv",)   # recomputed by with_inverse, not saved with a model
 
 
-def operators_from_file(path: str | Path, chunk: int = 128):
-    """`fem.implicit.RestLinearization` of the scene a data-set file was generated from (its mesh, clamped
-    nodes and the material, density and damping in its metadata)."""
-    from fem import implicit
+def problem_from_file(path: str | Path):
+    """(`fem.solver.Problem`, `fem.material.Material`) of the scene a data-set file was generated from (its mesh,
+    clamped nodes and the material, density and damping in its metadata), one frame long."""
     from fem.material import mooney_rivlin
     from fem.solver import setup
 
@@ -61,6 +60,14 @@ def operators_from_file(path: str | Path, chunk: int = 128):
     extra = {"tet_formulation": meta["tet_formulation"]} if "tet_formulation" in meta else {}
     problem = setup(q0, cells, material=material, frame_dt=dt, n_frames=1, clamped=np.where(node_type != 0)[0],
                     cell_type=cell_type, damping=float(meta["damping"]), n_sub=1, **extra)
+    return problem, material
+
+
+def operators_from_file(path: str | Path, chunk: int = 128):
+    """`fem.implicit.RestLinearization` of the scene a data-set file was generated from (`problem_from_file`)."""
+    from fem import implicit
+
+    problem, material = problem_from_file(path)
     return implicit.rest_linearization(problem, material, chunk=chunk)
 
 

@@ -1,0 +1,170 @@
+"""Can an implicit step built on the rest state's tangent carry the beam's non-linear dynamics?
+
+``frame_solve`` and ``linear_prior`` (`tignn_jax.framesolve`) treat the stiff part of a frame implicitly with the
+FEM's rest Jacobian: the solve with A₀ = (1 + αh)M/h² + K₀. This rolls out two such steps on the held-out
+reference and fingertip cases of the FEM (grouped as `interactions.py` groups them), with no network:
+
+* ``linear``: the rest linearisation itself, force K₀u and stress increments S₀Δu (the step of `beam-linear`
+  and of an untrained ``linear_prior`` model, `framesolve.prior_step` with a zero correction);
+* ``exact force``: the same solve, but the FEM's internal force f_int(u) and nodal stress σ(u) at the current
+  displacement in place of K₀u and S₀u (a W-method: linearly implicit Euler whose Jacobian is the rest one).
+  This is the best a ``linear_prior`` correction could reach if it learned the force's and stress's
+  non-linear remainder exactly, one step at a time.
+
+    u_{k+1} = u_k + h (v_k + Δv),  Δv = A₀⁻¹ [f − α M v_k − f_int(u_k) − h K₀ v_k] / h,  σ_{k+1} = σ(u_{k+1}).
+
+For a nearly incompressible body (the beam: bulk modulus 2/D1 = 2e7, shear 3.1e5) the rest tangent's stiff
+volumetric modes point along the rest geometry; once an element rotates, its volumetric stiffness acts along
+rotated directions that the solve with K₀ no longer holds implicitly, and the explicit remainder is stiff. The
+non-linear backward-Euler FEM (`fem.implicit`, the exact tangent each step) is the comparison that works
+(`fem_implicit.md`). Errors relative to each case's largest true norm, as in `interactions.py`.
+
+    python benchmarks/rest_tangent.py [--splits test] [--tag NAME]
+
+Writes benchmarks/results/rest_tangent[_TAG].{json,md}.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from _machine import describe  # noqa: E402
+from interactions import VARS, groups, profiles_of  # noqa: E402
+
+RESULTS = Path(__file__).resolve().parent / "results"
+ROOT = Path(__file__).resolve().parents[1]
+KINDS = ("linear", "exact force")
+
+
+def make_step(kind: str, problem, material, lin, node_type, q0, dt: float):
+    """A jitted step (z [N,12], f [N,3]) → z_next of the given kind (see the module docstring), on the scene's
+    `fem.solver.Problem` and its `fem.implicit.RestLinearization` ``lin``."""
+    import jax
+    import jax.numpy as jnp
+
+    from fem import implicit
+    from tignn_jax import framesolve as FS
+
+    if kind not in KINDS:
+        raise ValueError(f"kind must be one of {KINDS}, got {kind!r}")
+    norm = FS.norm_entries(lin)
+    norm["dt"] = np.array([dt], np.float32)
+    norm = {k: jnp.asarray(v) for k, v in FS.with_inverse(norm, np.asarray(node_type)).items()}
+    nt, x0 = jnp.asarray(node_type), jnp.asarray(q0, jnp.float32)
+    if kind == "linear":
+        zero = lambda z: jnp.zeros_like(z)
+        return jax.jit(lambda z, f: z + FS.prior_step(norm, z, f, zero(z), nt, x0))
+    force, stress = implicit.force_and_stress(problem, material)
+    h, alpha, free, m = FS._constants(norm, nt, jnp.float32)
+
+    def step(z, f):
+        u, v = (z[:, :3] - x0) * free, z[:, 3:6] * free
+        rhs = (h * (f - alpha * m * v - force(u)) - h * h * FS.apply_k(norm, v)) * free / h ** 2
+        dv = (norm["fs_ainv"] @ rhs.reshape(-1)).reshape(-1, 3) * free
+        u_next = u + h * (v + dv)
+        return jnp.concatenate([x0 + u_next, v + dv, stress(u_next).astype(z.dtype)], axis=1)
+
+    return jax.jit(step)
+
+
+def rollouts(step, z0, forces) -> np.ndarray:
+    """[C, T+1, N, 12] states of ``step`` from z0 [C,N,12] under forces [C,T,N,3] (lax.scan, cases vmapped)."""
+    import jax
+    import jax.numpy as jnp
+
+    def one(z, fs):
+        return jax.lax.scan(lambda c, f: (step(c, f),) * 2, z, fs)[1]
+
+    z0 = jnp.asarray(z0, jnp.float32)
+    states = jax.jit(jax.vmap(one))(z0, jnp.asarray(forces, jnp.float32))
+    return np.concatenate([np.asarray(z0)[:, None], np.asarray(states)], axis=1)
+
+
+def errors(pred, true, q0) -> dict:
+    """Peak-relative errors of rollouts over their finite cases (the `interactions.errors` measure)."""
+    from tignn_jax import evaluate as EV
+
+    ok = np.all(np.isfinite(pred), axis=(2, 3))              # [C, T+1]
+    finite = ok.all(axis=1)
+    out = {"cases": int(len(pred)), "finite": int(finite.sum()),
+           "first_non_finite_step": [int(np.argmin(c)) for c in ok if not c.all()]}
+    if finite.any():
+        e = EV.relative_errors(pred[finite], np.asarray(true)[finite], q0, reference="peak")[:, 1:]
+        out.update({name: float(np.mean(e[..., EV.VARIABLES.index(name)])) for name in VARS})
+        out["u_max"] = float(np.max(e[..., EV.VARIABLES.index("u")]))
+    return out
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--scene-file", default="data/beam_ref_d60.npz",
+                    help="a generated file of the scene (its cells and material build the FEM's force and tangent)")
+    ap.add_argument("--reference", default="data/beam_ref_f2.npz", help="the reference cases (FEM)")
+    ap.add_argument("--interactions", default="data/beam_int_f2.npz", help="the fingertip cases (FEM)")
+    ap.add_argument("--profiles", default="data/beam_int_smooth_d60.npz",
+                    help="the file the fingertip cases were generated into (its metadata names the profiles)")
+    ap.add_argument("--splits", default="test", help="comma-separated split names, each reported apart")
+    ap.add_argument("--tag", default="")
+    args = ap.parse_args(argv)
+
+    from fem import implicit
+    from tignn_jax import data as D
+    from tignn_jax import framesolve as FS
+
+    for path in (args.scene_file, args.reference, args.interactions, args.profiles):
+        if not (ROOT / path).exists():
+            print(f"{path} not found (generate the beam data sets first): nothing to measure")
+            return 1
+    reference, interactions = D.load(ROOT / args.reference), D.load(ROOT / args.interactions)
+    problem, material = FS.problem_from_file(ROOT / args.scene_file)
+    t0 = time.perf_counter()
+    lin = implicit.rest_linearization(problem, material)
+    build_s = time.perf_counter() - t0
+    steps = {k: make_step(k, problem, material, lin, reference.node_type, reference.q0, float(reference.dt))
+             for k in KINDS}
+    profiles = profiles_of(ROOT / args.profiles)
+    splits = [s for s in args.splits.split(",") if s]
+    result = {"machine": describe(), "scene_file": args.scene_file, "linearisation_s": round(build_s, 1),
+              "kinds": {}}
+    for kind, step in steps.items():
+        rows = {}
+        for s in splits:
+            for g, data, r in groups(reference, interactions, profiles, s):
+                pred = rollouts(step, data.z[r, 0], data.f[r])
+                rows[f"{s}/{g}"] = errors(pred, data.z[r], data.q0)
+        result["kinds"][kind] = rows
+        print(kind, json.dumps({g: (round(x["u"], 4) if "u" in x else None, x["finite"]) for g, x in rows.items()}),
+              flush=True)
+
+    RESULTS.mkdir(parents=True, exist_ok=True)
+    stem = "rest_tangent" + (f"_{args.tag}" if args.tag else "")
+    (RESULTS / f"{stem}.json").write_text(json.dumps(result, indent=1))
+    m = result["machine"]
+    lines = ["# Implicit steps on the rest tangent: the beam's held-out cases", "",
+             f"Machine: {m['cpu']}, {m['cores']} cores, jax {m['jax']} ({m['backend']}); the rest linearisation "
+             f"built in {build_s:.0f} s.", "",
+             f"Data: `{args.reference}` and `{args.interactions}` (profiles from `{args.profiles}`); the scene from "
+             f"`{args.scene_file}`. No network. *linear*: force K₀u, stress S₀u (the rest linearisation); *exact "
+             "force*: the FEM's f_int(u) and σ(u), the same solve with the rest tangent (see "
+             "`benchmarks/rest_tangent.py`). Errors relative to each case's largest true norm, mean over the "
+             "finite cases and their snapshots; finite: rollouts with no NaN/Inf; the others' first non-finite step.", "",
+             "| step | split/group | cases | finite | first non-finite steps | u | v | σ | q | u max |",
+             "|---|---|---|---|---|---|---|---|---|---|"]
+    for kind, rows in result["kinds"].items():
+        for g, r in rows.items():
+            vals = " | ".join(f"{r[k]:.3g}" if k in r else "–" for k in ("u", "v", "sigma", "q", "u_max"))
+            bad = ", ".join(map(str, sorted(r["first_non_finite_step"]))) or "–"
+            lines.append(f"| {kind} | {g} | {r['cases']} | {r['finite']} | {bad} | {vals} |")
+    (RESULTS / f"{stem}.md").write_text("\n".join(lines) + "\n")
+    print(f"wrote {RESULTS / stem}.{{json,md}}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
