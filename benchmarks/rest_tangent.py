@@ -1,23 +1,32 @@
 """Can an implicit step built on the rest state's tangent carry the beam's non-linear dynamics?
 
 ``frame_solve`` and ``linear_prior`` (`tignn_jax.framesolve`) treat the stiff part of a frame implicitly with the
-FEM's rest Jacobian: the solve with A₀ = (1 + αh)M/h² + K₀. This rolls out two such steps on the held-out
-reference and fingertip cases of the FEM (grouped as `interactions.py` groups them), with no network:
+FEM's rest Jacobian: the solve with A₀ = (1 + αh)M/h² + K₀. This rolls out such steps on the held-out reference
+and fingertip cases of the FEM (grouped as `interactions.py` groups them), with no network:
 
 * ``linear``: the rest linearisation itself, force K₀u and stress increments S₀Δu (the step of `beam-linear`
   and of an untrained ``linear_prior`` model, `framesolve.prior_step` with a zero correction);
 * ``exact force``: the same solve, but the FEM's internal force f_int(u) and nodal stress σ(u) at the current
   displacement in place of K₀u and S₀u (a W-method: linearly implicit Euler whose Jacobian is the rest one).
   This is the best a ``linear_prior`` correction could reach if it learned the force's and stress's
-  non-linear remainder exactly, one step at a time.
+  non-linear remainder exactly, one step at a time::
 
-    u_{k+1} = u_k + h (v_k + Δv),  Δv = A₀⁻¹ [f − α M v_k − f_int(u_k) − h K₀ v_k] / h,  σ_{k+1} = σ(u_{k+1}).
+      Δv = A₀⁻¹ [f − α M v − f_int(u) − h K₀ v] / h,   u' = u + h (v + Δv),   σ' = σ(u');
+
+* ``exact force, rotated solve``: the same with the rest tangent turned with the body, R A₀⁻¹ Rᵀ and R K₀ Rᵀ,
+  R block-diagonal with each node's rotation (`nodal_rotations`: the polar factor of the least-squares
+  deformation gradient over the node's edges), the warped-stiffness idea applied to the solve;
+* ``backward Euler, rotated, k iterations``: k simplified-Newton iterations on the backward-Euler residual with
+  the fixed matrix (1 + αh)M + h² R K₀ Rᵀ;
+* ``backward Euler, 1 Newton step, k CG``: one Newton step of backward Euler from Δv = 0 with the exact tangent
+  at the predictor u + h v (a `jax.jvp` of f_int per iteration), solved by k conjugate-gradient iterations
+  preconditioned with R A₀⁻¹ Rᵀ / h².
 
 For a nearly incompressible body (the beam: bulk modulus 2/D1 = 2e7, shear 3.1e5) the rest tangent's stiff
 volumetric modes point along the rest geometry; once an element rotates, its volumetric stiffness acts along
-rotated directions that the solve with K₀ no longer holds implicitly, and the explicit remainder is stiff. The
-non-linear backward-Euler FEM (`fem.implicit`, the exact tangent each step) is the comparison that works
-(`fem_implicit.md`). Errors relative to each case's largest true norm, as in `interactions.py`.
+rotated directions that the solve with K₀ no longer holds implicitly, and the explicit remainder is stiff.
+Errors relative to each case's largest true norm, as in `interactions.py`; the cost of one step of each kind
+from the same state, timed in turn.
 
     python benchmarks/rest_tangent.py [--splits test] [--tag NAME]
 
@@ -34,15 +43,34 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _machine import describe  # noqa: E402
+from _machine import describe, interleaved_ms  # noqa: E402
 from interactions import VARS, groups, profiles_of  # noqa: E402
 
 RESULTS = Path(__file__).resolve().parent / "results"
 ROOT = Path(__file__).resolve().parents[1]
-KINDS = ("linear", "exact force")
+ITERATIONS = {"backward Euler, rotated, 1 iteration": 1, "backward Euler, rotated, 3 iterations": 3}
+NEWTON_CG = {"backward Euler, 1 Newton step, 5 CG": 5, "backward Euler, 1 Newton step, 10 CG": 10}
+KINDS = ("linear", "exact force", "exact force, rotated solve", *ITERATIONS, *NEWTON_CG)
 
 
-def make_step(kind: str, problem, material, lin, node_type, q0, dt: float):
+def nodal_rotations(x, x0, senders, receivers):
+    """[N,3,3] rotation of each node's neighbourhood: the polar factor R of the least-squares deformation
+    gradient F_i = (Σ_j dx dXᵀ)(Σ_j dX dXᵀ)⁻¹ over the node's edges (dx = x_j − x_i, dX = X_j − X_i)."""
+    import jax
+    import jax.numpy as jnp
+
+    n = x.shape[0]
+    dx, dX = x[receivers] - x[senders], x0[receivers] - x0[senders]
+    a = jax.ops.segment_sum(dx[:, :, None] * dX[:, None, :], senders, n)
+    b = jax.ops.segment_sum(dX[:, :, None] * dX[:, None, :], senders, n)
+    f = a @ jnp.linalg.inv(b)
+    u, _, vt = jnp.linalg.svd(f)
+    d = jnp.sign(jnp.linalg.det(u @ vt))                      # a proper rotation: flip the last axis if needed
+    u = u.at[:, :, 2].multiply(d[:, None])
+    return u @ vt
+
+
+def make_step(kind: str, problem, material, lin, node_type, q0, dt: float, edges=None):
     """A jitted step (z [N,12], f [N,3]) → z_next of the given kind (see the module docstring), on the scene's
     `fem.solver.Problem` and its `fem.implicit.RestLinearization` ``lin``."""
     import jax
@@ -62,11 +90,46 @@ def make_step(kind: str, problem, material, lin, node_type, q0, dt: float):
         return jax.jit(lambda z, f: z + FS.prior_step(norm, z, f, zero(z), nt, x0))
     force, stress = implicit.force_and_stress(problem, material)
     h, alpha, free, m = FS._constants(norm, nt, jnp.float32)
+    rotated = kind != "exact force"
+    if rotated and edges is None:
+        raise ValueError("the rotated solve needs the mesh edges [2,E]")
+    s_, r_ = (jnp.asarray(e, jnp.int32) for e in (edges if rotated else (np.zeros(1), np.zeros(1))))
+    solve = lambda w, turn, back: turn((norm["fs_ainv"] @ (back(w) * free).reshape(-1)).reshape(-1, 3)) * free
 
     def step(z, f):
         u, v = (z[:, :3] - x0) * free, z[:, 3:6] * free
-        rhs = (h * (f - alpha * m * v - force(u)) - h * h * FS.apply_k(norm, v)) * free / h ** 2
-        dv = (norm["fs_ainv"] @ rhs.reshape(-1)).reshape(-1, 3) * free
+        if rotated:   # R A₀⁻¹ Rᵀ and R K₀ Rᵀ with per-node rotations: the rest tangent turned with the body
+            rot = nodal_rotations(z[:, :3], x0, s_, r_)
+            back, turn = (lambda w: jnp.einsum("nji,nj->ni", rot, w)), (lambda w: jnp.einsum("nij,nj->ni", rot, w))
+        else:
+            back = turn = lambda w: w
+        if kind in NEWTON_CG:    # one Newton step on backward Euler from dv = 0, the exact tangent at u + h v,
+            # by conjugate gradients preconditioned with the turned rest operator R A₀⁻¹ Rᵀ (a fixed iteration count)
+            up = u + h * v
+            r = (h * (f - force(up) - alpha * m * v)) * free
+            apply_a = lambda w: (m * (1 + alpha * h) * w + h * h * jax.jvp(force, (up,), (w * free,))[1]) * free
+            prec = lambda w: solve(w / h ** 2, turn, back)
+            dv = jnp.zeros_like(v)
+            res = r
+            pz = prec(res)
+            d = pz
+            rz = jnp.vdot(res, pz)
+            for _ in range(NEWTON_CG[kind]):   # a converged (or zero) residual stops the updates: no 0/0
+                ad = apply_a(d)
+                dad = jnp.vdot(d, ad)
+                a = jnp.where(dad > 0, rz / jnp.where(dad > 0, dad, 1.0), 0.0)
+                dv, res = dv + a * d, res - a * ad
+                pz = prec(res)
+                rz_new = jnp.vdot(res, pz)
+                d, rz = pz + jnp.where(rz > 0, rz_new / jnp.where(rz > 0, rz, 1.0), 0.0) * d, rz_new
+        elif kind in ITERATIONS:   # simplified Newton on backward Euler, (M(1 + αh) + h² R K₀ Rᵀ) the fixed matrix
+            dv = jnp.zeros_like(v)
+            for _ in range(ITERATIONS[kind]):
+                r = h * (f - force(u + h * (v + dv)) - alpha * m * (v + dv)) - m * dv
+                dv = dv + solve(r * free / h ** 2, turn, back)
+        else:            # one W-method step: f_int(u + h v) linearised about u with the (turned) rest tangent
+            rhs = (h * (f - alpha * m * v - force(u)) - h * h * turn(FS.apply_k(norm, back(v)))) * free / h ** 2
+            dv = solve(rhs, turn, back)
         u_next = u + h * (v + dv)
         return jnp.concatenate([x0 + u_next, v + dv, stress(u_next).astype(z.dtype)], axis=1)
 
@@ -110,6 +173,7 @@ def main(argv=None) -> int:
     ap.add_argument("--profiles", default="data/beam_int_smooth_d60.npz",
                     help="the file the fingertip cases were generated into (its metadata names the profiles)")
     ap.add_argument("--splits", default="test", help="comma-separated split names, each reported apart")
+    ap.add_argument("--repeats", type=int, default=50, help="timed steps per kind (median reported)")
     ap.add_argument("--tag", default="")
     args = ap.parse_args(argv)
 
@@ -126,12 +190,16 @@ def main(argv=None) -> int:
     t0 = time.perf_counter()
     lin = implicit.rest_linearization(problem, material)
     build_s = time.perf_counter() - t0
-    steps = {k: make_step(k, problem, material, lin, reference.node_type, reference.q0, float(reference.dt))
-             for k in KINDS}
+    steps = {k: make_step(k, problem, material, lin, reference.node_type, reference.q0, float(reference.dt),
+                          reference.edges) for k in KINDS}
     profiles = profiles_of(ROOT / args.profiles)
     splits = [s for s in args.splits.split(",") if s]
+    # cost: one step from a mid-case state of the first test fingertip case, all kinds in turn (after compiling)
+    case = D.split_rows(interactions, "test")[0]
+    z_mid, f_mid = (np.asarray(a, np.float32) for a in (interactions.z[case, 10], interactions.f[case, 10]))
+    ms = interleaved_ms({k: (lambda st=st: st(z_mid, f_mid)) for k, st in steps.items()}, args.repeats)
     result = {"machine": describe(), "scene_file": args.scene_file, "linearisation_s": round(build_s, 1),
-              "kinds": {}}
+              "ms_per_step": {k: float(np.median(v)) for k, v in ms.items()}, "repeats": args.repeats, "kinds": {}}
     for kind, step in steps.items():
         rows = {}
         for s in splits:
@@ -150,17 +218,18 @@ def main(argv=None) -> int:
              f"Machine: {m['cpu']}, {m['cores']} cores, jax {m['jax']} ({m['backend']}); the rest linearisation "
              f"built in {build_s:.0f} s.", "",
              f"Data: `{args.reference}` and `{args.interactions}` (profiles from `{args.profiles}`); the scene from "
-             f"`{args.scene_file}`. No network. *linear*: force K₀u, stress S₀u (the rest linearisation); *exact "
-             "force*: the FEM's f_int(u) and σ(u), the same solve with the rest tangent (see "
-             "`benchmarks/rest_tangent.py`). Errors relative to each case's largest true norm, mean over the "
+             f"`{args.scene_file}`. No network; every step is described in `benchmarks/rest_tangent.py`. ms per "
+             f"step: median of {args.repeats} steps from one mid-case state after compiling, the steps timed in turn "
+             "(single process, XLA's default threading). Errors relative to each case's largest true norm, mean over the "
              "finite cases and their snapshots; finite: rollouts with no NaN/Inf; the others' first non-finite step.", "",
-             "| step | split/group | cases | finite | first non-finite steps | u | v | σ | q | u max |",
-             "|---|---|---|---|---|---|---|---|---|---|"]
+             "| step | ms per step | split/group | cases | finite | first non-finite steps | u | v | σ | q | u max |",
+             "|---|---|---|---|---|---|---|---|---|---|---|"]
     for kind, rows in result["kinds"].items():
+        t = result["ms_per_step"][kind]
         for g, r in rows.items():
             vals = " | ".join(f"{r[k]:.3g}" if k in r else "–" for k in ("u", "v", "sigma", "q", "u_max"))
             bad = ", ".join(map(str, sorted(r["first_non_finite_step"]))) or "–"
-            lines.append(f"| {kind} | {g} | {r['cases']} | {r['finite']} | {bad} | {vals} |")
+            lines.append(f"| {kind} | {t:.2f} | {g} | {r['cases']} | {r['finite']} | {bad} | {vals} |")
     (RESULTS / f"{stem}.md").write_text("\n".join(lines) + "\n")
     print(f"wrote {RESULTS / stem}.{{json,md}}")
     return 0

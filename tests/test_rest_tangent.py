@@ -8,6 +8,7 @@ import pytest
 
 import fem
 from fem import implicit
+from fem.meshes import mesh_edges
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
 import rest_tangent as rt  # noqa: E402
@@ -21,12 +22,16 @@ def _bar(clamped: bool):
     material = fem.mooney_rivlin(c10=C10, c01=C01, d1=D1, density=7.135e-3)
     problem = fem.setup(pts, cells, material=material, frame_dt=H, n_frames=1, clamped=np.where(node_type)[0],
                         damping=60.0, n_sub=1)
-    return pts, node_type, problem, material, implicit.rest_linearization(problem, material)
+    return pts, node_type, problem, material, implicit.rest_linearization(problem, material), mesh_edges(cells)
 
 
 def _steps(clamped):
-    pts, node_type, problem, material, lin = _bar(clamped)
-    return pts, {k: rt.make_step(k, problem, material, lin, node_type, pts, H) for k in rt.KINDS}
+    pts, node_type, problem, material, lin, edges = _bar(clamped)
+    return pts, {k: rt.make_step(k, problem, material, lin, node_type, pts, H, edges) for k in rt.KINDS}
+
+
+def _rotation(th):
+    return np.array([[np.cos(th), -np.sin(th), 0.0], [np.sin(th), np.cos(th), 0.0], [0.0, 0.0, 1.0]])
 
 
 def _state(q):
@@ -47,25 +52,25 @@ def test_the_two_steps_agree_to_second_order_in_the_displacement():
     share = []
     for eps in (0.4, 0.2):
         z = _state(pts + eps * bend)
-        lin, exact = (np.asarray(steps[k](z, f), np.float64) for k in rt.KINDS)
+        lin, exact = (np.asarray(steps[k](z, f), np.float64) for k in rt.KINDS[:2])
         share.append(np.linalg.norm(exact[:, 3:6] - lin[:, 3:6]) / np.linalg.norm(lin[:, 3:6]))
     assert share[0] < 0.1 and share[0] / share[1] > 2.0, share
 
 
 def test_a_rigid_rotation_stays_at_rest_only_with_the_exact_force():
-    # An unclamped bar turned rigidly by 0.1 rad: no internal force and no stress, so the exact-force step
-    # leaves it at rest, while the rest linearisation sees a strain div u = 2(cos θ − 1) and responds with its
-    # pressure, K₀u ≠ 0, and a velocity (the stress pressure itself: tests/test_prior_jump.py).
+    # An unclamped bar turned rigidly by 0.1 rad: no internal force and no stress, so every step with the exact
+    # force leaves it at rest, while the rest linearisation sees a strain div u = 2(cos θ − 1) and responds with
+    # its pressure, K₀u ≠ 0, and a velocity (the stress pressure itself: tests/test_prior_jump.py).
     pts, steps = _steps(clamped=False)
-    th = 0.1
-    rot = np.array([[np.cos(th), -np.sin(th), 0.0], [np.sin(th), np.cos(th), 0.0], [0.0, 0.0, 1.0]])
     c = pts.mean(0)
-    z = _state((pts - c) @ rot.T + c)
+    z = _state((pts - c) @ _rotation(0.1).T + c)
     f = np.zeros_like(pts, dtype=np.float32)
-    lin, exact = (np.asarray(steps[k](z, f), np.float64) for k in rt.KINDS)
+    out = {k: np.asarray(st(z, f), np.float64) for k, st in steps.items()}
+    lin = out["linear"]
     scale = np.abs(pts).max()
-    assert np.abs(exact[:, 3:6]).max() * H < 1e-4 * scale      # stays where it is
-    assert np.abs(exact[:, 6:]).max() < 1e-3 * C10              # and unstressed
+    for kind in rt.KINDS[1:]:
+        assert np.abs(out[kind][:, 3:6]).max() * H < 1e-4 * scale, kind      # stays where it is
+        assert np.abs(out[kind][:, 6:]).max() < 1e-3 * C10, kind              # and unstressed
     assert np.abs(lin[:, 3:6]).max() * H > 1e-3 * scale          # the linear step moves it (2.4e-2 per step)
 
 
@@ -79,3 +84,35 @@ def test_errors_count_non_finite_rollouts_and_their_first_bad_step():
     assert out["u"] == 0.0 and out["u_max"] == 0.0
     with pytest.raises(ValueError, match="kind"):
         rt.make_step("nonlinear", None, None, None, None, None, H)
+
+
+def test_nodal_rotations_recover_a_rigid_rotation():
+    import jax.numpy as jnp
+
+    pts, cells = fem.box_hex_mesh((8.0, 2.0, 2.0), (4, 1, 1))
+    edges = np.asarray(mesh_edges(cells))
+    rot = _rotation(0.7) @ np.array([[1.0, 0, 0], [0, np.cos(0.3), -np.sin(0.3)], [0, np.sin(0.3), np.cos(0.3)]])
+    x = pts @ rot.T + np.array([1.0, -2.0, 0.5])
+    r = np.asarray(rt.nodal_rotations(jnp.asarray(x, jnp.float32), jnp.asarray(pts, jnp.float32),
+                                      jnp.asarray(edges[0]), jnp.asarray(edges[1])))
+    np.testing.assert_allclose(r, np.broadcast_to(rot, r.shape), atol=1e-5)
+    stretched = pts * np.array([1.1, 1.0, 1.0])          # a pure stretch has no rotation
+    r = np.asarray(rt.nodal_rotations(jnp.asarray(stretched, jnp.float32), jnp.asarray(pts, jnp.float32),
+                                      jnp.asarray(edges[0]), jnp.asarray(edges[1])))
+    np.testing.assert_allclose(r, np.broadcast_to(np.eye(3), r.shape), atol=1e-5)
+
+
+def test_newton_cg_step_keeps_rest_exactly_and_follows_the_linear_step_at_small_loads():
+    # From rest with no force the residual is zero: the conjugate gradients must not divide 0 by 0. Under a
+    # small tip load the body stays in the linear range, so one Newton step with the exact tangent lands where the
+    # rest-linearised backward-Euler step does (to 1 % of its velocity change).
+    pts, steps = _steps(clamped=True)
+    z, f = _state(pts), np.zeros_like(pts, dtype=np.float32)
+    for kind in rt.NEWTON_CG:
+        np.testing.assert_array_equal(np.asarray(steps[kind](z, f)), z)
+    f[np.argmax(pts[:, 0]), 2] = -10.0
+    lin = np.asarray(steps["linear"](z, f), np.float64)
+    for kind in rt.NEWTON_CG:
+        out = np.asarray(steps[kind](z, f), np.float64)
+        assert np.all(np.isfinite(out))
+        assert np.linalg.norm(out[:, 3:6] - lin[:, 3:6]) < 0.01 * np.linalg.norm(lin[:, 3:6]), kind
