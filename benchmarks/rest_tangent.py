@@ -19,7 +19,7 @@ and fingertip cases of the FEM (grouped as `interactions.py` groups them), with 
 * ``backward Euler, rotated, k iterations``: k simplified-Newton iterations on the backward-Euler residual with
   the fixed matrix (1 + αh)M + h² R K₀ Rᵀ;
 * ``backward Euler, 1 Newton step, k CG``: one Newton step of backward Euler from Δv = 0 with the exact tangent
-  at the predictor u + h v (a `jax.jvp` of f_int per iteration), solved by k conjugate-gradient iterations
+  at the predictor u + h v (f_int linearised there once, `jax.linearize`), solved by k conjugate-gradient iterations
   preconditioned with R A₀⁻¹ Rᵀ / h².
 
 For a nearly incompressible body (the beam: bulk modulus 2/D1 = 2e7, shear 3.1e5) the rest tangent's stiff
@@ -105,9 +105,9 @@ def make_step(kind: str, problem, material, lin, node_type, q0, dt: float, edges
             back = turn = lambda w: w
         if kind in NEWTON_CG:    # one Newton step on backward Euler from dv = 0, the exact tangent at u + h v,
             # by conjugate gradients preconditioned with the turned rest operator R A₀⁻¹ Rᵀ (a fixed iteration count)
-            up = u + h * v
-            r = (h * (f - force(up) - alpha * m * v)) * free
-            apply_a = lambda w: (m * (1 + alpha * h) * w + h * h * jax.jvp(force, (up,), (w * free,))[1]) * free
+            f_up, tangent = jax.linearize(force, u + h * v)   # the force and its tangent map, linearised once
+            r = (h * (f - f_up - alpha * m * v)) * free
+            apply_a = lambda w: (m * (1 + alpha * h) * w + h * h * tangent(w * free)) * free
             prec = lambda w: solve(w / h ** 2, turn, back)
             dv = jnp.zeros_like(v)
             res = r
