@@ -55,21 +55,12 @@ def scene_functions(path: Path, ops_cache: Path):
     import jax.numpy as jnp
 
     from fem import implicit
-    from fem import solver as sv
-    from fem.material import mooney_rivlin
     from tignn_jax import framesolve as FS
 
     d = np.load(path, allow_pickle=False)
-    meta = json.loads(str(d["metadata"]))
-    mat = meta["material"]
-    material = mooney_rivlin(mat["c10"], mat["c01"], mat["d1"], mat["density"], mat.get("g", ()), mat.get("tau", ()))
+    mat = json.loads(str(d["metadata"]))["material"]
     nt, dt = d["node_type"], float(d["dt"])
-    problem = sv.setup(d["q0"], d["cells"], material=material, frame_dt=dt, n_frames=1, clamped=np.where(nt != 0)[0],
-                       cell_type=str(d["cell_type"]), damping=float(meta["damping"]), n_sub=1,
-                       **({"tet_formulation": meta["tet_formulation"]} if "tet_formulation" in meta else {}))
-    arr, cfg = problem.arrays, problem.config
-    force = implicit._force_fn(arr, material, cfg, sv._hourglass_for(arr, material, cfg))
-    stress = lambda u: sv._nodal_stress(arr, sv._element_stress(arr, material, u, (), cfg))
+    force, stress = implicit.force_and_stress(*FS.problem_from_file(path))
     norm = {**FS.norm_entries(FS.operators_cached(path, ops_cache)), "dt": np.array([dt], np.float32)}
     norm = {k: jnp.asarray(v) for k, v in FS.with_inverse(norm, nt).items()}
     return d, norm, force, jax.jit(stress), mat

@@ -60,10 +60,17 @@ def errors(params, data, rows) -> dict:
 
     pred = EV.rollout_cases(params, data, rows)
     finite = np.all(np.isfinite(pred), axis=(1, 2, 3))
-    e = EV.relative_errors(pred, data.z[rows], data.q0, reference="peak")[:, 1:]
+    return {**peak_errors(pred, data.z[rows], data.q0), "cases": int(len(rows)), "finite": int(finite.sum())}
+
+
+def peak_errors(pred, true, q0) -> dict:
+    """The mean over cases and snapshots 1..T of each variable's error relative to the case's peak, and the largest
+    u error, of predicted states pred [C,T+1,N,12] against true ones."""
+    from tignn_jax import evaluate as EV
+
+    e = EV.relative_errors(pred, true, q0, reference="peak")[:, 1:]
     out = {name: float(np.mean(e[..., EV.VARIABLES.index(name)])) for name in VARS}
     out["u_max"] = float(np.max(e[..., EV.VARIABLES.index("u")]))
-    out.update(cases=int(len(rows)), finite=int(finite.sum()))
     return out
 
 

@@ -14,7 +14,7 @@ and fingertip cases of the FEM (grouped as `interactions.py` groups them), with 
       Δv = A₀⁻¹ [f − α M v − f_int(u) − h K₀ v] / h,   u' = u + h (v + Δv),   σ' = σ(u');
 
 * ``exact force, rotated solve``: the same with the rest tangent turned with the body, R A₀⁻¹ Rᵀ and R K₀ Rᵀ,
-  R block-diagonal with each node's rotation (`nodal_rotations`: the polar factor of the least-squares
+  R block-diagonal with each node's rotation (`rotations`: the polar factor of the least-squares
   deformation gradient over the node's edges), the warped-stiffness idea applied to the solve;
 * ``backward Euler, rotated, k iterations``: k simplified-Newton iterations on the backward-Euler residual with
   the fixed matrix (1 + αh)M + h² R K₀ Rᵀ;
@@ -44,7 +44,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _machine import describe, interleaved_ms  # noqa: E402
-from interactions import VARS, groups, profiles_of  # noqa: E402
+from interactions import groups, peak_errors, profiles_of  # noqa: E402
 
 RESULTS = Path(__file__).resolve().parent / "results"
 ROOT = Path(__file__).resolve().parents[1]
@@ -53,53 +53,67 @@ NEWTON_CG = {"backward Euler, 1 Newton step, 5 CG": 5, "backward Euler, 1 Newton
 KINDS = ("linear", "exact force", "exact force, rotated solve", *ITERATIONS, *NEWTON_CG)
 
 
-def nodal_rotations(x, x0, senders, receivers):
-    """[N,3,3] rotation of each node's neighbourhood: the polar factor R of the least-squares deformation
-    gradient F_i = (Σ_j dx dXᵀ)(Σ_j dX dXᵀ)⁻¹ over the node's edges (dx = x_j − x_i, dX = X_j − X_i)."""
+def rotations(x0, senders, receivers):
+    """x [N,3] → [N,3,3], the rotation of each node's neighbourhood: the polar factor R of the least-squares
+    deformation gradient F_i = (Σ_j dx dXᵀ)(Σ_j dX dXᵀ)⁻¹ over the node's edges (dx = x_j − x_i, dX = X_j − X_i).
+    The rest factor (Σ_j dX dXᵀ)⁻¹ is computed here, once per mesh."""
     import jax
     import jax.numpy as jnp
 
-    n = x.shape[0]
-    dx, dX = x[receivers] - x[senders], x0[receivers] - x0[senders]
-    a = jax.ops.segment_sum(dx[:, :, None] * dX[:, None, :], senders, n)
-    b = jax.ops.segment_sum(dX[:, :, None] * dX[:, None, :], senders, n)
-    f = a @ jnp.linalg.inv(b)
-    u, _, vt = jnp.linalg.svd(f)
-    d = jnp.sign(jnp.linalg.det(u @ vt))                      # a proper rotation: flip the last axis if needed
-    u = u.at[:, :, 2].multiply(d[:, None])
-    return u @ vt
+    n = x0.shape[0]
+    dX = x0[receivers] - x0[senders]
+    rest_inv = jnp.linalg.inv(jax.ops.segment_sum(dX[:, :, None] * dX[:, None, :], senders, n))
+
+    def rotation(x):
+        dx = x[receivers] - x[senders]
+        u, _, vt = jnp.linalg.svd(jax.ops.segment_sum(dx[:, :, None] * dX[:, None, :], senders, n) @ rest_inv)
+        d = jnp.sign(jnp.linalg.det(u @ vt))                  # a proper rotation: flip the last axis if needed
+        u = u.at[:, :, 2].multiply(d[:, None])
+        return u @ vt
+
+    return rotation
 
 
-def make_step(kind: str, problem, material, lin, node_type, q0, dt: float, edges=None):
-    """A jitted step (z [N,12], f [N,3]) → z_next of the given kind (see the module docstring), on the scene's
-    `fem.solver.Problem` and its `fem.implicit.RestLinearization` ``lin``."""
-    import jax
+def scene_operators(problem, material, lin, node_type, q0, dt: float) -> dict:
+    """What every step kind shares, built once per scene: the rest linearisation ``lin``
+    (`fem.implicit.RestLinearization`) as ``framesolve`` entries with the dense A₀⁻¹ ("norm"), the FEM's internal
+    force and nodal stress ("force", "stress"), the node types and the rest positions."""
     import jax.numpy as jnp
 
     from fem import implicit
     from tignn_jax import framesolve as FS
 
+    norm = {**FS.norm_entries(lin), "dt": np.array([dt], np.float32)}
+    force, stress = implicit.force_and_stress(problem, material)
+    return {"norm": {k: jnp.asarray(v) for k, v in FS.with_inverse(norm, np.asarray(node_type)).items()},
+            "force": force, "stress": stress, "node_type": jnp.asarray(node_type), "x0": jnp.asarray(q0, jnp.float32)}
+
+
+def make_step(kind: str, ops: dict, edges=None):
+    """A jitted step (z [N,12], f [N,3]) → z_next of the given kind (see the module docstring) on a scene's
+    `scene_operators`; the rotated kinds need the mesh edges [2,E]."""
+    import jax
+    import jax.numpy as jnp
+
+    from tignn_jax import framesolve as FS
+
     if kind not in KINDS:
         raise ValueError(f"kind must be one of {KINDS}, got {kind!r}")
-    norm = FS.norm_entries(lin)
-    norm["dt"] = np.array([dt], np.float32)
-    norm = {k: jnp.asarray(v) for k, v in FS.with_inverse(norm, np.asarray(node_type)).items()}
-    nt, x0 = jnp.asarray(node_type), jnp.asarray(q0, jnp.float32)
+    norm, nt, x0, force, stress = (ops[k] for k in ("norm", "node_type", "x0", "force", "stress"))
     if kind == "linear":
         zero = lambda z: jnp.zeros_like(z)
         return jax.jit(lambda z, f: z + FS.prior_step(norm, z, f, zero(z), nt, x0))
-    force, stress = implicit.force_and_stress(problem, material)
     h, alpha, free, m = FS._constants(norm, nt, jnp.float32)
     rotated = kind != "exact force"
     if rotated and edges is None:
         raise ValueError("the rotated solve needs the mesh edges [2,E]")
-    s_, r_ = (jnp.asarray(e, jnp.int32) for e in (edges if rotated else (np.zeros(1), np.zeros(1))))
+    rotation = rotations(x0, *(jnp.asarray(e, jnp.int32) for e in edges)) if rotated else None
     solve = lambda w, turn, back: turn((norm["fs_ainv"] @ (back(w) * free).reshape(-1)).reshape(-1, 3)) * free
 
     def step(z, f):
         u, v = (z[:, :3] - x0) * free, z[:, 3:6] * free
         if rotated:   # R A₀⁻¹ Rᵀ and R K₀ Rᵀ with per-node rotations: the rest tangent turned with the body
-            rot = nodal_rotations(z[:, :3], x0, s_, r_)
+            rot = rotation(z[:, :3])
             back, turn = (lambda w: jnp.einsum("nji,nj->ni", rot, w)), (lambda w: jnp.einsum("nij,nj->ni", rot, w))
         else:
             back = turn = lambda w: w
@@ -150,17 +164,14 @@ def rollouts(step, z0, forces) -> np.ndarray:
 
 
 def errors(pred, true, q0) -> dict:
-    """Peak-relative errors of rollouts over their finite cases (the `interactions.errors` measure)."""
-    from tignn_jax import evaluate as EV
-
+    """Peak-relative errors of rollouts over their finite cases (`interactions.peak_errors`), with the count of
+    finite rollouts and the first non-finite step of each other one."""
     ok = np.all(np.isfinite(pred), axis=(2, 3))              # [C, T+1]
     finite = ok.all(axis=1)
     out = {"cases": int(len(pred)), "finite": int(finite.sum()),
            "first_non_finite_step": [int(np.argmin(c)) for c in ok if not c.all()]}
     if finite.any():
-        e = EV.relative_errors(pred[finite], np.asarray(true)[finite], q0, reference="peak")[:, 1:]
-        out.update({name: float(np.mean(e[..., EV.VARIABLES.index(name)])) for name in VARS})
-        out["u_max"] = float(np.max(e[..., EV.VARIABLES.index("u")]))
+        out.update(peak_errors(pred[finite], np.asarray(true)[finite], q0))
     return out
 
 
@@ -190,8 +201,8 @@ def main(argv=None) -> int:
     t0 = time.perf_counter()
     lin = implicit.rest_linearization(problem, material)
     build_s = time.perf_counter() - t0
-    steps = {k: make_step(k, problem, material, lin, reference.node_type, reference.q0, float(reference.dt),
-                          reference.edges) for k in KINDS}
+    ops = scene_operators(problem, material, lin, reference.node_type, reference.q0, float(reference.dt))
+    steps = {k: make_step(k, ops, reference.edges) for k in KINDS}
     profiles = profiles_of(ROOT / args.profiles)
     splits = [s for s in args.splits.split(",") if s]
     # cost: one step from a mid-case state of the first test fingertip case, all kinds in turn (after compiling)

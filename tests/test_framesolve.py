@@ -251,9 +251,7 @@ def test_exact_force_correction_is_the_ceiling_the_bunny_benchmark_measures(bar_
 
     scene = _scene()
     problem = _problem(scene)
-    arr, cfg = problem.arrays, problem.config
-    force = jax.jit(implicit._force_fn(arr, scene.material, cfg, fem.solver._hourglass_for(arr, scene.material, cfg)))
-    stress = jax.jit(lambda u: fem.solver._nodal_stress(arr, fem.solver._element_stress(arr, scene.material, u, (), cfg)))
+    force, stress = (jax.jit(fn) for fn in implicit.force_and_stress(problem, scene.material))
     mean = {}
     for name, path in (("small", bar_data), ("large", bar_large)):
         data, _, norm = _ops(path)

@@ -27,7 +27,8 @@ def _bar(clamped: bool):
 
 def _steps(clamped):
     pts, node_type, problem, material, lin, edges = _bar(clamped)
-    return pts, {k: rt.make_step(k, problem, material, lin, node_type, pts, H, edges) for k in rt.KINDS}
+    ops = rt.scene_operators(problem, material, lin, node_type, pts, H)
+    return pts, {k: rt.make_step(k, ops, edges) for k in rt.KINDS}
 
 
 def _rotation(th):
@@ -83,22 +84,21 @@ def test_errors_count_non_finite_rollouts_and_their_first_bad_step():
     assert out["cases"] == 3 and out["finite"] == 2 and out["first_non_finite_step"] == [2]
     assert out["u"] == 0.0 and out["u_max"] == 0.0
     with pytest.raises(ValueError, match="kind"):
-        rt.make_step("nonlinear", None, None, None, None, None, H)
+        rt.make_step("nonlinear", None)
 
 
-def test_nodal_rotations_recover_a_rigid_rotation():
+def test_rotations_recover_a_rigid_rotation():
     import jax.numpy as jnp
 
     pts, cells = fem.box_hex_mesh((8.0, 2.0, 2.0), (4, 1, 1))
     edges = np.asarray(mesh_edges(cells))
     rot = _rotation(0.7) @ np.array([[1.0, 0, 0], [0, np.cos(0.3), -np.sin(0.3)], [0, np.sin(0.3), np.cos(0.3)]])
     x = pts @ rot.T + np.array([1.0, -2.0, 0.5])
-    r = np.asarray(rt.nodal_rotations(jnp.asarray(x, jnp.float32), jnp.asarray(pts, jnp.float32),
-                                      jnp.asarray(edges[0]), jnp.asarray(edges[1])))
+    rotation = rt.rotations(jnp.asarray(pts, jnp.float32), jnp.asarray(edges[0]), jnp.asarray(edges[1]))
+    r = np.asarray(rotation(jnp.asarray(x, jnp.float32)))
     np.testing.assert_allclose(r, np.broadcast_to(rot, r.shape), atol=1e-5)
     stretched = pts * np.array([1.1, 1.0, 1.0])          # a pure stretch has no rotation
-    r = np.asarray(rt.nodal_rotations(jnp.asarray(stretched, jnp.float32), jnp.asarray(pts, jnp.float32),
-                                      jnp.asarray(edges[0]), jnp.asarray(edges[1])))
+    r = np.asarray(rotation(jnp.asarray(stretched, jnp.float32)))
     np.testing.assert_allclose(r, np.broadcast_to(np.eye(3), r.shape), atol=1e-5)
 
 
