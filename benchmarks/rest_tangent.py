@@ -20,7 +20,9 @@ and fingertip cases of the FEM (grouped as `interactions.py` groups them), with 
   the fixed matrix (1 + αh)M + h² R K₀ Rᵀ;
 * ``backward Euler, 1 Newton step, k CG``: one Newton step of backward Euler from Δv = 0 with the exact tangent
   at the predictor u + h v (f_int linearised there once, `jax.linearize`), solved by k conjugate-gradient iterations
-  preconditioned with R A₀⁻¹ Rᵀ / h².
+  preconditioned with R A₀⁻¹ Rᵀ / h² (the package's `tignn_jax.newton`, a fallback step); ``from v' = 0``: the
+  iteration starts from v' = 0, the predictor u (the package's default: after a sudden load the predictor
+  u + h v overshoots and one Newton step from it diverges, `tests/test_newton.py`).
 
 For a nearly incompressible body (the beam: bulk modulus 2/D1 = 2e7, shear 3.1e5) the rest tangent's stiff
 volumetric modes point along the rest geometry; once an element rotates, its volumetric stiffness acts along
@@ -49,29 +51,18 @@ from interactions import groups, peak_errors, profiles_of  # noqa: E402
 RESULTS = Path(__file__).resolve().parent / "results"
 ROOT = Path(__file__).resolve().parents[1]
 ITERATIONS = {"backward Euler, rotated, 1 iteration": 1, "backward Euler, rotated, 3 iterations": 3}
-NEWTON_CG = {"backward Euler, 1 Newton step, 5 CG": 5, "backward Euler, 1 Newton step, 10 CG": 10}
+NEWTON_CG = {   # kind: (Newton iterations, CG iterations each, predictor: tignn_jax.newton.newton_cg)
+    "backward Euler, 1 Newton step, 5 CG": (1, 5, "velocity"), "backward Euler, 1 Newton step, 10 CG": (1, 10, "velocity"),
+    "backward Euler, 1 Newton step from v' = 0, 5 CG": (1, 5, "zero"),
+    "backward Euler, 2 Newton steps from v' = 0, 3 CG each": (2, 3, "zero")}
 KINDS = ("linear", "exact force", "exact force, rotated solve", *ITERATIONS, *NEWTON_CG)
 
 
 def rotations(x0, senders, receivers):
-    """x [N,3] → [N,3,3], the rotation of each node's neighbourhood: the polar factor R of the least-squares
-    deformation gradient F_i = (Σ_j dx dXᵀ)(Σ_j dX dXᵀ)⁻¹ over the node's edges (dx = x_j − x_i, dX = X_j − X_i).
-    The rest factor (Σ_j dX dXᵀ)⁻¹ is computed here, once per mesh."""
-    import jax
-    import jax.numpy as jnp
+    """x [N,3] → [N,3,3], each node's rotation (`tignn_jax.newton.rotations`)."""
+    from tignn_jax.newton import rotations as nodal
 
-    n = x0.shape[0]
-    dX = x0[receivers] - x0[senders]
-    rest_inv = jnp.linalg.inv(jax.ops.segment_sum(dX[:, :, None] * dX[:, None, :], senders, n))
-
-    def rotation(x):
-        dx = x[receivers] - x[senders]
-        u, _, vt = jnp.linalg.svd(jax.ops.segment_sum(dx[:, :, None] * dX[:, None, :], senders, n) @ rest_inv)
-        d = jnp.sign(jnp.linalg.det(u @ vt))                  # a proper rotation: flip the last axis if needed
-        u = u.at[:, :, 2].multiply(d[:, None])
-        return u @ vt
-
-    return rotation
+    return nodal(x0, senders, receivers)
 
 
 def scene_operators(problem, material, lin, node_type, q0, dt: float) -> dict:
@@ -96,6 +87,7 @@ def make_step(kind: str, ops: dict, edges=None):
     import jax.numpy as jnp
 
     from tignn_jax import framesolve as FS
+    from tignn_jax.newton import newton_cg
 
     if kind not in KINDS:
         raise ValueError(f"kind must be one of {KINDS}, got {kind!r}")
@@ -108,6 +100,9 @@ def make_step(kind: str, ops: dict, edges=None):
     if rotated and edges is None:
         raise ValueError("the rotated solve needs the mesh edges [2,E]")
     rotation = rotations(x0, *(jnp.asarray(e, jnp.int32) for e in edges)) if rotated else None
+    if kind in NEWTON_CG:    # one Newton step by preconditioned CG: the package's step (tignn_jax.newton)
+        newton, cg, predictor = NEWTON_CG[kind]
+        return jax.jit(newton_cg(norm, nt, x0, force, stress, rotation, cg, newton, predictor))
     solve = lambda w, turn, back: turn((norm["fs_ainv"] @ (back(w) * free).reshape(-1)).reshape(-1, 3)) * free
 
     def step(z, f):
@@ -117,26 +112,7 @@ def make_step(kind: str, ops: dict, edges=None):
             back, turn = (lambda w: jnp.einsum("nji,nj->ni", rot, w)), (lambda w: jnp.einsum("nij,nj->ni", rot, w))
         else:
             back = turn = lambda w: w
-        if kind in NEWTON_CG:    # one Newton step on backward Euler from dv = 0, the exact tangent at u + h v,
-            # by conjugate gradients preconditioned with the turned rest operator R A₀⁻¹ Rᵀ (a fixed iteration count)
-            f_up, tangent = jax.linearize(force, u + h * v)   # the force and its tangent map, linearised once
-            r = (h * (f - f_up - alpha * m * v)) * free
-            apply_a = lambda w: (m * (1 + alpha * h) * w + h * h * tangent(w * free)) * free
-            prec = lambda w: solve(w / h ** 2, turn, back)
-            dv = jnp.zeros_like(v)
-            res = r
-            pz = prec(res)
-            d = pz
-            rz = jnp.vdot(res, pz)
-            for _ in range(NEWTON_CG[kind]):   # a converged (or zero) residual stops the updates: no 0/0
-                ad = apply_a(d)
-                dad = jnp.vdot(d, ad)
-                a = jnp.where(dad > 0, rz / jnp.where(dad > 0, dad, 1.0), 0.0)
-                dv, res = dv + a * d, res - a * ad
-                pz = prec(res)
-                rz_new = jnp.vdot(res, pz)
-                d, rz = pz + jnp.where(rz > 0, rz_new / jnp.where(rz > 0, rz, 1.0), 0.0) * d, rz_new
-        elif kind in ITERATIONS:   # simplified Newton on backward Euler, (M(1 + αh) + h² R K₀ Rᵀ) the fixed matrix
+        if kind in ITERATIONS:   # simplified Newton on backward Euler, (M(1 + αh) + h² R K₀ Rᵀ) the fixed matrix
             dv = jnp.zeros_like(v)
             for _ in range(ITERATIONS[kind]):
                 r = h * (f - force(u + h * (v + dv)) - alpha * m * (v + dv)) - m * dv

@@ -103,7 +103,7 @@ def fallback_model(model: str, params: dict, scene, damping: float | None = None
     return FS.linear_model(params, scene, damping)[0]
 
 
-def model_runs(name: str, model: str, steps: int, fem_steps: int) -> dict:
+def model_runs(name: str, model: str, steps: int, fem_steps: int, newton_fallback: bool = False) -> dict:
     import fem
     from fem import scenes
     from tignn_jax import api
@@ -150,6 +150,10 @@ def model_runs(name: str, model: str, steps: int, fem_steps: int) -> dict:
     if not cfg.frame_solve:   # the rest-linearised FEM of the same scene as the fallback (a linear model is its own)
         linear = fallback_model(model, params, scene, info.get("fem_damping"))
         guarded["fallback"] = api.fallback_stepper(params, linear, hold=FALLBACK_HOLD)
+        if newton_fallback:   # the FEM's non-linear backward-Euler step (one Newton iteration) as the fallback
+            from tignn_jax import newton
+            guarded["fallback (Newton)"] = api.fallback_stepper(params, linear, hold=FALLBACK_HOLD,
+                                                                step=newton.fallback_step(linear, scene))
         from tignn_jax import data as D
         if "fem_damping" not in info and D.reference_path().exists():   # trained on the reference data:
             ref = D.load(D.reference_path())                           # calibrate on its train split
@@ -332,6 +336,8 @@ def main(argv=None) -> int:
                     "with the damping recorded in the model, info['fem_damping'], when there is one)")
     ap.add_argument("--tag", default="", help="write stability_TAG.* instead of stability.* (e.g. a second "
                     "scene run separately)")
+    ap.add_argument("--newton-fallback", action="store_true", help="also hand flagged bodies to the FEM's non-linear "
+                    "backward-Euler step by one Newton iteration (`tignn_jax.newton`) instead of the rest-linearised one")
     args = ap.parse_args(argv)
     if args.tag and not args.tag.replace("-", "").replace("_", "").isalnum():
         raise SystemExit(f"--tag must be letters, digits, - and _, got {args.tag!r}")
@@ -350,7 +356,7 @@ def main(argv=None) -> int:
         for model in chosen[name]:
             label = name if len(chosen[name]) == 1 else f"{name} ({model})"
             try:
-                models[label] = model_runs(name, model, args.steps, args.fem_steps)
+                models[label] = model_runs(name, model, args.steps, args.fem_steps, args.newton_fallback)
             except ValueError as err:
                 print(f"{label}: skipped ({err})")
     if not models:
@@ -387,7 +393,9 @@ def main(argv=None) -> int:
               "consistent and unconditionally stable; the steps flagged count the hand-overs; "
               "`fallback+consistency`, for models trained on the reference data: also where the network's step "
               "departs from the linear one by more than 1.5× its largest departure on the train split, "
-              "`api.consistency_bound`):", "",
+              "`api.consistency_bound`; `fallback (Newton)`, with `--newton-fallback`: the same hand-overs to the "
+              "FEM's non-linear backward-Euler step by one Newton iteration, `tignn_jax.newton`, which needs no "
+              "consistent stress to start from):", "",
               "| scene | loading | policy | NaN/Inf | steps flagged (first) | max u model | u error at FEM horizon | "
               "first step u error > 10 % |", "|---|---|---|---|---|---|---|---|"]
     for name, r in models.items():

@@ -418,7 +418,7 @@ def consistency_bound(params: dict, fallback: dict, z, forces) -> np.ndarray:
 
 
 def fallback_stepper(params: dict, fallback: dict, copies: int = 1, hold: int = 30, tolerance: float = 1.5,
-                     bound: float = 8.0, consistency=None):
+                     bound: float = 8.0, consistency=None, step=None):
     """A guarded step that hands a body to a physically consistent, unconditionally stable step when the learned
     model leaves its training envelope, instead of resetting it: ``z_next, flagged, left = fn(z, forces, left)``
     for ``copies`` stacked bodies, with ``left`` int32 [copies] (start from zeros) the steps each body still has
@@ -442,6 +442,12 @@ def fallback_stepper(params: dict, fallback: dict, copies: int = 1, hold: int = 
     data. The envelope alone flags late (the state has to drift out first); this catches a departure at once,
     at the cost of the fallback's step every call.
 
+    ``step``: a step ``fn(z [N,12], f [N,3]) -> z_next`` of one body of the fallback's mesh that replaces the
+    rest-linearised one where a body is on the fallback, e.g. ``newton.fallback_step(fallback, scene)`` (the
+    FEM's non-linear backward-Euler step by one Newton iteration: it keeps a rotated body unstressed, at about
+    ten times the rest-linearised step's cost). The consistency check still compares with the rest-linearised
+    step.
+
     Measured (``stability.md``, ``beam-abaqus`` with ``beam-linear``, 1000 steps under five loadings): finite
     everywhere, with the u error against the FEM at step 100 far below the "reset" policy's. The fallback's
     steps are the rest linearisation's, so away from rest (large rotations, loads beyond the training range)
@@ -452,7 +458,9 @@ def fallback_stepper(params: dict, fallback: dict, copies: int = 1, hold: int = 
         raise ValueError(f"tolerance must be positive, got {tolerance!r}")
     if not bound > 0:
         raise ValueError(f"bound must be positive, got {bound!r}")
-    handover = jax.vmap(_handover(params, fallback))
+    check = _handover(params, fallback)            # validates the fallback's kind and mesh
+    handover = jax.vmap(check if step is None else _custom_handover(step))
+    linear_handover = jax.vmap(check)
     step = stepper(params, copies)     # validates copies
     copies, n = int(copies), len(params["mesh"]["q0"])
     flag = jax.vmap(state_guard(params, bound=bound, tolerance=tolerance))
@@ -474,7 +482,7 @@ def fallback_stepper(params: dict, fallback: dict, copies: int = 1, hold: int = 
                            lambda: step(z, forces).reshape(copies, n, M.STATE_DIM))
         out_of_envelope = flag(nxt)
         if consistency is not None:   # the network step against the fallback's from the same state
-            departs = jnp.any((jnp.abs(nxt - handover(bodies, loads, jnp.zeros(copies, bool))) > limit) & free,
+            departs = jnp.any((jnp.abs(nxt - linear_handover(bodies, loads, jnp.zeros(copies, bool))) > limit) & free,
                               axis=(1, 2))
             out_of_envelope = out_of_envelope | departs
         flagged = out_of_envelope & ~on_fallback
@@ -516,6 +524,14 @@ def _handover(params: dict, fallback: dict):
         return linear(jnp.where(restart, consistent(z), z), f)
 
     return fn
+
+
+def _custom_handover(step):
+    """``fn(z, f, restart) -> step(z, f)``: a fallback step that needs no consistent stress to start from (the
+    restart flag is ignored: e.g. `newton`'s step computes σ from the displacement)."""
+    if not callable(step):
+        raise ValueError(f"step must be a function (z, f) -> z_next, got {step!r}")
+    return lambda z, f, restart: step(z, f)
 
 
 def _linear_step(norm, node_type, x0):

@@ -1,0 +1,133 @@
+"""tignn_jax.newton: the FEM's backward-Euler frame step by one Newton iteration, against the converged FEM on a
+small hex bar of the beam's nearly incompressible material, and as the fallback of api.fallback_stepper."""
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import fem
+from fem import implicit
+from fem.meshes import mesh_edges
+from tignn_jax import framesolve as FS
+from tignn_jax import newton
+
+H = 0.05
+
+
+@pytest.fixture(scope="module")
+def bar():
+    pts, cells = fem.box_hex_mesh((8.0, 2.0, 2.0), (4, 1, 1))
+    node_type = (pts[:, 0] < 1e-9).astype(np.int8)
+    material = fem.mooney_rivlin(c10=1.5e5, c01=5e3, d1=1e-7, density=7.135e-3)
+    problem = fem.setup(pts, cells, material=material, frame_dt=H, n_frames=8, clamped=np.where(node_type)[0],
+                        damping=60.0, n_sub=1)
+    lin = implicit.rest_linearization(problem, material)
+    norm = FS.with_inverse({**FS.norm_entries(lin), "dt": np.array([H], np.float32)}, node_type)
+    norm = {k: jnp.asarray(v) for k, v in norm.items()}
+    force, stress = implicit.force_and_stress(problem, material)
+    edges = mesh_edges(cells)
+    rotation = newton.rotations(pts, edges[0], edges[1])
+    return pts, node_type, problem, material, norm, force, stress, rotation
+
+
+def _roll(step, pts, forces):
+    z = np.zeros((len(pts), 12), np.float32)
+    z[:, :3] = pts
+    out = [z]
+    for f in forces:
+        z = np.asarray(step(jnp.asarray(z), jnp.asarray(f)))
+        out.append(z)
+    return np.stack(out)
+
+
+def _tip_case(pts, load):   # a tip load held for 5 frames, then released for 3
+    tip = pts[:, 0] > 8 - 1e-9
+    f = np.zeros((8, len(pts), 3), np.float32)
+    f[:5, tip, 2] = -load / tip.sum()
+    return f
+
+
+def test_one_newton_step_from_v_zero_tracks_the_converged_fem_where_the_velocity_predictor_diverges(bar):
+    # A sudden tip load, held, then released: the converged backward-Euler FEM (Newton to 1e-4) against one
+    # Newton iteration per frame. From the predictor u + h v the frame after the sudden load overshoots (v = u₁/h
+    # doubles the deflection) and one Newton step from there diverges already at a tip deflection of 1.5 % of the
+    # bar's length (measured: u error 1.76, growing); from v' = 0 it stays within 1 % of the largest displacement
+    # (measured 0.008; 2 Newton steps 6e-4).
+    pts, node_type, problem, material, norm, force, stress, rotation = bar
+    f = _tip_case(pts, 1000.0)
+    res, _ = implicit.simulate_implicit(problem, material, fem.Loads(nodal=jnp.asarray(f)), tol=1e-4, max_newton=40)
+    uf = np.asarray(res.q) - pts
+    scale = np.linalg.norm(uf, axis=(1, 2)).max()
+    assert np.abs(uf[:, :, 2]).max() > 0.1     # the bar bends (tip 0.12 down), then swings back
+
+    def error(**kw):
+        zs = _roll(jax.jit(newton.newton_cg(norm, node_type, pts, force, stress, rotation, 5, **kw)), pts, f)
+        return np.linalg.norm(zs[:, :, :3] - pts - uf, axis=(1, 2)).max() / scale
+
+    assert error(predictor="zero") < 0.01
+    assert error(predictor="zero", newton=2) < 0.002
+    assert not error(predictor="velocity") < 0.5      # diverged (NaN counts as diverged)
+
+
+def test_the_step_keeps_rest_and_a_rigidly_turned_body_unstressed(bar):
+    # From rest under no load the residual is exactly zero: CG must not divide 0 by 0. A free body turned rigidly
+    # by 1 rad (far outside the rest linearisation's range) is left where it is, unstressed.
+    pts, node_type, problem, material, norm, force, stress, rotation = bar
+    z = np.zeros((len(pts), 12), np.float32)
+    z[:, :3] = pts
+    zero = np.zeros((len(pts), 3), np.float32)
+    free = np.zeros_like(node_type)   # the bar's operators with no node clamped (the preconditioner is the
+    # clamped bar's: it only has to be symmetric positive semi-definite)
+    c = pts.mean(0)
+    th = 1.0
+    rot = np.array([[np.cos(th), -np.sin(th), 0.0], [np.sin(th), np.cos(th), 0.0], [0.0, 0.0, 1.0]])
+    turned = z.copy()
+    turned[:, :3] = (pts - c) @ rot.T + c
+    for pred in newton.PREDICTORS:
+        step = jax.jit(newton.newton_cg(norm, free, pts, force, stress, rotation, 5, predictor=pred))
+        np.testing.assert_array_equal(np.asarray(step(jnp.asarray(z), jnp.asarray(zero))), z)
+        out = np.asarray(step(jnp.asarray(turned), jnp.asarray(zero)), np.float64)
+        assert np.abs(out[:, :3] - turned[:, :3]).max() < 1e-4 * np.abs(pts).max(), pred
+        assert np.abs(out[:, 6:]).max() < 1e-3 * 1.5e5, pred
+
+
+def test_bad_arguments_are_named(bar):
+    pts, node_type, problem, material, norm, force, stress, rotation = bar
+    for kw, word in (({"iterations": 0}, "iterations"), ({"newton": 0}, "newton"), ({"predictor": "guess"},
+                                                                                      "predictor")):
+        with pytest.raises(ValueError, match=word):
+            newton.newton_cg(norm, node_type, pts, force, stress, rotation, **kw)
+    with pytest.raises(ValueError, match="fs_ainv"):
+        newton.newton_cg({k: v for k, v in norm.items() if k != "fs_ainv"}, node_type, pts, force, stress, rotation)
+
+
+def test_fallback_step_for_the_shipped_beam_fallback():
+    # beam-linear with the FEM's beam scene: in the linear range (a small tip load from rest) the Newton step lands
+    # where the rest-linearised step does, to the float32 conditioning of the solve (measured 1.2 % apart in v
+    # whether CG runs 5 or 60 iterations; each leaves 0.5–0.7 % of the load as residual: A₀ of this nearly
+    # incompressible beam is ill-conditioned); the stepper hands a body to it; a scene of another mesh is refused.
+    from fem import scenes
+    from tignn_jax import api
+
+    linear, graph = api.load_pretrained("beam-linear")
+    scene = scenes.beam_scene()
+    step = newton.fallback_step(linear, scene)
+    z = graph.nodes["z"]
+    q0 = np.asarray(linear["mesh"]["q0"])
+    f = np.zeros((len(q0), 3), np.float32)
+    tip = q0[:, 0] > q0[:, 0].max() - 1e-3
+    f[tip, 2] = -1e3 / tip.sum()
+    lin_step = api.fallback_step(linear, linear)
+    a = np.asarray(step(z, jnp.asarray(f)), np.float64)
+    b = np.asarray(lin_step(z, jnp.asarray(f), False), np.float64)
+    assert np.linalg.norm(a[:, :3] - q0) > 0
+    assert np.linalg.norm(a[:, 3:6] - b[:, 3:6]) < 0.03 * np.linalg.norm(b[:, 3:6])
+    # as the fallback of a stepper: a model whose every step leaves the envelope is handed over at once
+    stepper = api.fallback_stepper(linear, linear, hold=2, step=step)
+    out, flagged, left = stepper(z, jnp.asarray(f), jnp.ones(1, jnp.int32))
+    np.testing.assert_allclose(np.asarray(out), a, rtol=0, atol=1e-5 * np.abs(a).max())
+    assert int(left[0]) == 0 and not bool(flagged[0])
+    with pytest.raises(ValueError, match="mesh"):
+        newton.fallback_step(linear, scenes.bunny_scene())
+    with pytest.raises(ValueError, match="step must be a function"):
+        api.fallback_stepper(linear, linear, step="newton")

@@ -1,0 +1,148 @@
+"""The FEM's own frame step, cheap enough to hand a body to: one Newton iteration of backward Euler, solved by a
+few conjugate-gradient iterations preconditioned with the rest operator turned with the body.
+
+The rest-linearised step (`framesolve`, the model ``beam-linear``) is unconditionally stable and costs one dense
+product, but for a nearly incompressible body its linear pressure (2/D1)·div u is wrong at second order in the
+rotation: a beam turned rigidly by 0.1 rad is pressed by −2·10⁵ where it is unstressed
+(`benchmarks/results/prior_jump.md`), and on the beam's fingertip cases it errs u 0.008–0.077 and σ 0.024–0.32
+relative to each case's peak. Keeping the FEM's exact internal force f_int(u) and stress σ(u) but stepping with
+the rest tangent is unstable (finite on 3 of 23 held-out cases, `rest_tangent.md`): once an element rotates,
+its stiff volumetric modes act along directions the rest solve does not hold implicitly.
+
+This step (the last row of `benchmarks/results/rest_tangent.md`: finite on 23 of 23, u 1.4e-4–0.024, σ
+0.0023–0.057 on the held-out cases) is one Newton iteration of the backward-Euler frame step from Δv = 0, on the
+free degrees of freedom, with step h, lumped mass M and mass damping α::
+
+    [(1 + αh) M + h² K(ũ)] Δv = h [f − f_int(ũ) − α M v],   ũ = u + h v  (the predictor),
+    v' = v + Δv,   u' = u + h v',   σ' = σ(u'),
+
+with K(ũ) the exact tangent (``jax.linearize`` of f_int at ũ, applied matrix-free), solved by ``iterations``
+conjugate-gradient iterations preconditioned with R A₀⁻¹ Rᵀ / h², where A₀ = (1 + αh) M / h² + K₀ is the rest
+operator (its dense inverse is the fallback model's ``fs_ainv``) and R block-diagonal with each node's rotation
+(`rotations`: the polar factor of the node's least-squares deformation gradient). A rigidly turned body is left
+at rest: f_int and σ vanish, so the residual does. The input state's σ is not read: the stress is the FEM's at
+the new displacement. Its cost is the CG iterations' tangent products (15.9 ms per beam step with 5
+iterations against 1.46 ms for the rest-linearised step, one process on this 2-core CPU, `rest_tangent.md`).
+
+Use it as `api.fallback_stepper(params, linear, step=newton.fallback_step(linear, scene))`.
+"""
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from . import framesolve as FS
+
+PREDICTORS = ("zero", "velocity")   # the Newton iteration starts from v' = 0 (u' = u) or v' = v (u' = u + h v)
+
+
+def rotations(x0, senders, receivers):
+    """x [N,3] → [N,3,3], the rotation of each node's neighbourhood: the polar factor R of the least-squares
+    deformation gradient F_i = (Σ_j dx dXᵀ)(Σ_j dX dXᵀ)⁻¹ over the node's edges (dx = x_j − x_i, dX = X_j − X_i).
+    The rest factor (Σ_j dX dXᵀ)⁻¹ is computed here, once per mesh."""
+    x0 = jnp.asarray(x0, jnp.float32)
+    senders, receivers = jnp.asarray(senders, jnp.int32), jnp.asarray(receivers, jnp.int32)
+    n = x0.shape[0]
+    dX = x0[receivers] - x0[senders]
+    rest_inv = jnp.linalg.inv(jax.ops.segment_sum(dX[:, :, None] * dX[:, None, :], senders, n))
+
+    def rotation(x):
+        dx = x[receivers] - x[senders]
+        u, _, vt = jnp.linalg.svd(jax.ops.segment_sum(dx[:, :, None] * dX[:, None, :], senders, n) @ rest_inv)
+        d = jnp.sign(jnp.linalg.det(u @ vt))                  # a proper rotation: flip the last axis if needed
+        u = u.at[:, :, 2].multiply(d[:, None])
+        return u @ vt
+
+    return rotation
+
+
+def newton_cg(norm: dict, node_type, x0, force, stress, rotation, iterations: int = 5, newton: int = 1,
+              predictor: str = "zero"):
+    """``step(z [N,12], f [N,3]) -> z_next``, not jitted: the module's step on a ``frame_solve`` normalisation
+    ``norm`` (with its ``fs_ainv``, `framesolve.with_inverse`), the FEM's internal force ``force`` and nodal stress
+    ``stress`` (u [N,3] → [N,3] / [N,6], `fem.implicit.force_and_stress`) and a nodal ``rotation`` (`rotations`).
+    A converged or zero residual stops the CG updates without dividing 0 by 0 (the rest state is kept exactly)."""
+    if not isinstance(iterations, (int, np.integer)) or iterations < 1:
+        raise ValueError(f"iterations must be a positive integer, got {iterations!r}")
+    if not isinstance(newton, (int, np.integer)) or newton < 1:
+        raise ValueError(f"newton must be a positive integer, got {newton!r}")
+    if predictor not in PREDICTORS:
+        raise ValueError(f"predictor must be one of {PREDICTORS}, got {predictor!r}")
+    if "fs_ainv" not in norm:
+        raise ValueError("norm has no fs_ainv: build it with framesolve.with_inverse")
+    node_type, x0 = jnp.asarray(node_type), jnp.asarray(x0, jnp.float32)
+    h, alpha, free, m = FS._constants(norm, node_type, jnp.float32)
+    ainv = jnp.asarray(norm["fs_ainv"])
+
+    def step(z, f):
+        u, v = (z[:, :3] - x0) * free, z[:, 3:6] * free
+        rot = rotation(z[:, :3])
+
+        def _cg(u_at, v_at, dv_at):   # the Newton correction of Δv at the iterate u_at = u + h (v + Δv)
+            f_up, tangent = jax.linearize(force, u_at)   # the force and its tangent map there
+            apply_a = lambda w: (m * (1 + alpha * h) * w + h * h * tangent(w * free)) * free
+            res = (h * (f - f_up - alpha * m * v_at) - m * dv_at) * free
+            x = jnp.zeros_like(v)
+            pz = prec(res)
+            d, rz = pz, jnp.vdot(res, pz)
+            for _ in range(int(iterations)):
+                ad = apply_a(d)
+                dad = jnp.vdot(d, ad)
+                a = jnp.where(dad > 0, rz / jnp.where(dad > 0, dad, 1.0), 0.0)
+                x, res = x + a * d, res - a * ad
+                pz = prec(res)
+                rz_new = jnp.vdot(res, pz)
+                d, rz = pz + jnp.where(rz > 0, rz_new / jnp.where(rz > 0, rz, 1.0), 0.0) * d, rz_new
+            return x
+
+        def prec(w):   # R A₀⁻¹ Rᵀ w / h² on the free degrees of freedom
+            back = jnp.einsum("nji,nj->ni", rot, w * free)
+            return jnp.einsum("nij,nj->ni", rot, (ainv @ back.reshape(-1)).reshape(-1, 3)) * free / h ** 2
+
+        dv = jnp.zeros_like(v) if predictor == "velocity" else -v   # start from v' = v, or from v' = 0
+        for _ in range(int(newton)):
+            dv = dv + _cg(u + h * (v + dv), v + dv, dv)
+        u_next = u + h * (v + dv)
+        return jnp.concatenate([x0 + u_next, v + dv, stress(u_next).astype(z.dtype)], axis=1)
+
+    return step
+
+
+def fallback_step(fallback: dict, scene, iterations: int = 5):
+    """The module's step, jitted, for a rest-linearised model ``fallback`` (``frame_solve`` + ``linear_prior``,
+    e.g. ``load_pretrained("beam-linear")``, built by `framesolve.linear_model`) and the FEM scene it was built
+    from (`fem.scenes.Scene`; its damping is taken from ``fallback``'s ``info["fem_damping"]`` where recorded):
+    ``fn(z [N,12], f [N,3]) -> z_next``. ValueError where the scene's mesh, clamps, damping or frame step are not
+    the fallback's, or the scene is not elastic (`fem.implicit.check_scope`)."""
+    from fem import implicit, scenes
+
+    from . import api
+
+    config = api._config(fallback)
+    if not (config.frame_solve and config.linear_prior):
+        raise ValueError("fallback must be a rest-linearised model (frame_solve and linear_prior, e.g. "
+                         f"'beam-linear'), got frame_solve={config.frame_solve}, linear_prior={config.linear_prior}")
+    mesh, info = fallback["mesh"], fallback.get("info", {})
+    q0 = np.asarray(mesh["q0"], np.float32)
+    if q0.shape != scene.points.shape or not np.allclose(q0, scene.points, atol=1e-4 * np.abs(q0).max()):
+        raise ValueError(f"the fallback is not on the {scene.name} scene's mesh (nodes, order or units differ)")
+    node_type = np.asarray(mesh["node_type"])
+    if not np.array_equal(node_type != 0, np.asarray(scene.node_type) != 0):
+        raise ValueError(f"the fallback clamps other nodes than the {scene.name} scene")
+    if "fem_damping" in info:
+        scene = scene._replace(damping=float(info["fem_damping"]))
+    norm = FS.with_inverse(fallback["norm"], node_type)
+    dt = float(np.asarray(norm["dt"]).reshape(-1)[0])
+    if not np.isclose(dt, scene.frame_dt, rtol=1e-6):
+        raise ValueError(f"the fallback steps dt = {dt}, the {scene.name} scene's frame is {scene.frame_dt}")
+    problem = scenes.setup_scene(scene._replace(n_frames=1))
+    alpha = float(np.asarray(norm["fs_alpha"]).reshape(-1)[0])
+    if not np.isclose(alpha, float(problem.arrays.damping_alpha), rtol=1e-4):
+        raise ValueError(f"the fallback's mass damping α = {alpha} is not the scene's "
+                         f"{float(problem.arrays.damping_alpha)}")
+    force, stress = implicit.force_and_stress(problem, scene.material)
+    rotation = rotations(q0, mesh["senders"], mesh["receivers"])
+    norm = {k: jnp.asarray(v) for k, v in norm.items()}
+    return jax.jit(newton_cg(norm, node_type, q0, force, stress, rotation, iterations))
+
