@@ -1,5 +1,5 @@
-"""The FEM's own frame step, cheap enough to hand a body to: one Newton iteration of backward Euler, solved by a
-few conjugate-gradient iterations preconditioned with the rest operator turned with the body.
+"""The FEM's own frame step, cheap enough to hand a body to: a fixed number of Newton iterations of backward
+Euler, each solved by a few conjugate-gradient iterations preconditioned with the rest operator turned with the body.
 
 The rest-linearised step (`framesolve`, the model ``beam-linear``) is unconditionally stable and costs one dense
 product, but for a nearly incompressible body its linear pressure (2/D1)·div u is wrong at second order in the
@@ -9,20 +9,25 @@ relative to each case's peak. Keeping the FEM's exact internal force f_int(u) an
 the rest tangent is unstable (finite on 3 of 23 held-out cases, `rest_tangent.md`): once an element rotates,
 its stiff volumetric modes act along directions the rest solve does not hold implicitly.
 
-This step (the last row of `benchmarks/results/rest_tangent.md`: finite on 23 of 23, u 1.4e-4–0.024, σ
-0.0023–0.057 on the held-out cases) is one Newton iteration of the backward-Euler frame step from Δv = 0, on the
-free degrees of freedom, with step h, lumped mass M and mass damping α::
+Backward Euler with step h, lumped mass M and mass damping α, on the free degrees of freedom, for Δv = v' − v::
 
-    [(1 + αh) M + h² K(ũ)] Δv = h [f − f_int(ũ) − α M v],   ũ = u + h v  (the predictor),
-    v' = v + Δv,   u' = u + h v',   σ' = σ(u'),
+    r(Δv) = h [f − f_int(u + h (v + Δv)) − α M (v + Δv)] − M Δv = 0,   u' = u + h v',   σ' = σ(u'),
 
-with K(ũ) the exact tangent (``jax.linearize`` of f_int at ũ, applied matrix-free), solved by ``iterations``
-conjugate-gradient iterations preconditioned with R A₀⁻¹ Rᵀ / h², where A₀ = (1 + αh) M / h² + K₀ is the rest
-operator (its dense inverse is the fallback model's ``fs_ainv``) and R block-diagonal with each node's rotation
-(`rotations`: the polar factor of the node's least-squares deformation gradient). A rigidly turned body is left
-at rest: f_int and σ vanish, so the residual does. The input state's σ is not read: the stress is the FEM's at
-the new displacement. Its cost is the CG iterations' tangent products (15.9 ms per beam step with 5
-iterations against 1.46 ms for the rest-linearised step, one process on this 2-core CPU, `rest_tangent.md`).
+by ``newton`` Newton iterations Δv ← Δv + A⁻¹ r(Δv), A = (1 + αh) M + h² K(ũ) with K(ũ) the exact tangent at the
+iterate ũ (``jax.linearize`` of f_int, applied matrix-free), each solved by ``iterations`` conjugate-gradient
+iterations preconditioned with R A₀⁻¹ Rᵀ / h², where A₀ = (1 + αh) M / h² + K₀ is the rest operator (its dense
+inverse is the fallback model's ``fs_ainv``) and R block-diagonal with each node's rotation (`rotations`: the polar
+factor of the node's least-squares deformation gradient). The iteration starts from v' = 0 (``predictor="zero"``,
+ũ = u) or from v' = v (``"velocity"``, ũ = u + h v). After a sudden load the velocity predictor overshoots and
+one Newton step from it diverges (a hex bar of the beam material: at a tip deflection of 1.5 % of its length,
+`tests/test_newton.py`); from v' = 0 it does not. A rigidly turned body is left at rest: f_int and σ vanish, so
+the residual does. The input state's σ is not read: the stress is the FEM's at the new displacement.
+
+On the beam's 23 held-out FEM cases (`benchmarks/results/rest_tangent_newton.md`, errors relative to each case's
+peak) the default, 2 Newton iterations of 3 CG each from v' = 0, is finite on all and reaches test u 1e-4–0.0056,
+σ 0.0060–0.036 (the rest-linearised step: u 0.0085–0.078, σ 0.024–0.32), at 15× the rest-linearised step's cost
+(27.6 against 1.83 ms per beam step on one core of this 2-core CPU, the other core busy): a fallback for a few
+frames, not a real-time step.
 
 Use it as `api.fallback_stepper(params, linear, step=newton.fallback_step(linear, scene))`.
 """
@@ -57,7 +62,7 @@ def rotations(x0, senders, receivers):
     return rotation
 
 
-def newton_cg(norm: dict, node_type, x0, force, stress, rotation, iterations: int = 5, newton: int = 1,
+def newton_cg(norm: dict, node_type, x0, force, stress, rotation, iterations: int = 3, newton: int = 2,
               predictor: str = "zero"):
     """``step(z [N,12], f [N,3]) -> z_next``, not jitted: the module's step on a ``frame_solve`` normalisation
     ``norm`` (with its ``fs_ainv``, `framesolve.with_inverse`), the FEM's internal force ``force`` and nodal stress
@@ -109,7 +114,7 @@ def newton_cg(norm: dict, node_type, x0, force, stress, rotation, iterations: in
     return step
 
 
-def fallback_step(fallback: dict, scene, iterations: int = 5):
+def fallback_step(fallback: dict, scene, iterations: int = 3, newton: int = 2, predictor: str = "zero"):
     """The module's step, jitted, for a rest-linearised model ``fallback`` (``frame_solve`` + ``linear_prior``,
     e.g. ``load_pretrained("beam-linear")``, built by `framesolve.linear_model`) and the FEM scene it was built
     from (`fem.scenes.Scene`; its damping is taken from ``fallback``'s ``info["fem_damping"]`` where recorded):
@@ -144,5 +149,5 @@ def fallback_step(fallback: dict, scene, iterations: int = 5):
     force, stress = implicit.force_and_stress(problem, scene.material)
     rotation = rotations(q0, mesh["senders"], mesh["receivers"])
     norm = {k: jnp.asarray(v) for k, v in norm.items()}
-    return jax.jit(newton_cg(norm, node_type, q0, force, stress, rotation, iterations))
+    return jax.jit(newton_cg(norm, node_type, q0, force, stress, rotation, iterations, newton, predictor))
 
