@@ -16,7 +16,8 @@ On the six test cases of the Abaqus beam data (sims 9, 10, 12, 13, 38, 44) this 
   * the FEM's rest linearisation stepped by backward Euler, one or two dense solves per frame, on the reference
     and two coarser meshes (the step of a ``linear_prior`` model with no network: K₀ and S₀ from
     `fem.implicit.rest_linearization`), and the non-linear backward-Euler FEM (`fem.implicit`, one Newton step
-    per frame) — the cheap baselines a user could run instead of a network.
+    per frame) — the cheap baselines a user could run instead of a network — and that backward-Euler frame by a
+    fixed count of Newton iterations of a few CG each (`tignn_jax.newton`).
 Errors: per snapshot relative L2 over all 756 nodes, mean over snapshots 1..20 and the six cases, of u = q − q0,
 v and σ (``tignn_jax.evaluate.relative_errors``); the FEM's v is numpy.gradient of its q over the frames, the
 convention of the reference data. The Pareto front is the set of points not dominated in (step time, u error);
@@ -78,6 +79,10 @@ LINEAR_VARIANTS = (("FEM linearised 20×5×5, 2 solves", (20, 5, 5), 2),
                    ("FEM linearised 10×3×3, 1 solve", (10, 3, 3), 1))
 # the non-linear backward-Euler FEM (`fem.implicit`: Newton, CG preconditioned by the rest operator's inverse)
 IMPLICIT_VARIANTS = (("FEM implicit 20×5×5, 1 step", (20, 5, 5), 1),)
+# backward Euler by a fixed number of Newton iterations of a few CG each, preconditioned with the rest operator
+# turned with the body (`tignn_jax.newton`, the fallback step): (name, divisions, (Newton iterations, CG each))
+NEWTON_VARIANTS = (("FEM Newton-CG 20×5×5, 2×3 CG", (20, 5, 5), (2, 3)),
+                   ("FEM Newton-CG 20×5×5, 1×3 CG", (20, 5, 5), (1, 3)))
 BEAM_SIZE = (40.0, 10.0, 10.0)
 
 
@@ -452,6 +457,52 @@ def _build_linear_frame(divisions, n_solves: int):
     return frame, scene, w
 
 
+def newton_frame(divisions, n):
+    """(step, scene, w): the jitted frame step (z [Nc,12], f [Nc,3]) → z of `tignn_jax.newton.newton_cg` with
+    ``n`` = (Newton iterations, CG iterations each) on the ``divisions`` mesh (backward Euler with the frame's end
+    load, as `fem.implicit` with one step per frame); the rest linearisation is shared with `linear_frame`."""
+    key = ("newton", tuple(divisions), tuple(n))
+    if key not in _LINEAR_FRAMES:
+        from fem import implicit
+        from tignn_jax import framesolve as FS
+        from tignn_jax import newton
+
+        scene, problem, w = fem_problem(divisions, 1.0)
+        if tuple(divisions) not in _LINEAR:
+            _LINEAR[tuple(divisions)] = implicit.rest_linearization(problem, scene.material)
+        norm = {k: np.asarray(v, np.float32) for k, v in FS.norm_entries(_LINEAR[tuple(divisions)]).items()}
+        norm["dt"] = np.array([problem.config.frame_dt], np.float32)
+        norm = {k: jnp.asarray(v) for k, v in FS.with_inverse(norm, scene.node_type).items()}
+        force, stress = implicit.force_and_stress(problem, scene.material)
+        rotation = newton.rotations(scene.points, scene.edges[0], scene.edges[1])
+        step = jax.jit(newton.newton_cg(norm, scene.node_type, scene.points, force, stress, rotation,
+                                        iterations=int(n[1]), newton=int(n[0])))
+        _LINEAR_FRAMES[key] = (step, scene, w)
+    return _LINEAR_FRAMES[key]
+
+
+def newton_errors(divisions, n, data, rows) -> dict:
+    """Roll `newton_frame` out from rest over the cases ``rows`` and compare with the reference."""
+    step, scene, w = newton_frame(divisions, n)
+    forces = jnp.asarray(_coarse_forces(data, rows, w), jnp.float32)
+    z0 = jnp.concatenate([jnp.asarray(scene.points, jnp.float32), jnp.zeros((len(scene.points), 9))], 1)
+    case = lambda f: jnp.concatenate([z0[None], jax.lax.scan(lambda z, f_: (step(z, f_),) * 2, z0, f)[1]])
+    zs = np.asarray(jax.vmap(case)(forces))
+    pred = _as_prediction(zs[..., :3], zs[..., 6:], w, data.dt)
+    return dict(summary(pred, data, rows), n_sub=1, newton=list(n), nodes=len(scene.points),
+                elements=len(scene.cells), inverted=[-1] * len(rows))
+
+
+def newton_frame_time(divisions, n, data, row, min_seconds: float = 3.0) -> dict:
+    """Median wall time [ms] of one `newton_frame` step from the case's state after 9 frames, under its 10th load."""
+    step, scene, w = newton_frame(divisions, n)
+    f = jnp.asarray(_coarse_forces(data, [row], w)[0], jnp.float32)
+    z = jnp.concatenate([jnp.asarray(scene.points, jnp.float32), jnp.zeros((len(scene.points), 9))], 1)
+    for k in range(9):
+        z = step(z, f[k])
+    return {**_median_frame_ms(lambda: step(z, f[9]), min_seconds=min_seconds), "n_sub": 1, "newton": list(n)}
+
+
 def _coarse_forces(data, rows, w):
     from fem import scenes as fs
 
@@ -562,6 +613,7 @@ def main(argv=None) -> int:
     variants = FEM_VARIANTS[7:9] if args.quick else FEM_VARIANTS
     linear = LINEAR_VARIANTS[-1:] if args.quick else LINEAR_VARIANTS
     implicit_variants = () if args.quick else IMPLICIT_VARIANTS
+    newton_variants = NEWTON_VARIANTS[:1] if args.quick else NEWTON_VARIANTS
     repeats = 20 if args.quick else args.repeats
     if args.quick:
         rows = rows[:1]
@@ -601,6 +653,7 @@ def main(argv=None) -> int:
     # the FEM variants' errors are deterministic and need no training: computed where missing, --times-only too
     solvers = [(name, div, n, linear_errors, linear_frame_time) for name, div, n in linear]
     solvers += [(name, div, n, implicit_errors, implicit_frame_time) for name, div, n in implicit_variants]
+    solvers += [(name, div, n, newton_errors, newton_frame_time) for name, div, n in newton_variants]
     for name, div, factor in variants:
         if name not in cache:
             print(f"errors: {name}", flush=True)
@@ -684,7 +737,7 @@ def build_points(cache, step_times, fem_times, variants, shipped, solvers=()) ->
                            "ms": fem_times[name]["p50_ms"], **cache[name]})
     for name, _, _, errors_fn, _ in solvers:
         if name in cache and name in fem_times:
-            kind = "fem-linear" if errors_fn is linear_errors else "fem-implicit"
+            kind = {linear_errors: "fem-linear", newton_errors: "fem-newton"}.get(errors_fn, "fem-implicit")
             points.append({"name": name, "kind": kind, "density_factor": 1.0, "ms": fem_times[name]["p50_ms"],
                            **cache[name]})
     return points
@@ -701,7 +754,8 @@ def plot(path, points, front, result) -> None:
     style = {"learned": ("o", "C0", "learned, equal budget"), "shipped": ("*", "C3", "shipped default (float32)"),
              "shipped-bf16": ("D", "C1", "shipped, bfloat16"), "fem": ("s", "C7", "FEM (per 0.05 s frame)"),
              "fem-linear": ("P", "C4", "FEM rest-linearised, backward Euler"),
-             "fem-implicit": ("X", "C5", "FEM non-linear backward Euler")}
+             "fem-implicit": ("X", "C5", "FEM non-linear backward Euler"),
+             "fem-newton": ("v", "C6", "FEM backward Euler, fixed Newton-CG (tignn_jax.newton)")}
     seen = set()
     for p in points:
         if not np.isfinite(p["u"]):
@@ -808,6 +862,9 @@ def report(result, widths, passes) -> str:
         elif p["kind"] == "fem-implicit":
             note = (f"{p['elements']} hex8, {p['n_sub']} Newton step(s)/frame, ≤ {p['newton_iterations_max']} "
                     f"iterations, residual ≤ {p['newton_residual_max']:.1e}")
+        elif p["kind"] == "fem-newton":
+            note = (f"{p['elements']} hex8, backward Euler by {p['newton'][0]} Newton iteration(s) of "
+                    f"{p['newton'][1]} CG each, preconditioned with the rest operator turned with the body")
         else:
             note = f"{p['elements']} hex8, {p['n_sub']} sub-steps/frame"
         if p["kind"].startswith("fem"):
@@ -870,7 +927,9 @@ def report(result, widths, passes) -> str:
               "`jax.jvp`) steps M Δv/h + αM(v + Δv) + K₀(u + h(v + Δv)) = f with the dense inverse of its matrix, σ "
               "carried by S₀ — the step of a `linear_prior` model with no network; the non-linear backward-Euler FEM "
               "is `fem.implicit` (Newton, CG preconditioned by that inverse), timed as a whole case divided by its "
-              "frames."]
+              "frames; `FEM Newton-CG` is the same backward-Euler frame by a fixed count of Newton iterations from "
+              "v' = 0, each by a few CG iterations preconditioned with R A₀⁻¹ Rᵀ (per-node rotations R; "
+              "`tignn_jax.newton`, the learned models' fallback step), timed as one step from a mid-case state."]
     return "\n".join(lines) + "\n"
 
 
