@@ -137,6 +137,16 @@ def test_fallback_step_for_the_shipped_beam_fallback():
     assert rel(out, a, slice(6, 12)) < 0.05 and rel(b, a, slice(6, 12)) > 0.5
     assert rel(out, a, slice(0, 3)) < 1e-4
     assert int(left[0]) == 0 and not bool(flagged[0])
+    # a state with an inverted element (a learned model's can hold them): the FEM's force is not defined there, so
+    # the stepper takes the rest-linearised step instead of returning NaN
+    broken = np.asarray(bent).copy()
+    corner = int(np.argmax(q0[:, 0] + q0[:, 1] + q0[:, 2]))
+    broken[corner, :3] -= 6.0                       # pushed through its element
+    broken = jnp.asarray(broken)
+    assert not np.all(np.isfinite(np.asarray(step(broken, jnp.asarray(f)))))
+    out, _, _ = stepper(broken, jnp.asarray(f), jnp.ones(1, jnp.int32))
+    np.testing.assert_allclose(np.asarray(out), np.asarray(lin_step(broken, jnp.asarray(f), False)), rtol=1e-5,
+                               atol=1e-5)
     with pytest.raises(ValueError, match="mesh"):
         newton.fallback_step(linear, scenes.bunny_scene())
     with pytest.raises(ValueError, match="step must be a function"):

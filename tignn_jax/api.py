@@ -444,9 +444,10 @@ def fallback_stepper(params: dict, fallback: dict, copies: int = 1, hold: int = 
 
     ``step``: a step ``fn(z [N,12], f [N,3]) -> z_next`` of one body of the fallback's mesh that replaces the
     rest-linearised one where a body is on the fallback, e.g. ``newton.fallback_step(fallback, scene)`` (the
-    FEM's non-linear backward-Euler step by one Newton iteration: it keeps a rotated body unstressed, at about
-    ten times the rest-linearised step's cost). The consistency check still compares with the rest-linearised
-    step.
+    FEM's non-linear backward-Euler step by Newton–CG iterations: it keeps a rotated body unstressed, at about
+    eight times the rest-linearised step's cost); where its result is not finite (a learned state with inverted
+    elements, where the FEM's force is undefined) the rest-linearised step is taken instead. The consistency check
+    still compares with the rest-linearised step.
 
     Measured (``stability.md``, ``beam-abaqus`` with ``beam-linear``, 1000 steps under five loadings): finite
     everywhere, with the u error against the FEM at step 100 far below the "reset" policy's. The fallback's
@@ -459,7 +460,7 @@ def fallback_stepper(params: dict, fallback: dict, copies: int = 1, hold: int = 
     if not bound > 0:
         raise ValueError(f"bound must be positive, got {bound!r}")
     check = _handover(params, fallback)            # validates the fallback's kind and mesh
-    handover = jax.vmap(check if step is None else _custom_handover(step))
+    handover = jax.vmap(check if step is None else _custom_handover(step, check))
     linear_handover = jax.vmap(check)
     step = stepper(params, copies)     # validates copies
     copies, n = int(copies), len(params["mesh"]["q0"])
@@ -526,12 +527,20 @@ def _handover(params: dict, fallback: dict):
     return fn
 
 
-def _custom_handover(step):
-    """``fn(z, f, restart) -> step(z, f)``: a fallback step that needs no consistent stress to start from (the
-    restart flag is ignored: e.g. `newton`'s step computes σ from the displacement)."""
+def _custom_handover(step, linear):
+    """``fn(z, f, restart)``: ``step(z, f)`` (a fallback step that needs no consistent stress to start from, e.g.
+    `newton`'s, which computes σ from the displacement), or the rest-linearised hand-over ``linear(z, f,
+    restart)`` where that is not finite: a learned model's state can hold inverted elements (measured: J down to
+    −0.30 in `beam-abaqus`'s state at its first flagged step under a constant load), where the FEM's internal force
+    is not defined, while the linear step is."""
     if not callable(step):
         raise ValueError(f"step must be a function (z, f) -> z_next, got {step!r}")
-    return lambda z, f, restart: step(z, f)
+
+    def fn(z, f, restart):
+        out = step(z, f)
+        return jax.lax.cond(jnp.all(jnp.isfinite(out)), lambda: out, lambda: linear(z, f, restart))
+
+    return fn
 
 
 def _linear_step(norm, node_type, x0):
