@@ -102,7 +102,7 @@ def make_step(kind: str, ops: dict, edges=None):
     if rotated and edges is None:
         raise ValueError("the rotated solve needs the mesh edges [2,E]")
     rotation = rotations(x0, *(jnp.asarray(e, jnp.int32) for e in edges)) if rotated else None
-    if kind in NEWTON_CG:    # one Newton step by preconditioned CG: the package's step (tignn_jax.newton)
+    if kind in NEWTON_CG:    # Newton iterations by preconditioned CG: the package's step (tignn_jax.newton)
         newton, cg, predictor = NEWTON_CG[kind]
         return jax.jit(newton_cg(norm, nt, x0, force, stress, rotation, cg, newton, predictor))
     solve = lambda w, turn, back: turn((norm["fs_ainv"] @ (back(w) * free).reshape(-1)).reshape(-1, 3)) * free

@@ -459,10 +459,10 @@ def fallback_stepper(params: dict, fallback: dict, copies: int = 1, hold: int = 
         raise ValueError(f"tolerance must be positive, got {tolerance!r}")
     if not bound > 0:
         raise ValueError(f"bound must be positive, got {bound!r}")
-    check = _handover(params, fallback)            # validates the fallback's kind and mesh
-    handover = jax.vmap(check if step is None else _custom_handover(step, check))
-    linear_handover = jax.vmap(check)
-    step = stepper(params, copies)     # validates copies
+    linear = _handover(params, fallback)            # validates the fallback's kind and mesh
+    handover = jax.vmap(linear if step is None else _custom_handover(step, linear))
+    linear_handover = jax.vmap(linear)
+    learned = stepper(params, copies)     # validates copies
     copies, n = int(copies), len(params["mesh"]["q0"])
     flag = jax.vmap(state_guard(params, bound=bound, tolerance=tolerance))
     if consistency is not None:
@@ -480,11 +480,11 @@ def fallback_stepper(params: dict, fallback: dict, copies: int = 1, hold: int = 
         bodies, loads = z.reshape(copies, n, M.STATE_DIM), forces.reshape(copies, n, 3)
         on_fallback = left > 0
         nxt = jax.lax.cond(jnp.all(on_fallback), lambda: bodies,
-                           lambda: step(z, forces).reshape(copies, n, M.STATE_DIM))
+                           lambda: learned(z, forces).reshape(copies, n, M.STATE_DIM))
         out_of_envelope = flag(nxt)
         if consistency is not None:   # the network step against the fallback's from the same state
-            departs = jnp.any((jnp.abs(nxt - linear_handover(bodies, loads, jnp.zeros(copies, bool))) > limit) & free,
-                              axis=(1, 2))
+            linear_next = linear_handover(bodies, loads, jnp.zeros(copies, bool))
+            departs = jnp.any((jnp.abs(nxt - linear_next) > limit) & free, axis=(1, 2))
             out_of_envelope = out_of_envelope | departs
         flagged = out_of_envelope & ~on_fallback
         use = on_fallback | flagged

@@ -132,9 +132,9 @@ def newton_cg(norm: dict, node_type, x0, force, stress, rotation, iterations: in
 
 
 def fallback_step(fallback: dict, scene, iterations: int = 3, newton: int = 2, predictor: str = "zero"):
-    """The module's step, jitted, for a rest-linearised model ``fallback`` (``frame_solve`` + ``linear_prior``,
-    e.g. ``load_pretrained("beam-linear")``, built by `framesolve.linear_model`) and the FEM scene it was built
-    from (`fem.scenes.Scene`; its damping is taken from ``fallback``'s ``info["fem_damping"]`` where recorded):
+    """The module's step (``newton`` Newton iterations of ``iterations`` CG each from ``predictor``), jitted, for a
+    rest-linearised model ``fallback`` (``frame_solve`` + ``linear_prior``, e.g. ``load_pretrained("beam-linear")``,
+    built by `framesolve.linear_model`) and the FEM scene it was built from (`fem.scenes.Scene`; its damping is taken from ``fallback``'s ``info["fem_damping"]`` where recorded):
     ``fn(z [N,12], f [N,3]) -> z_next``. ValueError where the scene's mesh, clamps, damping or frame step are not
     the fallback's, or the scene is not elastic (`fem.implicit.check_scope`)."""
     from fem import implicit, scenes
