@@ -459,9 +459,8 @@ def fallback_stepper(params: dict, fallback: dict, copies: int = 1, hold: int = 
         raise ValueError(f"tolerance must be positive, got {tolerance!r}")
     if not bound > 0:
         raise ValueError(f"bound must be positive, got {bound!r}")
-    linear = _handover(params, fallback)            # validates the fallback's kind and mesh
-    handover = jax.vmap(linear if step is None else _custom_handover(step, linear))
-    linear_handover = jax.vmap(linear)
+    linear_handover = jax.vmap(_handover(params, fallback))    # validates the fallback's kind and mesh
+    handover = linear_handover if step is None else _custom_handover(step, linear_handover)
     learned = stepper(params, copies)     # validates copies
     copies, n = int(copies), len(params["mesh"]["q0"])
     flag = jax.vmap(state_guard(params, bound=bound, tolerance=tolerance))
@@ -528,17 +527,21 @@ def _handover(params: dict, fallback: dict):
 
 
 def _custom_handover(step, linear):
-    """``fn(z, f, restart)``: ``step(z, f)`` (a fallback step that needs no consistent stress to start from, e.g.
-    `newton`'s, which computes σ from the displacement), or the rest-linearised hand-over ``linear(z, f,
-    restart)`` where that is not finite: a learned model's state can hold inverted elements (measured: J down to
-    −0.30 in `beam-abaqus`'s state at its first flagged step under a constant load), where the FEM's internal force
-    is not defined, while the linear step is."""
+    """``fn(z, f, restart)`` over stacked bodies z [B,N,12], f [B,N,3]: ``step`` on each body (a fallback step that
+    needs no consistent stress to start from, e.g. `newton`'s, which computes σ from the displacement), or the
+    batched rest-linearised hand-over ``linear(z, f, restart)`` for a body whose result is not finite: a learned
+    model's state can hold inverted elements (measured: J down to −0.30 in `beam-abaqus`'s state at its first
+    flagged step under a constant load), where the FEM's internal force is not defined, while the linear step is.
+    The linear step runs only when some body needs it (the condition is over the batch, so it stays a branch)."""
     if not callable(step):
         raise ValueError(f"step must be a function (z, f) -> z_next, got {step!r}")
+    step = jax.vmap(step)
 
     def fn(z, f, restart):
         out = step(z, f)
-        return jax.lax.cond(jnp.all(jnp.isfinite(out)), lambda: out, lambda: linear(z, f, restart))
+        ok = jnp.all(jnp.isfinite(out), axis=(1, 2))
+        return jax.lax.cond(jnp.all(ok), lambda: out,
+                            lambda: jnp.where(ok[:, None, None], out, linear(z, f, restart)))
 
     return fn
 
