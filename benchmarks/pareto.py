@@ -434,7 +434,9 @@ def linear_frame(divisions, n_solves: int):
     return _LINEAR_FRAMES[key]
 
 
-def _build_linear_frame(divisions, n_solves: int):
+def _rest_operators(divisions, n_solves: int):
+    """(scene, problem, W, norm): the ``divisions`` mesh and its rest linearisation (cached per mesh) as
+    ``framesolve`` entries with the dense inverse for a step of frame_dt / n_solves."""
     from fem import implicit
     from tignn_jax import framesolve as FS
 
@@ -444,7 +446,13 @@ def _build_linear_frame(divisions, n_solves: int):
         _LINEAR[key] = implicit.rest_linearization(problem, scene.material)
     norm = {k: np.asarray(v, np.float32) for k, v in FS.norm_entries(_LINEAR[key]).items()}
     norm["dt"] = np.array([problem.config.frame_dt / n_solves], np.float32)
-    norm = {k: jnp.asarray(v) for k, v in FS.with_inverse(norm, scene.node_type).items()}
+    return scene, problem, w, {k: jnp.asarray(v) for k, v in FS.with_inverse(norm, scene.node_type).items()}
+
+
+def _build_linear_frame(divisions, n_solves: int):
+    from tignn_jax import framesolve as FS
+
+    scene, _, w, norm = _rest_operators(divisions, n_solves)
     node_type, x0 = jnp.asarray(scene.node_type), jnp.asarray(scene.points, jnp.float32)
 
     @jax.jit
@@ -464,15 +472,9 @@ def newton_frame(divisions, n):
     key = ("newton", tuple(divisions), tuple(n))
     if key not in _LINEAR_FRAMES:
         from fem import implicit
-        from tignn_jax import framesolve as FS
         from tignn_jax import newton
 
-        scene, problem, w = fem_problem(divisions, 1.0)
-        if tuple(divisions) not in _LINEAR:
-            _LINEAR[tuple(divisions)] = implicit.rest_linearization(problem, scene.material)
-        norm = {k: np.asarray(v, np.float32) for k, v in FS.norm_entries(_LINEAR[tuple(divisions)]).items()}
-        norm["dt"] = np.array([problem.config.frame_dt], np.float32)
-        norm = {k: jnp.asarray(v) for k, v in FS.with_inverse(norm, scene.node_type).items()}
+        scene, problem, w, norm = _rest_operators(divisions, 1)
         force, stress = implicit.force_and_stress(problem, scene.material)
         rotation = newton.rotations(scene.points, scene.edges[0], scene.edges[1])
         step = jax.jit(newton.newton_cg(norm, scene.node_type, scene.points, force, stress, rotation,

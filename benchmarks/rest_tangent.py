@@ -14,7 +14,7 @@ and fingertip cases of the FEM (grouped as `interactions.py` groups them), with 
       Δv = A₀⁻¹ [f − α M v − f_int(u) − h K₀ v] / h,   u' = u + h (v + Δv),   σ' = σ(u');
 
 * ``exact force, rotated solve``: the same with the rest tangent turned with the body, R A₀⁻¹ Rᵀ and R K₀ Rᵀ,
-  R block-diagonal with each node's rotation (`rotations`: the polar factor of the least-squares
+  R block-diagonal with each node's rotation (`tignn_jax.newton.rotations`: the polar factor of the least-squares
   deformation gradient over the node's edges), the warped-stiffness idea applied to the solve;
 * ``backward Euler, rotated, k iterations``: k simplified-Newton iterations on the backward-Euler residual with
   the fixed matrix (1 + αh)M + h² R K₀ Rᵀ;
@@ -60,13 +60,6 @@ NEWTON_CG = {   # kind: (Newton iterations, CG iterations each, predictor: tignn
 KINDS = ("linear", "exact force", "exact force, rotated solve", *ITERATIONS, *NEWTON_CG)
 
 
-def rotations(x0, senders, receivers):
-    """x [N,3] → [N,3,3], each node's rotation (`tignn_jax.newton.rotations`)."""
-    from tignn_jax.newton import rotations as nodal
-
-    return nodal(x0, senders, receivers)
-
-
 def scene_operators(problem, material, lin, node_type, q0, dt: float) -> dict:
     """What every step kind shares, built once per scene: the rest linearisation ``lin``
     (`fem.implicit.RestLinearization`) as ``framesolve`` entries with the dense A₀⁻¹ ("norm"), the FEM's internal
@@ -89,7 +82,7 @@ def make_step(kind: str, ops: dict, edges=None):
     import jax.numpy as jnp
 
     from tignn_jax import framesolve as FS
-    from tignn_jax.newton import newton_cg
+    from tignn_jax.newton import newton_cg, rotations
 
     if kind not in KINDS:
         raise ValueError(f"kind must be one of {KINDS}, got {kind!r}")

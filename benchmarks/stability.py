@@ -150,7 +150,7 @@ def model_runs(name: str, model: str, steps: int, fem_steps: int, newton_fallbac
     if not cfg.frame_solve:   # the rest-linearised FEM of the same scene as the fallback (a linear model is its own)
         linear = fallback_model(model, params, scene, info.get("fem_damping"))
         guarded["fallback"] = api.fallback_stepper(params, linear, hold=FALLBACK_HOLD)
-        if newton_fallback:   # the FEM's non-linear backward-Euler step (one Newton iteration) as the fallback
+        if newton_fallback:   # the FEM's non-linear backward-Euler step (Newton–CG iterations) as the fallback
             from tignn_jax import newton
             guarded["fallback (Newton)"] = api.fallback_stepper(params, linear, hold=FALLBACK_HOLD,
                                                                 step=newton.fallback_step(linear, scene))
@@ -337,7 +337,7 @@ def main(argv=None) -> int:
     ap.add_argument("--tag", default="", help="write stability_TAG.* instead of stability.* (e.g. a second "
                     "scene run separately)")
     ap.add_argument("--newton-fallback", action="store_true", help="also hand flagged bodies to the FEM's non-linear "
-                    "backward-Euler step by one Newton iteration (`tignn_jax.newton`) instead of the rest-linearised one")
+                    "backward-Euler step by Newton–CG iterations (`tignn_jax.newton`) instead of the rest-linearised one")
     args = ap.parse_args(argv)
     if args.tag and not args.tag.replace("-", "").replace("_", "").isalnum():
         raise SystemExit(f"--tag must be letters, digits, - and _, got {args.tag!r}")
@@ -394,7 +394,7 @@ def main(argv=None) -> int:
               "`fallback+consistency`, for models trained on the reference data: also where the network's step "
               "departs from the linear one by more than 1.5× its largest departure on the train split, "
               "`api.consistency_bound`; `fallback (Newton)`, with `--newton-fallback`: the same hand-overs to the "
-              "FEM's non-linear backward-Euler step by one Newton iteration, `tignn_jax.newton`, which needs no "
+              "FEM's non-linear backward-Euler step by Newton–CG iterations, `tignn_jax.newton`, which needs no "
               "consistent stress to start from):", "",
               "| scene | loading | policy | NaN/Inf | steps flagged (first) | max u model | u error at FEM horizon | "
               "first step u error > 10 % |", "|---|---|---|---|---|---|---|---|"]

@@ -151,3 +151,20 @@ def test_fallback_step_for_the_shipped_beam_fallback():
         newton.fallback_step(linear, scenes.bunny_scene())
     with pytest.raises(ValueError, match="step must be a function"):
         api.fallback_stepper(linear, linear, step="newton")
+
+
+def _turn(th):
+    return np.array([[np.cos(th), -np.sin(th), 0.0], [np.sin(th), np.cos(th), 0.0], [0.0, 0.0, 1.0]])
+
+
+def test_rotations_recover_a_rigid_rotation():
+    pts, cells = fem.box_hex_mesh((8.0, 2.0, 2.0), (4, 1, 1))
+    edges = np.asarray(mesh_edges(cells))
+    rot = _turn(0.7) @ np.array([[1.0, 0, 0], [0, np.cos(0.3), -np.sin(0.3)], [0, np.sin(0.3), np.cos(0.3)]])
+    x = pts @ rot.T + np.array([1.0, -2.0, 0.5])
+    rotation = newton.rotations(jnp.asarray(pts, jnp.float32), jnp.asarray(edges[0]), jnp.asarray(edges[1]))
+    r = np.asarray(rotation(jnp.asarray(x, jnp.float32)))
+    np.testing.assert_allclose(r, np.broadcast_to(rot, r.shape), atol=1e-5)
+    stretched = pts * np.array([1.1, 1.0, 1.0])          # a pure stretch has no rotation
+    r = np.asarray(rotation(jnp.asarray(stretched, jnp.float32)))
+    np.testing.assert_allclose(r, np.broadcast_to(np.eye(3), r.shape), atol=1e-5)

@@ -87,21 +87,6 @@ def test_errors_count_non_finite_rollouts_and_their_first_bad_step():
         rt.make_step("nonlinear", None)
 
 
-def test_rotations_recover_a_rigid_rotation():
-    import jax.numpy as jnp
-
-    pts, cells = fem.box_hex_mesh((8.0, 2.0, 2.0), (4, 1, 1))
-    edges = np.asarray(mesh_edges(cells))
-    rot = _rotation(0.7) @ np.array([[1.0, 0, 0], [0, np.cos(0.3), -np.sin(0.3)], [0, np.sin(0.3), np.cos(0.3)]])
-    x = pts @ rot.T + np.array([1.0, -2.0, 0.5])
-    rotation = rt.rotations(jnp.asarray(pts, jnp.float32), jnp.asarray(edges[0]), jnp.asarray(edges[1]))
-    r = np.asarray(rotation(jnp.asarray(x, jnp.float32)))
-    np.testing.assert_allclose(r, np.broadcast_to(rot, r.shape), atol=1e-5)
-    stretched = pts * np.array([1.1, 1.0, 1.0])          # a pure stretch has no rotation
-    r = np.asarray(rotation(jnp.asarray(stretched, jnp.float32)))
-    np.testing.assert_allclose(r, np.broadcast_to(np.eye(3), r.shape), atol=1e-5)
-
-
 def test_newton_cg_step_keeps_rest_exactly_and_follows_the_linear_step_at_small_loads():
     # From rest with no force the residual is zero: the conjugate gradients must not divide 0 by 0. Under a
     # small tip load the body stays in the linear range, so one Newton step with the exact tangent lands where the
