@@ -53,15 +53,15 @@ def percentiles(ms) -> dict:
     return {"p50_ms": float(np.median(ms)), "p99_ms": float(np.percentile(ms, 99)), "mean_ms": float(ms.mean())}
 
 
-def run_scene(name: str, frames: int, warmup: int, devices: tuple = ()) -> dict:
+def run_scene(name: str, frames: int, warmup: int, devices: tuple = (), model: str | None = None) -> dict:
     from tignn_jax import scene as sc
     from tignn_jax.commands_demo import build_scene
 
-    scene, dynamics = build_scene(name, frames + warmup, devices=devices)
+    scene, dynamics = build_scene(name, frames + warmup, model, devices=devices)
     scene = scene._replace(skip_rest=False)   # every frame steps: the budget is for a body in motion
     _, t = sc.run(scene, frames=frames + warmup, warmup=warmup)
     summary = t.summary(bodies=len(scene.bodies))
-    out = {"dynamics": dynamics, "valid": dynamics.startswith("model"), "frames": summary["frames"],
+    out = {"dynamics": dynamics, "valid": not dynamics.startswith("STAND-IN"), "frames": summary["frames"],
            "nodes": int(sum(len(b.q0) for b in scene.bodies)),
            "image": [scene.camera.width, scene.camera.height], "reallocations": t.reallocations, "guard_trips": t.guard_trips,
            "fused_frames": t.fused_frames, "learned_frames": summary["learned_frames"],
@@ -276,29 +276,37 @@ def main(argv=None) -> int:
     parser.add_argument("--fusion-frames", type=int, default=200, help="timed frames per run of that comparison")
     parser.add_argument("--cores", type=int, default=None,
                         help="CPU devices for scenes of several bodies, one body per core (default: all cores)")
+    parser.add_argument("--model", default=None,
+                        help="the dynamics of every scene, as `tignn demo --model` (default: each scene's shipped "
+                             "model); 'fem-newton' runs the FEM's Newton-CG step (not learned), without the "
+                             "learned loop's XLA:CPU option, and skips the learned step's variants")
+    parser.add_argument("--tag", default="", help="results go to realtime_TAG.{json,md} (default: realtime.*)")
     args = parser.parse_args(argv)
     if args.frames < 10 or args.warmup < 1:
         raise SystemExit(f"--frames must be ≥ 10 and --warmup ≥ 1, got {args.frames} and {args.warmup}")
     from tignn_jax import scene as sc
-    flagged = sc.real_time_xla_flags()   # before JAX's first operation, as `tignn demo` does
+    from tignn_jax.commands_demo import FEM_NEWTON
+    fem = args.model == FEM_NEWTON
+    flagged = False if fem else sc.real_time_xla_flags()   # before JAX's first operation, as `tignn demo` does
     devices = sc.cpu_devices(args.cores or os.cpu_count() or 1)   # before JAX's first operation
     machine = describe()
     machine["cpu_devices"] = len(devices)
-    machine["xla_flags"] = os.environ.get("XLA_FLAGS", "") + ("" if flagged else " (set by the user)")
+    machine["xla_flags"] = os.environ.get("XLA_FLAGS", "") + (
+        " (fem-newton: the learned loop's YNNPACK option left unset)" if fem else "" if flagged else " (set by the user)")
     scenes, variants, parallel, fusion = {}, {}, {}, {}
     for name in [s for s in args.scenes.split(",") if s]:
         if name not in BUDGET_MS:
             raise SystemExit(f"unknown scene {name!r}; choose from {sorted(BUDGET_MS)}")
         print(f"scene {name}: {args.frames} frames after {args.warmup} warm-up frames ...", flush=True)
-        scenes[name] = run_scene(name, args.frames, args.warmup, devices)
-        if scenes[name]["valid"]:
+        scenes[name] = run_scene(name, args.frames, args.warmup, devices, args.model)
+        if scenes[name]["valid"] and not fem:
             variants[name] = step_variants(name, args.variant_repeats)
             if name == "two-beams":
                 parallel[name] = concurrency(name, args.variant_repeats, devices)
             if args.fusion_rounds > 0:
                 print(f"scene {name}: fused against staged loop, {args.fusion_rounds} rounds ...", flush=True)
                 fusion[name] = loop_fusion(name, args.fusion_frames, args.warmup, devices, args.fusion_rounds)
-        else:
+        elif not scenes[name]["valid"]:
             scenes[name]["untrained_model_step"] = untrained_step(name, args.variant_repeats)
     target = float(np.median([s["simulation_learned"]["p50_ms"] for s in scenes.values()])) if scenes else 8.0
     print(f"platform tail: fixed programs of about {target:.1f} ms ...", flush=True)
@@ -307,9 +315,11 @@ def main(argv=None) -> int:
     result = {"platform_jitter": jitter, "machine": machine, "frames": args.frames, "warmup": args.warmup, "scenes": scenes,
               "step_variants": variants, "concurrency": parallel, "loop_fusion": fusion, "budgets_ms": {"simulation_p50": BUDGET_MS, "frame_p50": FRAME_BUDGET_MS}}
     RESULTS.mkdir(parents=True, exist_ok=True)
-    (RESULTS / "realtime.json").write_text(json.dumps(result, indent=1))
+    result["model"] = args.model
+    stem = f"realtime_{args.tag}" if args.tag else "realtime"
+    (RESULTS / f"{stem}.json").write_text(json.dumps(result, indent=1))
     md = format_md(result)
-    (RESULTS / "realtime.md").write_text(md)
+    (RESULTS / f"{stem}.md").write_text(md)
     print(md)
     return 0
 

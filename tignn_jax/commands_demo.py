@@ -29,6 +29,10 @@ DEFAULT_MODELS = {"beam": "beam-abaqus", "two-beams": "beam-abaqus", "bunny": "b
 # the rest-linearised FEM a learned model's body is handed to when it leaves its training envelope
 # (api.fallback_step); models without one are reset to rest instead
 FALLBACKS = {"beam-abaqus": "beam-linear", "beam-abaqus-small": "beam-linear"}
+# ``--model fem-newton``: the FEM's own backward-Euler frame step (`tignn_jax.newton.fem_stepper`, 2 Newton
+# iterations of 3 CG each), not learned, on the mesh of the scene's rest-linearised model
+FEM_NEWTON = "fem-newton"
+LINEAR_OF_SCENE = {"two-beams": "beam-linear", "beam": "beam-linear", "bunny": "bunny-linear"}
 SCENES = ("two-beams", "beam", "bunny")
 
 
@@ -42,7 +46,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                         "(default: %(default)s)")
     p.add_argument("--out", default="out/demo", help="output folder (default: %(default)s)")
     p.add_argument("--frames", type=int, default=120, help="frames to play (default: %(default)s)")
-    p.add_argument("--model", default=None, help="shipped model name or path (default: per scene)")
+    p.add_argument("--model", default=None,
+                   help=f"shipped model name or path (default: per scene), or {FEM_NEWTON!r}: the FEM's own "
+                        "backward-Euler step by 2 Newton iterations of 3 CG each (tignn_jax.newton; not learned)")
     p.add_argument("--track", default=None, help="fingertip track, JSON lines (default: a synthetic press)")
     p.add_argument("--stand-in", action="store_true", help="use the stand-in dynamics even if a model exists")
     p.add_argument("--cores", type=int, default=None,
@@ -61,7 +67,8 @@ def run(args) -> int:
     cores = (os.cpu_count() or 1) if args.cores is None else args.cores
     if cores < 1:
         raise SystemExit(f"--cores must be at least 1, got {cores}")
-    sc.real_time_xla_flags()          # before JAX's first operation: XLA:CPU options of the real-time loop
+    if args.model != FEM_NEWTON:      # the FEM's step is 3x slower without YNNPACK's fusions (session 38)
+        sc.real_time_xla_flags()      # before JAX's first operation: XLA:CPU options of the learned loop
     devices = sc.cpu_devices(cores)   # before JAX's first operation: one CPU device per core
     scene, dynamics = build_scene(args.scene, args.frames, args.model, args.stand_in, devices=devices)
     if args.track:
@@ -73,7 +80,7 @@ def run(args) -> int:
     frames = []
     print(f"scene {args.scene}: {sum(len(b.q0) for b in scene.bodies)} nodes, dynamics: {dynamics}")
     _, timings = sc.run(scene, frames=args.frames, write=lambda i, rgb: frames.append(rgb))
-    suffix = "" if dynamics.startswith("model") else "_STAND-IN"
+    suffix = "_STAND-IN" if dynamics.startswith("STAND-IN") else ""
     gif = out / f"{args.scene}{suffix}.gif"
     t0 = time.perf_counter()
     imageio.mimsave(gif, frames, duration=1 / 30, loop=0)
@@ -142,7 +149,11 @@ def build_scene(name: str, frames: int, model: str | None = None, stand_in: bool
     else:
         raise ValueError(f"scene must be 'two-beams' or 'bunny', got {name!r}")
     q0 = np.asarray(q0, np.float32)
-    step_fn, dynamics, q0, units = _dynamics(model or DEFAULT_MODELS[name], stand_in, q0, cells, edges, clamped)
+    model = model or DEFAULT_MODELS[name]
+    if model == FEM_NEWTON and not stand_in:
+        step_fn, dynamics, q0, units = _fem_newton(LINEAR_OF_SCENE[name], q0)
+    else:
+        step_fn, dynamics, q0, units = _dynamics(model, stand_in, q0, cells, edges, clamped)
     if units != 1.0:   # the model's mesh is this mesh scaled (the bunny data use the scan's scale)
         poses = [np.asarray(m) @ np.diag([1 / units] * 3 + [1.0]) for m in poses]
         press_at, tip_radius = np.asarray(press_at) * units, tip_radius * units
@@ -181,9 +192,8 @@ def _dynamics(model_name, stand_in, q0, cells, edges, clamped):
         except (ValueError, FileNotFoundError, ImportError, AttributeError) as err:
             print(f"no shipped model {model_name!r} ({err}); using the STAND-IN dynamics")
         else:
-            mesh_q0 = np.asarray(params["mesh"]["q0"], np.float64)
-            units = float(np.sum(mesh_q0 * q0) / np.sum(q0 * q0)) if mesh_q0.shape == q0.shape else 0.0
-            if units > 0 and np.allclose(mesh_q0, units * q0, atol=1e-4 * max(units, 1.0) * np.abs(q0).max()):
+            mesh_q0, units = _model_units(params, q0)
+            if units > 0:
                 fn = api.stepper(params)
 
                 def step(z, forces):
@@ -198,6 +208,42 @@ def _dynamics(model_name, stand_in, q0, cells, edges, clamped):
                 return step, described, mesh_q0.astype(np.float32), units
             print(f"model {model_name!r} was trained on another mesh; using the STAND-IN dynamics")
     return stand_in_step(q0, cells, clamped), "STAND-IN spring dynamics (not the learned model)", q0, 1.0
+
+
+def _model_units(params, q0):
+    """(the model's rest positions [N,3], model units per mesh unit; 0 where the model's mesh is not ``q0``
+    scaled)."""
+    import numpy as np
+
+    mesh_q0 = np.asarray(params["mesh"]["q0"], np.float64)
+    units = float(np.sum(mesh_q0 * q0) / np.sum(q0 * q0)) if mesh_q0.shape == q0.shape else 0.0
+    if units > 0 and np.allclose(mesh_q0, units * q0, atol=1e-4 * max(units, 1.0) * np.abs(q0).max()):
+        return mesh_q0, units
+    return mesh_q0, 0.0
+
+
+def _fem_newton(linear_name, q0, iterations: int = 3, newton: int = 2):
+    """(step, description, q0 in the model's units, units) of ``--model fem-newton``: the FEM's backward-Euler
+    frame step (`newton.fem_stepper`) on the mesh of the shipped rest-linearised model ``linear_name``. Its
+    guard flags a non-finite state only (the body is then reset to rest): the FEM has no training envelope."""
+    import jax.numpy as jnp
+    import numpy as np
+
+    from tignn_jax import api, newton as nw
+
+    linear, _ = api.load_pretrained(linear_name)
+    mesh_q0, units = _model_units(linear, q0)
+    if units <= 0:
+        raise ValueError(f"{linear_name!r} is not on this scene's mesh")
+    fn = nw.fem_stepper(linear, iterations=iterations, newton=newton)
+
+    def step(z, forces):
+        return fn(z, forces)
+
+    step.guard = lambda z: ~jnp.all(jnp.isfinite(z))
+    described = (f"FEM backward Euler, {newton} Newton x {iterations} CG iterations per frame (tignn_jax.newton, "
+                 f"on {linear_name}'s mesh; not learned)")
+    return step, described, mesh_q0.astype(np.float32), units
 
 
 def stand_in_step(q0, cells, clamped, stiffness=5.0e4, damping=0.03, dt=0.05, substeps=8, modulus=9.3e5):

@@ -168,3 +168,26 @@ def fallback_step(fallback: dict, scene, iterations: int = 3, newton: int = 2, p
     norm = {k: jnp.asarray(v) for k, v in norm.items()}
     return jax.jit(newton_cg(norm, node_type, q0, force, stress, rotation, iterations, newton, predictor))
 
+
+
+def fem_scene(fallback: dict):
+    """The `fem.scenes.Scene` a rest-linearised model ``fallback`` was built from: the shipped scene (beam or
+    bunny) whose mesh is the model's, with the density and mass damping the model records (``info["fem_density"]``,
+    ``info["fem_damping"]``). ValueError where no shipped scene has the model's mesh."""
+    from fem import scenes
+
+    q0 = np.asarray(fallback["mesh"]["q0"], np.float64)
+    info = fallback.get("info", {})
+    for make in (scenes.beam_scene, scenes.bunny_scene):
+        kwargs = {k: float(info[f"fem_{k}"]) for k in ("density", "damping") if f"fem_{k}" in info}
+        scene = make(**kwargs)
+        if scene.points.shape == q0.shape and np.allclose(scene.points, q0, atol=1e-4 * np.abs(q0).max()):
+            return scene
+    raise ValueError(f"no shipped FEM scene has this model's mesh ({q0.shape[0]} nodes): build the "
+                     "fem.scenes.Scene yourself and call fallback_step(fallback, scene)")
+
+
+def fem_stepper(fallback: dict, iterations: int = 3, newton: int = 2, predictor: str = "zero"):
+    """``fallback_step`` on the FEM scene the rest-linearised model ``fallback`` was built from (`fem_scene`):
+    the FEM's own backward-Euler frame step, not learned, ``fn(z [N,12], f [N,3]) -> z_next`` (jitted)."""
+    return fallback_step(fallback, fem_scene(fallback), iterations, newton, predictor)
