@@ -84,6 +84,11 @@ IMPLICIT_VARIANTS = (("FEM implicit 20×5×5, 1 step", (20, 5, 5), 1),)
 NEWTON_VARIANTS = (("FEM Newton-CG 20×5×5, 2×3 CG", (20, 5, 5), (2, 3)),
                    ("FEM Newton-CG 20×5×5, 1×3 CG", (20, 5, 5), (1, 3)))
 BEAM_SIZE = (40.0, 10.0, 10.0)
+# XLA:CPU configurations each jitted step is compiled and timed under (per compilation, ``compiler_options``),
+# its time the faster of them: YNNPACK's fusions on (XLA's default) or off (the learned loop's option,
+# `tignn_jax.scene.REAL_TIME_XLA_FLAG`). Session 38, both cores: the shipped learned step 10.4 → 6.6 ms with them
+# off, the Newton-CG FEM step 8.5 → 27.9 ms: timing both under one process-wide setting favours one of them.
+XLA_CONFIGS = {"default": {}, "ynn-off": {"xla_cpu_experimental_ynn_fusion_type": ""}}
 
 
 # ------------------------------------------------------------------------------------------------------------
@@ -345,6 +350,33 @@ def learned_step_fns(data, sizes, shipped_params):
     return fns, (z, f)
 
 
+def compiled_configs(fn, args) -> dict:
+    """{config: the jitted ``fn`` compiled for ``args`` under each of ``XLA_CONFIGS``}."""
+    lowered = fn.lower(*args)
+    return {c: lowered.compile(compiler_options=opts) if opts else lowered.compile()
+            for c, opts in XLA_CONFIGS.items()}
+
+
+def best_config(times: dict) -> dict:
+    """{name: timing} from ``time_round_robin``'s {"name|config": timing}: each name's faster configuration, with
+    its name (``xla``) and every configuration's median (``p50_by_xla``)."""
+    out = {}
+    for key, t in times.items():
+        name, config = key.rsplit("|", 1)
+        entry = out.setdefault(name, {"p50_by_xla": {}})
+        entry["p50_by_xla"][config] = t["p50_ms"]
+        if "p50_ms" not in entry or t["p50_ms"] < entry["p50_ms"]:
+            entry.update(t, xla=config)
+    return out
+
+
+def time_configs(fns: dict, args, repeats: int, block: int = 5) -> dict:
+    """``time_round_robin`` of every jitted function compiled under each of ``XLA_CONFIGS`` (all interleaved),
+    reduced by ``best_config``."""
+    compiled = {f"{k}|{c}": fn_c for k, fn in fns.items() for c, fn_c in compiled_configs(fn, args).items()}
+    return best_config(time_round_robin(compiled, args, repeats, block))
+
+
 def time_round_robin(fns: dict, args, repeats: int, block: int = 5) -> dict:
     """Median and p90 wall time [ms] of ``repeats`` calls per function after a compiling call. Functions take
     turns in blocks of ``block`` timed calls, each block after one untimed call, so that load changes on the
@@ -502,7 +534,14 @@ def newton_frame_time(divisions, n, data, row, min_seconds: float = 3.0) -> dict
     z = jnp.concatenate([jnp.asarray(scene.points, jnp.float32), jnp.zeros((len(scene.points), 9))], 1)
     for k in range(9):
         z = step(z, f[k])
-    return {**_median_frame_ms(lambda: step(z, f[9]), min_seconds=min_seconds), "n_sub": 1, "newton": list(n)}
+    return {**_frame_ms_configs(step, (z, f[9]), min_seconds), "n_sub": 1, "newton": list(n)}
+
+
+def _frame_ms_configs(step, args, min_seconds: float) -> dict:
+    """``time_configs`` of one jitted frame step: about ``min_seconds`` of calls per configuration."""
+    one = _median_frame_ms(lambda: step(*args), min_repeats=3, min_seconds=0.0, max_repeats=3)["p50_ms"]
+    repeats = int(np.clip(1e3 * min_seconds / max(one, 1e-3), 20, 200)) // 5 * 5
+    return {**time_configs({"frame": step}, args, repeats)["frame"], "load_average_1m": round(os.getloadavg()[0], 2)}
 
 
 def _coarse_forces(data, rows, w):
@@ -570,7 +609,7 @@ def linear_frame_time(divisions, n_solves, data, row, min_seconds: float = 3.0) 
     frame, scene, w = linear_frame(divisions, n_solves)
     f = jnp.asarray(_coarse_forces(data, [row], w)[0], jnp.float32)
     z = jnp.concatenate([jnp.asarray(scene.points, jnp.float32), jnp.zeros((len(scene.points), 9))], 1)
-    return {**_median_frame_ms(lambda: frame(z, f[8], f[9]), min_seconds=min_seconds), "n_sub": n_solves}
+    return {**_frame_ms_configs(frame, (z, f[8], f[9]), min_seconds), "n_sub": n_solves}
 
 
 def implicit_frame_time(divisions, n_sub, data, row, min_seconds: float = 3.0) -> dict:
@@ -672,7 +711,7 @@ def main(argv=None) -> int:
     print("timing the learned steps", flush=True)
     sizes = [(h, p) for h in widths for p in passes]
     fns, fargs = learned_step_fns(data, sizes, shipped)
-    step_times = time_round_robin(fns, fargs, repeats)
+    step_times = time_configs(fns, fargs, repeats)
     load_learned = os.getloadavg()
     fem_times = {}
     for name, div, factor in variants:
@@ -722,7 +761,7 @@ def build_points(cache, step_times, fem_times, variants, shipped, solvers=()) ->
             points.append({"name": name, "kind": "shipped" if name == SHIPPED else "shipped-bf16",
                            "hidden": cfg["hidden"], "passes": cfg["passes"], "params": n_shipped,
                            "epochs": shipped.get("info", {}).get("train_config", {}).get("epochs"),
-                           "ms": step_times[name]["p50_ms"], **cache[name]})
+                           "ms": step_times[name]["p50_ms"], **_xla(step_times[name]), **cache[name]})
     for (h, p), integrator in LEARNED:
         key = point_key(h, p, integrator)
         if key in cache and key in step_times:
@@ -731,8 +770,8 @@ def build_points(cache, step_times, fem_times, variants, shipped, solvers=()) ->
                            "integrator": integrator,
                            "epochs": info.get("train_config", {}).get("epochs"),
                            "best_epoch": info.get("best", {}).get("epoch"),
-                           "ms": step_times[key]["p50_ms"], **{k: v for k, v in cache[key].items()
-                                                                if k != "train_info"}})
+                           "ms": step_times[key]["p50_ms"], **_xla(step_times[key]),
+                           **{k: v for k, v in cache[key].items() if k != "train_info"}})
     for name, _, factor in variants:
         if name in cache and name in fem_times:
             points.append({"name": name, "kind": "fem", "density_factor": factor,
@@ -741,8 +780,14 @@ def build_points(cache, step_times, fem_times, variants, shipped, solvers=()) ->
         if name in cache and name in fem_times:
             kind = {linear_errors: "fem-linear", newton_errors: "fem-newton"}.get(errors_fn, "fem-implicit")
             points.append({"name": name, "kind": kind, "density_factor": 1.0, "ms": fem_times[name]["p50_ms"],
-                           **cache[name]})
+                           **_xla(fem_times[name]), **cache[name]})
     return points
+
+
+def _xla(timing: dict) -> dict:
+    """The XLA:CPU configuration a point's time was taken under and every configuration's median, where timed
+    under several (`time_configs`)."""
+    return {k: timing[k] for k in ("xla", "p50_by_xla") if k in timing}
 
 
 def plot(path, points, front, result) -> None:
@@ -824,6 +869,12 @@ def findings(pts, shipped) -> list:
                                                                                   ("sigma", "σ")))
                    + ". It is the cheapest baseline here (its v suffers from backward Euler at the frame step "
                    "and the frozen rest tangent).")
+    for p in [shipped] + [q for q in fem if q["kind"] == "fem-newton"]:
+        by = p.get("p50_by_xla") or {}
+        if len(by) == 2:
+            (c1, t1), (c2, t2) = by.items()
+            out.append(f"- XLA:CPU configuration, {p['name']}: {c1} {t1:.2f} ms, {c2} {t2:.2f} ms "
+                       f"({max(t1, t2) / min(t1, t2):.2f}× in favour of {p['xla']}).")
     bf16 = next((p for p in pts if p["kind"] == "shipped-bf16"), None)
     if bf16 is not None:
         out.append(f"- bfloat16 (weights and activations) on this CPU: {bf16['ms']:.2f} ms against "
@@ -846,7 +897,11 @@ def report(result, widths, passes) -> str:
         "times are upper bounds for an idle one; the load at each FEM timing is in pareto.json). "
         f"Learned steps: median of {result['repeats']} calls after compilation, variants interleaved in blocks of "
         "5 calls (each after an untimed call). "
-        "FEM: median wall time of one 0.05 s frame (all sub-steps and the stress recovery) for one case.", "",
+        "FEM: median wall time of one 0.05 s frame (all sub-steps and the stress recovery) for one case. "
+        "Every learned step and every linearised and Newton-CG FEM frame is compiled under two XLA:CPU "
+        "configurations, YNNPACK's fusions on (XLA's default) and off (the option the learned real-time loop "
+        "runs with), timed interleaved, and its time is the faster (both medians in its notes, ms); the explicit "
+        "and the converged implicit FEM runs are timed under the default only.", "",
         "Errors: relative L2 over all 756 nodes per snapshot, mean over snapshots 1..20 and the test cases; "
         "u = q − q0, σ all nodes (clamped face included), the FEM's v = numpy.gradient of its q (the data's "
         "convention).", "",
@@ -879,6 +934,8 @@ def report(result, widths, passes) -> str:
                 note += ", element inversion"
         if not np.isfinite(p["u"]):
             note += "; rollout diverged (NaN) on a test case"
+        if p.get("p50_by_xla"):
+            note += "; XLA " + ", ".join(f"{c} {ms:.2f}" for c, ms in p["p50_by_xla"].items())
         lines.append(f"| {p['name']} | {p['ms']:.2f} | {ref / p['ms']:.0f} | {p['u']:.4f} | {p['v']:.4f} | "
                      f"{p['sigma']:.4f} | {p['sigma_free']:.4f} | {p['u_worst_case']:.4f} | "
                      f"{'**yes**' if p['on_front'] else 'no'} | "

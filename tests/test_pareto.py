@@ -137,3 +137,21 @@ def test_mixed_step_in_bfloat16_keeps_a_float32_state_near_the_float32_step():
     assert out.dtype == jnp.float32
     dz_ref, dz = ref - np.asarray(z), np.asarray(out) - np.asarray(z)
     assert np.linalg.norm(dz - dz_ref) <= 0.1 * np.linalg.norm(dz_ref)
+
+
+def test_each_step_is_timed_under_both_xla_configurations_and_keeps_the_faster():
+    # best_config picks each name's faster configuration and keeps every median; the compiled configurations
+    # compute the same step (the option changes how XLA:CPU runs it, not what)
+    times = {"a|default": {"p50_ms": 3.0, "p90_ms": 4.0}, "a|ynn-off": {"p50_ms": 2.0, "p90_ms": 2.5},
+             "b x|default": {"p50_ms": 1.0, "p90_ms": 1.1}, "b x|ynn-off": {"p50_ms": 5.0, "p90_ms": 6.0}}
+    best = pareto.best_config(times)
+    assert best["a"]["p50_ms"] == 2.0 and best["a"]["p90_ms"] == 2.5 and best["a"]["xla"] == "ynn-off"
+    assert best["b x"]["xla"] == "default" and best["b x"]["p50_by_xla"] == {"default": 1.0, "ynn-off": 5.0}
+    fn = jax.jit(lambda x, w: jnp.tanh(x @ w).sum(0))
+    args = (jnp.ones((64, 32)), jnp.full((32, 16), 0.01))
+    compiled = pareto.compiled_configs(fn, args)
+    assert set(compiled) == set(pareto.XLA_CONFIGS)
+    for c in compiled.values():
+        np.testing.assert_allclose(np.asarray(c(*args)), np.asarray(fn(*args)), rtol=1e-5)
+    timed = pareto.time_configs({"f": fn}, args, repeats=5)
+    assert set(timed) == {"f"} and set(timed["f"]["p50_by_xla"]) == set(pareto.XLA_CONFIGS)
