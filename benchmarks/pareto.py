@@ -884,6 +884,15 @@ def findings(pts, shipped) -> list:
     return out + [""]
 
 
+def shipped_verdict(shipped: dict) -> str:
+    """Where the shipped default stands on the two fronts, in words."""
+    on_u, on_uvs = shipped["on_front"], bool(shipped.get("on_front_uvs"))
+    u = "lies on the (time, u) front" if on_u else "does NOT lie on the (time, u) front"
+    if on_u == on_uvs:
+        return u + (" and on" if on_uvs else " nor on") + " the (time, u, v, σ) front"
+    return u + (" but lies on" if on_uvs else " but not on") + " the (time, u, v, σ) front"
+
+
 def report(result, widths, passes) -> str:
     pts, m = result["points"], result["machine"]
     shipped = next((p for p in pts if p["kind"] == "shipped"), None)
@@ -947,9 +956,7 @@ def report(result, widths, passes) -> str:
                   + " → ".join(result["front_uvs"]) + ".", ""]
     lines += findings(pts, shipped)
     if shipped is not None:
-        verdict = "lies on the front" if shipped["on_front"] else "does NOT lie on the (time, u) front"
-        verdict += (" and on the (time, u, v, σ) front" if shipped.get("on_front_uvs")
-                    else "; it is not on the (time, u, v, σ) front either")
+        verdict = shipped_verdict(shipped)
         within = "within" if shipped["ms"] <= BUDGET_MS[0] else "above"
         lines.append(f"The shipped default ({SHIPPED}, {shipped['ms']:.2f} ms, u {shipped['u']:.4f}) {verdict}; "
                      f"its step is {within} the {BUDGET_MS[0]:g} ms budget of one beam.")

@@ -155,3 +155,11 @@ def test_each_step_is_timed_under_both_xla_configurations_and_keeps_the_faster()
         np.testing.assert_allclose(np.asarray(c(*args)), np.asarray(fn(*args)), rtol=1e-5)
     timed = pareto.time_configs({"f": fn}, args, repeats=5)
     assert set(timed) == {"f"} and set(timed["f"]["p50_by_xla"]) == set(pareto.XLA_CONFIGS)
+
+
+def test_the_shipped_verdict_names_each_front_it_is_on_or_off():
+    # a point off the u-only front can still be on the all-error front: the text must not join them with "and"
+    assert pareto.shipped_verdict({"on_front": False, "on_front_uvs": True}) == (
+        "does NOT lie on the (time, u) front but lies on the (time, u, v, σ) front")
+    assert pareto.shipped_verdict({"on_front": True, "on_front_uvs": True}).endswith("and on the (time, u, v, σ) front")
+    assert pareto.shipped_verdict({"on_front": False, "on_front_uvs": False}).endswith("nor on the (time, u, v, σ) front")
