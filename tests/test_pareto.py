@@ -163,3 +163,18 @@ def test_the_shipped_verdict_names_each_front_it_is_on_or_off():
         "does NOT lie on the (time, u) front but lies on the (time, u, v, σ) front")
     assert pareto.shipped_verdict({"on_front": True, "on_front_uvs": True}).endswith("and on the (time, u, v, σ) front")
     assert pareto.shipped_verdict({"on_front": False, "on_front_uvs": False}).endswith("nor on the (time, u, v, σ) front")
+
+
+def test_cached_errors_of_a_model_are_stale_once_its_weights_change():
+    # errors cached for one set of weights must not be reported for another (the shipped model is retrained)
+    w = {"weights": {"a": np.ones((2, 3), np.float32), "b": [np.zeros(4, np.float32)]}}
+    fp = pareto.weights_fingerprint(w)
+    assert fp == pareto.weights_fingerprint({"weights": {"a": np.ones((2, 3), np.float32),
+                                                         "b": [np.zeros(4, np.float32)]}})
+    changed = {"weights": {"a": np.ones((2, 3), np.float32), "b": [np.array([0, 0, 1e-7, 0], np.float32)]}}
+    reshaped = {"weights": {"a": np.ones((3, 2), np.float32), "b": [np.zeros(4, np.float32)]}}
+    assert pareto.weights_fingerprint(changed) != fp and pareto.weights_fingerprint(reshaped) != fp
+    cache = {"m": {"u": 0.05, "weights_sha256": fp}, "old": {"u": 0.05}}
+    assert not pareto.stale(cache, "m", fp)
+    assert pareto.stale(cache, "m", pareto.weights_fingerprint(changed))
+    assert pareto.stale(cache, "old", fp) and pareto.stale(cache, "missing", fp)
