@@ -810,49 +810,71 @@ def _xla(timing: dict) -> dict:
 
 
 def plot(path, points, front, result) -> None:
+    """Two panels against step time, u and σ errors, each with its own (time, error) front; labels are nudged
+    apart (`spread_labels`) where points crowd, e.g. around the shipped model and the 9 ms budget."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, ax = plt.subplots(figsize=(11.5, 6))
-    ax.axvspan(*BUDGET_MS, color="C2", alpha=0.15, label=f"real-time budget {BUDGET_MS[0]:g}–{BUDGET_MS[1]:g} ms")
+    fig, axes = plt.subplots(1, 2, figsize=(15, 6.2))
     style = {"learned": ("o", "C0", "learned, equal budget"), "shipped": ("*", "C3", "shipped default (float32)"),
              "shipped-bf16": ("D", "C1", "shipped, bfloat16"), "fem": ("s", "C7", "FEM (per 0.05 s frame)"),
              "fem-linear": ("P", "C4", "FEM rest-linearised, backward Euler"),
              "fem-implicit": ("X", "C5", "FEM non-linear backward Euler"),
              "fem-newton": ("v", "C6", "FEM backward Euler, fixed Newton-CG (tignn_jax.newton)")}
-    seen = set()
-    for p in points:
-        if not np.isfinite(p["u"]):
-            continue
-        m, c, label = style[p["kind"]]
-        ax.scatter(p["ms"], p["u"], marker=m, color=c, s=160 if p["kind"] == "shipped" else 50, zorder=3,
-                   edgecolor="k", linewidth=0.5, label=None if p["kind"] in seen else label)
-        seen.add(p["kind"])
-        offset, ha = {"shipped": ((-6, 8), "right"), "shipped-bf16": ((6, -10), "left")}.get(p["kind"],
-                                                                                        ((4, 3), "left"))
-        if p["kind"] == "fem-linear" and p.get("n_sub", 1) > 1:   # beside its 1-solve twin: label below
-            offset = (4, -11)
-        ax.annotate(p["name"].replace("learned ", "").replace("FEM ", ""), (p["ms"], p["u"]), fontsize=7,
-                    xytext=offset, textcoords="offset points", ha=ha)
-    fx = [points[i]["ms"] for i in front]
-    fy = [points[i]["u"] for i in front]
-    if fx:
-        ax.step(fx, fy, where="post", color="k", lw=1, ls="--", label="Pareto front (time, u)")
+    shown = [p for p in points if np.isfinite(p["u"]) and np.isfinite(p["sigma"])]
+    for ax, key, name in ((axes[0], "u", "u = q − q0"), (axes[1], "sigma", "σ")):
+        ax.axvspan(*BUDGET_MS, color="C2", alpha=0.15, label=f"real-time budget {BUDGET_MS[0]:g}–{BUDGET_MS[1]:g} ms")
+        seen = set()
+        for p in shown:
+            m, c, label = style[p["kind"]]
+            ax.scatter(p["ms"], p[key], marker=m, color=c, s=160 if p["kind"] == "shipped" else 50, zorder=3,
+                       edgecolor="k", linewidth=0.5, label=None if p["kind"] in seen else label)
+            seen.add(p["kind"])
+        idx = front if key == "u" else pareto_front([p["ms"] for p in points], [p[key] for p in points])
+        idx = sorted(idx, key=lambda i: points[i]["ms"])
+        fx, fy = [points[i]["ms"] for i in idx], [points[i][key] for i in idx]
+        if fx:
+            ax.step(fx, fy, where="post", color="k", lw=1, ls="--", label=f"Pareto front (time, {name.split()[0]})")
+        ax.set(xscale="log", yscale="log", xlabel="wall time per step / per 0.05 s frame (ms, median, this CPU)",
+               ylabel=f"{name} relative L2 error (test, mean over 20 snapshots)")
+        ax.grid(True, which="both", alpha=0.3)
+        ax.set_xlim(right=4 * max(p["ms"] for p in shown))   # room for the slowest points' labels
     grid = result["grid_step_ms"]
     if grid:
-        ymin = min([p["u"] for p in points if np.isfinite(p["u"])] + [1.0])
-        gx = [v["p50_ms"] for v in grid.values()]
-        ax.scatter(gx, [ymin * 0.6] * len(gx), marker="|", color="C0", s=80, label="size grid, time only")
-    ax.set(xscale="log", yscale="log", xlabel="wall time per step / per 0.05 s frame (ms, median, this CPU)",
-           ylabel="u = q − q0 relative L2 error (test, mean over 20 snapshots)",
-           title=f"Beam, {len(result['test_sims'])} test cases: run time against error")
-    ax.legend(fontsize=8, loc="upper left", bbox_to_anchor=(1.01, 1.0))
-    ax.grid(True, which="both", alpha=0.3)
-    fig.tight_layout()
+        ymin = min([p["u"] for p in shown] + [1.0])
+        axes[0].scatter([v["p50_ms"] for v in grid.values()], [ymin * 0.6] * len(grid), marker="|", color="C0",
+                        s=80, label="size grid, time only")
+    fig.suptitle(f"Beam, {len(result['test_sims'])} test cases: run time against error")
+    handles, labels = axes[0].get_legend_handles_labels()
+    h2, l2 = axes[1].get_legend_handles_labels()
+    handles += [h for h, l in zip(h2, l2) if l not in labels]
+    labels += [l for l in l2 if l not in labels]
+    fig.legend(handles, labels, fontsize=8, loc="lower center", ncol=4)
+    fig.tight_layout(rect=(0, 0.12, 0.97, 1), w_pad=3)
+    fig.canvas.draw()   # labels placed in the final layout's coordinates
+    for ax, key in ((axes[0], "u"), (axes[1], "sigma")):
+        xy = ax.transData.transform([(p["ms"], p[key]) for p in shown]) * 72.0 / fig.dpi   # points
+        for p, (dx, dy) in zip(shown, spread_labels(xy)):
+            ax.annotate(p["name"].replace("learned ", "").replace("FEM ", ""), (p["ms"], p[key]), fontsize=6.5,
+                        xytext=(dx, dy), textcoords="offset points", ha="left",
+                        arrowprops=dict(arrowstyle="-", lw=0.4, color="0.5") if abs(dy) > 6 else None)
     fig.savefig(path, dpi=110)
     plt.close(fig)
+
+
+def spread_labels(xy, height: float = 9.0, width: float = 70.0) -> list:
+    """Label offsets (points) for markers at display positions ``xy`` [n, 2]: each label sits up and right of its
+    marker, moved down in steps of ``height`` while it would overlap an earlier label (by this box size)."""
+    placed, out = [], []
+    for i in np.lexsort((-xy[:, 1], xy[:, 0])):
+        x, y = xy[i, 0] + 4, xy[i, 1] + 3
+        while any(abs(x - px) < width and abs(y - py) < height for px, py in placed):
+            y -= height
+        placed.append((x, y))
+        out.append((i, (4, y - xy[i, 1])))
+    return [o for _, o in sorted(out)]
 
 
 def findings(pts, shipped) -> list:

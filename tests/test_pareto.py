@@ -178,3 +178,12 @@ def test_cached_errors_of_a_model_are_stale_once_its_weights_change():
     assert not pareto.stale(cache, "m", fp)
     assert pareto.stale(cache, "m", pareto.weights_fingerprint(changed))
     assert pareto.stale(cache, "old", fp) and pareto.stale(cache, "missing", fp)
+
+
+def test_labels_of_crowded_points_are_moved_apart_and_lone_ones_stay_beside_their_marker():
+    # three markers at one spot get three labels a line apart; a far marker keeps the default offset
+    xy = np.array([[100.0, 100.0], [101.0, 100.0], [100.5, 101.0], [600.0, 300.0]])
+    offsets = pareto.spread_labels(xy)
+    assert offsets[3] == (4, 3.0)
+    ys = sorted(xy[i, 1] + offsets[i][1] for i in range(3))
+    assert all(b - a >= 9.0 - 1e-9 for a, b in zip(ys, ys[1:]))
