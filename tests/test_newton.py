@@ -84,7 +84,7 @@ def test_the_step_keeps_rest_and_a_rigidly_turned_body_unstressed(bar):
     turned = z.copy()
     turned[:, :3] = (pts - c) @ rot.T + c
     for pred in newton.PREDICTORS:
-        step = jax.jit(newton.newton_cg(norm, free, pts, force, stress, rotation, 5, predictor=pred))
+        step = jax.jit(newton.newton_cg(norm, free, pts, force, stress, rotation, predictor=pred))   # defaults
         np.testing.assert_array_equal(np.asarray(step(jnp.asarray(z), jnp.asarray(zero))), z)
         out = np.asarray(step(jnp.asarray(turned), jnp.asarray(zero)), np.float64)
         assert np.abs(out[:, :3] - turned[:, :3]).max() < 1e-4 * np.abs(pts).max(), pred

@@ -25,10 +25,23 @@ def _bar(clamped: bool):
     return pts, node_type, problem, material, implicit.rest_linearization(problem, material), mesh_edges(cells)
 
 
-def _steps(clamped):
+# One kind per code path of the step (the kinds of one family differ only in their iteration counts): each kind
+# is a separate XLA compilation of an unrolled solve, 15-40 s apiece, and all twelve made this file the suite's
+# slowest (409 s).
+NEWTON_KINDS = ("backward Euler, 1 Newton step, 5 CG",                     # the velocity predictor
+                "backward Euler, 2 Newton steps from v' = 0, 3 CG each")   # v' = 0: tignn_jax.newton's default
+PATHS = ("linear", "exact force", "exact force, rotated solve", next(iter(rt.ITERATIONS)), *NEWTON_KINDS)
+
+
+def _steps(clamped, kinds=PATHS):
     pts, node_type, problem, material, lin, edges = _bar(clamped)
     ops = rt.scene_operators(problem, material, lin, node_type, pts, H)
-    return pts, {k: rt.make_step(k, ops, edges) for k in rt.KINDS}
+    return pts, {k: rt.make_step(k, ops, edges) for k in kinds}
+
+
+def test_the_tested_kinds_cover_every_code_path_of_the_benchmark():
+    assert set(PATHS) <= set(rt.KINDS) and set(NEWTON_KINDS) <= set(rt.NEWTON_CG)
+    assert {rt.NEWTON_CG[k][2] for k in NEWTON_KINDS} == {"velocity", "zero"}   # both predictors
 
 
 def _rotation(th):
@@ -46,7 +59,7 @@ def test_the_two_steps_agree_to_second_order_in_the_displacement():
     # changes differ by a share of the change that at least halves with the amplitude (difference O(ε²) or
     # smaller, each change ∝ ε; measured: 0.044, 0.011, 0.0021 at tip amplitudes 0.4, 0.2, 0.1 of the 8-long
     # bar, so O(ε³) for this symmetric bend; below 0.1 float32 rounding takes over).
-    pts, steps = _steps(clamped=True)
+    pts, steps = _steps(clamped=True, kinds=rt.KINDS[:2])
     bend = np.zeros_like(pts)
     bend[:, 2] = (pts[:, 0] / 8.0) ** 2
     f = np.zeros_like(pts, dtype=np.float32)
@@ -69,7 +82,7 @@ def test_a_rigid_rotation_stays_at_rest_only_with_the_exact_force():
     out = {k: np.asarray(st(z, f), np.float64) for k, st in steps.items()}
     lin = out["linear"]
     scale = np.abs(pts).max()
-    for kind in rt.KINDS[1:]:
+    for kind in PATHS[1:]:
         assert np.abs(out[kind][:, 3:6]).max() * H < 1e-4 * scale, kind      # stays where it is
         assert np.abs(out[kind][:, 6:]).max() < 1e-3 * C10, kind              # and unstressed
     assert np.abs(lin[:, 3:6]).max() * H > 1e-3 * scale          # the linear step moves it (2.4e-2 per step)
@@ -91,13 +104,13 @@ def test_newton_cg_step_keeps_rest_exactly_and_follows_the_linear_step_at_small_
     # From rest with no force the residual is zero: the conjugate gradients must not divide 0 by 0. Under a
     # small tip load the body stays in the linear range, so one Newton step with the exact tangent lands where the
     # rest-linearised backward-Euler step does (to 1 % of its velocity change).
-    pts, steps = _steps(clamped=True)
+    pts, steps = _steps(clamped=True, kinds=("linear", *NEWTON_KINDS))
     z, f = _state(pts), np.zeros_like(pts, dtype=np.float32)
-    for kind in rt.NEWTON_CG:
+    for kind in NEWTON_KINDS:
         np.testing.assert_array_equal(np.asarray(steps[kind](z, f)), z)
     f[np.argmax(pts[:, 0]), 2] = -10.0
     lin = np.asarray(steps["linear"](z, f), np.float64)
-    for kind in rt.NEWTON_CG:
+    for kind in NEWTON_KINDS:
         out = np.asarray(steps[kind](z, f), np.float64)
         assert np.all(np.isfinite(out))
         assert np.linalg.norm(out[:, 3:6] - lin[:, 3:6]) < 0.01 * np.linalg.norm(lin[:, 3:6]), kind
