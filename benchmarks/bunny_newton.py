@@ -27,7 +27,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _machine import describe  # noqa: E402
-from pareto import time_configs  # noqa: E402
+from pareto import time_configs, xla_fields  # noqa: E402
 
 RESULTS = Path(__file__).resolve().parent / "results"
 VARIANTS = ((1, 3), (2, 3), (2, 5))   # (Newton iterations, CG iterations each)
@@ -41,10 +41,11 @@ def rollout(step, z0, forces):
     return np.asarray(jnp.stack(zs))
 
 
-def errors(step, data: dict, rows) -> dict:
+def errors(step, data, rows) -> dict:
+    """Mean errors of ``step``'s rollouts of the cases ``rows`` of ``data`` (`tignn_jax.data.Dataset`)."""
     from tignn_jax.evaluate import relative_errors
 
-    e = np.stack([relative_errors(rollout(step, data["z"][c, 0], data["f"][c]), data["z"][c], data["q0"])[1:]
+    e = np.stack([relative_errors(rollout(step, data.z[c, 0], data.f[c]), data.z[c], data.q0)[1:]
                   for c in rows])                                   # [cases, T, (q, v, σ, u)]
     mean = e.mean(axis=(0, 1))
     return {"u": float(mean[3]), "v": float(mean[1]), "sigma": float(mean[2]), "q": float(mean[0]),
@@ -60,13 +61,10 @@ def main(argv=None) -> int:
     if not Path(args.data).exists():
         raise SystemExit(f"no data file {args.data}: generate it with the command in this script's docstring")
     from tignn_jax import api, newton
+    from tignn_jax import data as D
 
-    raw = np.load(args.data)
-    data = {k: raw[k] for k in ("z", "f", "q0", "sim_id")}
-    key = f"split_{args.split}"
-    if key not in raw.files:
-        raise SystemExit(f"{args.data} has no {key}")
-    rows = [int(np.nonzero(data["sim_id"] == s)[0][0]) for s in np.asarray(raw[key])]
+    data = D.load(args.data)
+    rows = D.split_rows(data, args.split)
     linear, _ = api.load_pretrained("bunny-linear")
     steps = {"bunny-linear (rest-linearised, 1 solve)": api.stepper(linear)}
     for n, k in VARIANTS:
@@ -75,13 +73,13 @@ def main(argv=None) -> int:
     for name, step in steps.items():
         print(f"errors: {name}", flush=True)
         points[name] = errors(step, data, rows)
-    args_t = (jnp.asarray(data["z"][rows[0], 10]), jnp.asarray(data["f"][rows[0], 10]))
+    args_t = (jnp.asarray(data.z[rows[0], 10]), jnp.asarray(data.f[rows[0], 10]))
     print("timing", flush=True)
     times = time_configs(steps, args_t, args.repeats)
     for name in points:
-        points[name].update(ms=times[name]["p50_ms"], xla=times[name]["xla"], p50_by_xla=times[name]["p50_by_xla"])
+        points[name].update(ms=times[name]["p50_ms"], **xla_fields(times[name]))
     result = {"machine": describe(), "data": args.data, "split": args.split,
-              "sims": data["sim_id"][rows].tolist(), "points": points}
+              "sims": data.sim_id[rows].tolist(), "points": points}
     RESULTS.mkdir(parents=True, exist_ok=True)
     (RESULTS / "bunny_newton.json").write_text(json.dumps(result, indent=1))
     md = report(result)

@@ -780,7 +780,7 @@ def build_points(cache, step_times, fem_times, variants, shipped, solvers=()) ->
             points.append({"name": name, "kind": "shipped" if name == SHIPPED else "shipped-bf16",
                            "hidden": cfg["hidden"], "passes": cfg["passes"], "params": n_shipped,
                            "epochs": shipped.get("info", {}).get("train_config", {}).get("epochs"),
-                           "ms": step_times[name]["p50_ms"], **_xla(step_times[name]), **cache[name]})
+                           "ms": step_times[name]["p50_ms"], **xla_fields(step_times[name]), **cache[name]})
     for (h, p), integrator in LEARNED:
         key = point_key(h, p, integrator)
         if key in cache and key in step_times:
@@ -789,7 +789,7 @@ def build_points(cache, step_times, fem_times, variants, shipped, solvers=()) ->
                            "integrator": integrator,
                            "epochs": info.get("train_config", {}).get("epochs"),
                            "best_epoch": info.get("best", {}).get("epoch"),
-                           "ms": step_times[key]["p50_ms"], **_xla(step_times[key]),
+                           "ms": step_times[key]["p50_ms"], **xla_fields(step_times[key]),
                            **{k: v for k, v in cache[key].items() if k != "train_info"}})
     for name, _, factor in variants:
         if name in cache and name in fem_times:
@@ -799,11 +799,11 @@ def build_points(cache, step_times, fem_times, variants, shipped, solvers=()) ->
         if name in cache and name in fem_times:
             kind = {linear_errors: "fem-linear", newton_errors: "fem-newton"}.get(errors_fn, "fem-implicit")
             points.append({"name": name, "kind": kind, "density_factor": 1.0, "ms": fem_times[name]["p50_ms"],
-                           **_xla(fem_times[name]), **cache[name]})
+                           **xla_fields(fem_times[name]), **cache[name]})
     return points
 
 
-def _xla(timing: dict) -> dict:
+def xla_fields(timing: dict) -> dict:
     """The XLA:CPU configuration a point's time was taken under and every configuration's median, where timed
     under several (`time_configs`)."""
     return {k: timing[k] for k in ("xla", "p50_by_xla") if k in timing}

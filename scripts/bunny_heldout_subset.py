@@ -14,19 +14,17 @@ from pathlib import Path
 import numpy as np
 
 
+# the keys with one entry per case (README's data-set table); every other key describes the mesh or the set
+PER_CASE = ("f", "v_solver", "sim_id", "newton_residual", "newton_iterations")
+
+
 def subset(path: str, split: str, out: Path) -> None:
     raw = np.load(path, allow_pickle=False)
     ids = np.asarray(raw[f"split_{split}"])
     rows = np.array([int(np.nonzero(raw["sim_id"] == s)[0][0]) for s in ids])
-    n_cases = raw["z"].shape[0]
     out.mkdir(parents=True, exist_ok=True)
     np.save(out / f"{split}_z.npy", raw["z"][rows])
-    rest = {}
-    for k in raw.files:
-        if k == "z":
-            continue
-        a = raw[k]
-        rest[k] = a[rows] if a.ndim and a.shape[0] == n_cases and k not in ("q0", "node_type") else a
+    rest = {k: raw[k][rows] if k in PER_CASE else raw[k] for k in raw.files if k != "z"}
     rest[f"split_{split}"] = ids
     for other in ("train", "val", "test"):
         if other != split:

@@ -4,6 +4,8 @@ from pathlib import Path
 
 import numpy as np
 
+from tignn_jax import data as D
+
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "benchmarks"))
 sys.path.insert(0, str(ROOT / "scripts"))
@@ -19,8 +21,9 @@ def _moving_cases(n_cases=3, frames=4, nodes=5, seed=0):
     k = np.arange(frames + 1)[None, :, None, None]
     z = np.concatenate([q0 + k * d[:, None], np.broadcast_to(d[:, None], (n_cases, frames + 1, nodes, 3)),
                         k * s[:, None]], -1).astype(np.float32)
-    return {"z": z, "f": np.zeros((n_cases, frames, nodes, 3), np.float32), "q0": q0.astype(np.float32),
-            "sim_id": np.arange(1, n_cases + 1, dtype=np.int32)}, z[:, 1] - z[:, 0]
+    return D.Dataset(q0=q0.astype(np.float32), edges=np.zeros((2, 0), np.int32), node_type=np.zeros(nodes, np.int8),
+                     z=z, f=np.zeros((n_cases, frames, nodes, 3), np.float32), dt=0.05,
+                     sim_id=np.arange(1, n_cases + 1, dtype=np.int32), splits={}), z[:, 1] - z[:, 0]
 
 
 def test_a_step_that_replays_the_data_has_zero_error_and_one_that_overshoots_by_a_tenth_errs_by_a_tenth():
@@ -37,13 +40,14 @@ def test_a_split_subset_merges_back_to_the_same_rows_of_the_data_set(tmp_path):
     # per-case arrays keep the split's rows; mesh arrays (q0, node_type, edges) are kept whole
     data, _ = _moving_cases(n_cases=4)
     full = tmp_path / "full.npz"
-    np.savez(full, **data, node_type=np.zeros(5, np.int8), edges=np.zeros((2, 6), np.int32), dt=np.float64(0.05),
-             v_solver=data["z"][..., 3:6], split_train=np.array([1, 3]), split_test=np.array([4, 2]))
+    np.savez(full, z=data.z, f=data.f, q0=data.q0, sim_id=data.sim_id, node_type=np.zeros(5, np.int8),
+             edges=np.zeros((2, 6), np.int32), dt=np.float64(0.05), v_solver=data.z[..., 3:6],
+             split_train=np.array([1, 3]), split_test=np.array([4, 2]))
     bunny_heldout_subset.main([str(full), "--split", "test", "--out", str(tmp_path / "parts")])
     bunny_heldout_subset.main(["--merge", str(tmp_path / "parts"), "--split", "test", "--out", str(tmp_path / "t.npz")])
     sub = np.load(tmp_path / "t.npz")
     np.testing.assert_array_equal(sub["sim_id"], [4, 2])
-    np.testing.assert_array_equal(sub["z"], data["z"][[3, 1]])
-    np.testing.assert_array_equal(sub["v_solver"], data["z"][[3, 1]][..., 3:6])
-    np.testing.assert_array_equal(sub["q0"], data["q0"])
+    np.testing.assert_array_equal(sub["z"], data.z[[3, 1]])
+    np.testing.assert_array_equal(sub["v_solver"], data.z[[3, 1]][..., 3:6])
+    np.testing.assert_array_equal(sub["q0"], data.q0)
     assert sub["node_type"].shape == (5,) and "split_train" not in sub.files
