@@ -234,8 +234,6 @@ def linear_model(like: dict, scene, damping: float | None = None) -> tuple[dict,
     import time
 
     from fem import implicit, scenes
-    from tignn_jax import api
-    from tignn_jax import model as M
 
     q0 = np.asarray(like["mesh"]["q0"], np.float64)
     if q0.shape != scene.points.shape or not np.allclose(q0, scene.points, atol=1e-4 * np.abs(q0).max()):
@@ -248,9 +246,27 @@ def linear_model(like: dict, scene, damping: float | None = None) -> tuple[dict,
     t0 = time.perf_counter()
     lin = implicit.rest_linearization(scenes.setup_scene(scene), scene.material)
     seconds = time.perf_counter() - t0
+    mat = scene.material
+    info = {"kind": "rest-linearised FEM (not learned)", "scene": scene.name, "linearisation_s": round(seconds, 1),
+            "fem_damping": float(scene.damping), "fem_density": float(mat.density),
+            "material": {"c10": float(mat.c10), "c01": float(mat.c01), "d1": float(mat.d1)},
+            "velocity": like.get("info", {}).get("velocity", "gradient")}
+    return model_from_operators(like, lin, scene.frame_dt), info
+
+
+def model_from_operators(like: dict, lin, frame_dt: float) -> dict:
+    """A ``frame_solve`` + ``linear_prior`` model whose GENERIC network has every weight at zero, so that its
+    step is exactly backward Euler of the linear dynamics ``lin`` (a `fem.implicit.RestLinearization`: the FEM's
+    rest linearisation, or operators learned by `tignn_jax.linear_generic`), on the mesh and with the
+    normalisation of the model ``like``."""
+    from tignn_jax import api
+    from tignn_jax import model as M
+
+    q0 = np.asarray(like["mesh"]["q0"], np.float64)
+    node_type = np.asarray(like["mesh"]["node_type"])
     norm = {k: np.asarray(v, np.float32) for k, v in like["norm"].items() if k not in DERIVED}
     norm.update({k: np.asarray(v, np.float32) for k, v in norm_entries(lin).items()})
-    norm["dt"] = np.array([scene.frame_dt], np.float32)
+    norm["dt"] = np.array([frame_dt], np.float32)
     # the zero network's own architecture, not the parent's: options that act with zero weights (force_port's
     # unit gain, an integrator other than the W-method, a convex model's brackets) would change the linear map
     config = M.ModelConfig(hidden=8, passes=2, frame_solve=True, linear_prior=True)
@@ -260,10 +276,5 @@ def linear_model(like: dict, scene, damping: float | None = None) -> tuple[dict,
     weights = M.init_weights(jax.random.PRNGKey(0), config, shell["norm"], z, jnp.zeros((len(q0), 3)),
                              jnp.asarray(node_type), shell["topo"])
     weights = jax.tree_util.tree_map(jnp.zeros_like, weights)   # the network's rate is exactly zero
-    mat = scene.material
-    info = {"kind": "rest-linearised FEM (not learned)", "scene": scene.name, "linearisation_s": round(seconds, 1),
-            "fem_damping": float(scene.damping), "fem_density": float(mat.density),
-            "material": {"c10": float(mat.c10), "c01": float(mat.c01), "d1": float(mat.d1)},
-            "velocity": like.get("info", {}).get("velocity", "gradient")}
     # the shell's normalisation already holds the dense A₀⁻¹: reused, not inverted a second time
-    return api.make_params(config, shell["norm"], weights, q0, edges, node_type), info
+    return api.make_params(config, shell["norm"], weights, q0, edges, node_type)

@@ -1,0 +1,147 @@
+"""Train, pack and evaluate the learned linear GENERIC bunny (`tignn_jax.linear_generic`).
+
+    python scripts/linear_generic.py train --data data/bunny.npz --run runs/lg        # resumable
+    python scripts/linear_generic.py pack --data data/bunny.npz --run runs/lg --out tignn_jax/models/bunny
+    python scripts/linear_generic.py evaluate --model tignn_jax/models/bunny --data data/bunny_test.npz --split test
+
+``train`` fits whole 20-frame rollouts of the training positions (full batch, float64), validating every
+``--val-every`` steps; ``pack`` writes the best parameters as a model in the ``frame_solve`` format (its network
+zero: the learned part is the operators) with their training record; ``evaluate`` rolls the packed model out
+through the public `tignn_jax.rollout` (float32, as a user runs it) and prints the cards' errors.
+
+The training split is the shipped bunny models': positions 1–80 less the nine (1, 8, 12, 21, 34, 50, 58, 61, 79)
+that `runs/r3.train_ids` left out, val 81–90, test 91–100.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+LEFT_OUT = (1, 8, 12, 21, 34, 50, 58, 61, 79)
+TRAIN_IDS = tuple(i for i in range(1, 81) if i not in LEFT_OUT)
+VAL_IDS = tuple(range(81, 91))
+
+
+def config_from(args):
+    from tignn_jax.linear_generic import LinearConfig
+
+    return LinearConfig(hidden=args.hidden, mu=args.mu, kappa=args.kappa, density=args.density, alpha=args.alpha)
+
+
+def cmd_train(args) -> int:
+    import jax
+    jax.config.update("jax_enable_x64", True)
+    from tignn_jax import data as D
+    from tignn_jax import linear_generic as LG
+
+    data = D.load(args.data)
+    rows_tr = D.split_rows(data, list(TRAIN_IDS))
+    rows_va = D.split_rows(data, list(VAL_IDS))
+    run = Path(args.run)
+    run.mkdir(parents=True, exist_ok=True)
+    config = config_from(args)
+    (run / "config.json").write_text(json.dumps({"config": config._asdict(), "steps": args.steps, "lr": args.lr,
+                                                 "seed": args.seed, "data": str(args.data),
+                                                 "train_ids": TRAIN_IDS, "val_ids": VAL_IDS}, indent=1))
+    t0 = time.perf_counter()
+    best = LG.train(args.data, rows_tr, rows_va, run, config, steps=args.steps, lr=args.lr, seed=args.seed,
+                    val_every=args.val_every)
+    print(json.dumps({"best": best, "seconds_this_run": round(time.perf_counter() - t0, 1)}))
+    return 0
+
+
+def cmd_pack(args) -> int:
+    import jax
+    jax.config.update("jax_enable_x64", True)
+    from flax import serialization
+
+    from tignn_jax import api
+    from tignn_jax import data as D
+    from tignn_jax import framesolve as FS
+    from tignn_jax import linear_generic as LG
+    from tignn_jax.linear_generic import LinearConfig
+
+    run = Path(args.run)
+    saved = json.loads((run / "config.json").read_text())
+    config = LinearConfig(**saved["config"])
+    data = D.load(args.data)
+    with np.load(args.data, allow_pickle=False) as raw:
+        cells = raw["cells"]
+    geo = LG.geometry(data.q0, data.edges, cells, data.node_type)
+    params = serialization.from_bytes(LG.init(config, geo), (run / "best.msgpack").read_bytes())
+    lin = LG.to_rest_linearization(params, geo, config)
+    like, _ = api.load_pretrained(args.like)
+    model = FS.model_from_operators(like, lin, float(data.dt))
+    records = [json.loads(x) for x in (run / "metrics.jsonl").read_text().splitlines()]
+    best = min(records, key=lambda r: r["val_loss"])
+    info = {"kind": "learned linear GENERIC operators (tignn_jax.linear_generic), backward Euler",
+            "scene": "bunny", "learned": {"density": best["density"], "alpha": best["alpha"]},
+            "training": {**{k: saved[k] for k in ("steps", "lr", "seed", "train_ids", "val_ids")},
+                         "config": saved["config"], "best_step": best["step"], "val": best["val"]},
+            "velocity": like.get("info", {}).get("velocity", "solver")}
+    path = api.save_model(model, Path(args.out) / "model.npz", info)
+    print(f"wrote {path} ({path.stat().st_size / 1e6:.2f} MB); K blocks {len(lin.k_rows)}, S blocks {len(lin.s_rows)}")
+    return 0
+
+
+def cmd_evaluate(args) -> int:
+    import tignn_jax
+    from tignn_jax import data as D
+    from tignn_jax.evaluate import relative_errors
+
+    params, graph = tignn_jax.load_pretrained(args.model)
+    data = D.load(args.data)
+    rows = D.split_rows(data, args.split)
+    errs = []
+    for r in rows:
+        pred = np.asarray(tignn_jax.rollout(params, graph, data.f[r]))
+        errs.append(relative_errors(pred, data.z[r], data.q0)[1:])
+    e = np.stack(errs)                                   # [cases, T, (q, v, σ, u)]
+    out = {"model": args.model, "data": args.data, "split": args.split, "cases": len(rows),
+           "mean": dict(zip(("q", "v", "sigma", "u"), e.mean(axis=(0, 1)).round(5).tolist())),
+           "median": dict(zip(("q", "v", "sigma", "u"), np.median(e, axis=(0, 1)).round(5).tolist())),
+           "finite": bool(np.isfinite(e).all())}
+    print(json.dumps(out))
+    if args.out:
+        Path(args.out).write_text(json.dumps(out, indent=1))
+    return 0
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    sub = ap.add_subparsers(dest="cmd", required=True)
+    tr = sub.add_parser("train", help="fit the operators to the training positions' rollouts (resumable)")
+    tr.add_argument("--data", required=True, help="the bunny data set (tignn generate bunny ...; README)")
+    tr.add_argument("--run", required=True, help="run folder (metrics.jsonl, ckpt.msgpack, best.msgpack)")
+    tr.add_argument("--steps", type=int, default=300)
+    tr.add_argument("--lr", type=float, default=3e-3)
+    tr.add_argument("--seed", type=int, default=0)
+    tr.add_argument("--val-every", type=int, default=10)
+    tr.add_argument("--hidden", type=int, default=32, help="width of the coefficient networks")
+    tr.add_argument("--mu", type=float, default=1.0, help="initial shear modulus scale (learned)")
+    tr.add_argument("--kappa", type=float, default=10.0, help="initial bulk modulus scale (learned)")
+    tr.add_argument("--density", type=float, default=1e-3, help="initial density scale (learned)")
+    tr.add_argument("--alpha", type=float, default=1.0, help="initial mass damping scale (learned)")
+    pk = sub.add_parser("pack", help="write the best parameters as a model folder")
+    pk.add_argument("--data", required=True, help="a data file of the same mesh (its cells give the volumes)")
+    pk.add_argument("--run", required=True)
+    pk.add_argument("--like", default="bunny-linear", help="the model whose mesh and normalisation to use")
+    pk.add_argument("--out", required=True)
+    ev = sub.add_parser("evaluate", help="rollout errors of a packed model through tignn_jax.rollout")
+    ev.add_argument("--model", required=True)
+    ev.add_argument("--data", required=True)
+    ev.add_argument("--split", default="test")
+    ev.add_argument("--out", help="write the errors as JSON here")
+    args = ap.parse_args(argv)
+    return {"train": cmd_train, "pack": cmd_pack, "evaluate": cmd_evaluate}[args.cmd](args)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

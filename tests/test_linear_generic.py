@@ -1,0 +1,195 @@
+"""The learned linear GENERIC model (`tignn_jax.linear_generic`): its operators' structure, its backward-Euler
+rollout, training with resume, and its packing into the frame_solve model format."""
+import json
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from fem.mesh import box_hex_mesh, hex_to_tet
+from fem.meshes import mesh_edges
+from tignn_jax import linear_generic as LG
+
+
+@pytest.fixture(autouse=True)
+def x64():
+    jax.config.update("jax_enable_x64", True)
+    yield
+    jax.config.update("jax_enable_x64", False)
+
+
+def bar():
+    """A clamped 4×1×1 tet bar (2×1×1 cells of 2 per side, each hex split into tets)."""
+    pts, hexes = box_hex_mesh(size=(4.0, 1.0, 1.0), divisions=(4, 1, 1))
+    cells = hex_to_tet(hexes)
+    edges = mesh_edges(cells)
+    edges = np.concatenate([edges, edges[::-1]], axis=1) if not _both_directions(edges) else edges
+    node_type = (pts[:, 0] < 1e-9).astype(np.int32)
+    return pts, edges, cells, node_type
+
+
+def _both_directions(edges):
+    pairs = set(zip(*map(tuple, edges)))
+    return all((b, a) in pairs for a, b in pairs)
+
+
+def random_params(config, geo, seed=1):
+    """Parameters with every head randomised, so the checks hold for any learned state, not just the start."""
+    p = LG.init(config, geo, seed)
+    keys = jax.random.split(jax.random.PRNGKey(seed), 64)
+    leaves, tree = jax.tree_util.tree_flatten(p)
+    leaves = [x + 0.3 * jax.random.normal(k, jnp.shape(x)) for x, k in zip(leaves, keys)]
+    return jax.tree_util.tree_unflatten(tree, leaves)
+
+
+def operators(config, geo, params):
+    ga = LG.geometry_arrays(geo)
+    ops = LG.operators(params["net"], ga, geo.h, config, params)
+    k_local, s_local = LG.local_blocks(ops, ga, geo.h)
+    K = np.asarray(LG.dense_stiffness(k_local, LG.local_dofs(ga), geo.nbr.shape[0]))
+    return ops, ga, K
+
+
+def rigid_and_uniform(pts):
+    """Displacement fields [k, N, 3]: three translations, three infinitesimal rotations, one uniform strain."""
+    fields = [np.broadcast_to(e, pts.shape) for e in np.eye(3)]
+    fields += [np.cross(w, pts - pts.mean(0)) for w in np.eye(3)]
+    return np.stack(fields), pts @ np.array([[1e-3, 2e-4, 0], [2e-4, -5e-4, 1e-4], [0, 1e-4, 3e-4]]).T
+
+
+def test_gradient_weights_reproduce_linear_fields():
+    # a uniform gradient must be read exactly at every node, for the least-squares start and for any learned one
+    pts, edges, cells, node_type = bar()
+    geo = LG.geometry(pts, edges, cells, node_type)
+    config = LG.LinearConfig(hidden=8)
+    ops, ga, _ = operators(config, geo, random_params(config, geo))
+    A = np.array([[0.3, -0.1, 0.2], [0.05, 0.4, -0.2], [0.1, 0.0, -0.3]])
+    u = pts @ A.T
+    for g in (np.asarray(ga["g_ls"]) / geo.h, np.asarray(ops.g), np.asarray(ops.gs)):
+        grads = np.stack([LG._gradient(np.concatenate([u[i:i + 1], u[geo.nbr[i]]]), g[i]) for i in range(len(pts))])
+        assert np.abs(grads - A).max() < 1e-10
+
+
+def test_stiffness_is_symmetric_psd_and_free_of_rigid_motions():
+    # K = Σ B_iᵀB_i: symmetric PSD; rigid translations and rotations store no energy, a uniform strain does
+    pts, edges, cells, node_type = bar()
+    geo = LG.geometry(pts, edges, cells, node_type)
+    config = LG.LinearConfig(hidden=8)
+    _, _, K = operators(config, geo, random_params(config, geo))
+    assert np.abs(K - K.T).max() <= 1e-12 * np.abs(K).max()
+    assert np.linalg.eigvalsh(K).min() >= -1e-10 * np.abs(K).max()
+    rigid, strain = rigid_and_uniform(pts)
+    for u in rigid:
+        assert np.abs(K @ u.reshape(-1)).max() <= 1e-10 * np.abs(K).max() * np.abs(u).max()
+    assert strain.reshape(-1) @ K @ strain.reshape(-1) > 0
+
+
+def test_stress_is_zero_for_rigid_motions_and_isotropic_for_a_uniform_strain():
+    # σ = 2μˢ dev ε + κˢ tr ε I: no stress for a rigid motion, the linear-elastic stress for a uniform strain
+    pts, edges, cells, node_type = bar()
+    geo = LG.geometry(pts, edges, cells, node_type)
+    config = LG.LinearConfig(hidden=8)
+    ops, ga, _ = operators(config, geo, random_params(config, geo))
+    rigid, strain = rigid_and_uniform(pts)
+    for u in rigid:
+        assert np.abs(np.asarray(LG.nodal_stress(jnp.asarray(u), ops, ga))).max() < 1e-10
+    sig = np.asarray(LG.nodal_stress(jnp.asarray(strain), ops, ga))
+    eps = np.array([[1e-3, 2e-4, 0], [2e-4, -5e-4, 1e-4], [0, 1e-4, 3e-4]])
+    tr = np.trace(eps)
+    for i in range(len(pts)):
+        s = 2 * float(ops.mu_s[i]) * (eps - tr / 3 * np.eye(3)) + float(ops.kappa_s[i]) * tr * np.eye(3)
+        assert np.allclose(sig[i], [s[a, b] for a, b in LG.VOIGT], rtol=1e-9, atol=1e-14)
+
+
+def test_rollout_solves_backward_euler_and_keeps_clamps():
+    # each frame satisfies M (v' − v)/Δt = f − K u' − αM v', u' = u + Δt v' on the free nodes; clamps stay put
+    pts, edges, cells, node_type = bar()
+    geo = LG.geometry(pts, edges, cells, node_type)
+    config = LG.LinearConfig(hidden=8, mu=1.0, kappa=20.0, density=1.0, alpha=2.0)
+    params = random_params(config, geo)
+    ops, ga, K = operators(config, geo, params)
+    forces = np.zeros((1, 6, len(pts), 3))
+    forces[0, :, pts[:, 0] > 3.9, 2] = -0.1
+    u, v, _ = LG.rollout(ops, ga, geo.h, jnp.asarray(forces), 0.05)
+    u, v = np.asarray(u)[0], np.asarray(v)[0]
+    free = np.repeat(node_type == 0, 3)
+    m3, dt, a = np.repeat(np.asarray(ops.mass), 3), 0.05, float(ops.alpha)
+    u_prev, v_prev = np.zeros(3 * len(pts)), np.zeros(3 * len(pts))
+    for k in range(6):
+        uk, vk = u[k].reshape(-1), v[k].reshape(-1)
+        res = m3 * (vk - v_prev) / dt - forces[0, k].reshape(-1) + K @ uk + a * m3 * vk
+        assert np.abs(res[free]).max() < 1e-9 * np.abs(forces).max()
+        assert np.allclose(uk, u_prev + dt * vk, atol=1e-12)
+        u_prev, v_prev = uk, vk
+    assert np.abs(u[:, node_type != 0]).max() == 0.0
+    assert np.abs(u).max() > 1e-4
+
+
+def synthetic(tmp_path, pts, edges, cells, node_type, cases=4, frames=5):
+    """A data file made by a hidden linear GENERIC model (other moduli than the fit's start) under tip loads."""
+    geo = LG.geometry(pts, edges, cells, node_type)
+    truth = LG.LinearConfig(hidden=8, mu=2.0, kappa=30.0, density=1.5, alpha=3.0)
+    tp = LG.init(truth, geo, seed=7)
+    ops = LG.operators(tp["net"], LG.geometry_arrays(geo), geo.h, truth, tp)
+    rng = np.random.default_rng(0)
+    forces = np.zeros((cases, frames, len(pts), 3))
+    tip = np.where(pts[:, 0] > 3.9)[0]
+    for c in range(cases):
+        forces[c, :, tip] = rng.normal(size=3) * 0.2 * np.linspace(0.2, 1.0, frames)[None, :, None]
+    u, v, s = LG.rollout(ops, LG.geometry_arrays(geo), geo.h, jnp.asarray(forces), 0.05)
+    z = np.concatenate([pts + np.asarray(u), np.asarray(v), np.asarray(s)], -1)
+    z = np.concatenate([np.concatenate([np.broadcast_to(pts, (cases, 1) + pts.shape),
+                                        np.zeros((cases, 1, len(pts), 9))], -1), z], axis=1)
+    path = tmp_path / "lin.npz"
+    np.savez(path, z=z.astype(np.float32), f=forces.astype(np.float32), q0=pts, edges=edges,
+             node_type=node_type.astype(np.int8), dt=np.array(0.05), cells=cells, cell_type=np.array("tetra"),
+             sim_id=np.arange(1, cases + 1), metadata=np.array(json.dumps({"scene": "synthetic"})))
+    return path
+
+
+def test_training_fits_a_hidden_linear_model_and_resumes_to_the_same_result(tmp_path):
+    # the fit moves from the wrong moduli towards the hidden model's, and a run cut in two ends where one run does
+    pts, edges, cells, node_type = bar()
+    path = synthetic(tmp_path, pts, edges, cells, node_type)
+    config = LG.LinearConfig(hidden=8, mu=1.0, kappa=10.0, density=1.0, alpha=1.0)
+    one = LG.train(path, [0, 1, 2], [3], tmp_path / "one", config, steps=40, lr=3e-2, val_every=10, progress=False)
+    records = [json.loads(x) for x in (tmp_path / "one" / "metrics.jsonl").read_text().splitlines()]
+    assert records[-1]["train_loss"] < 0.5 * records[0]["train_loss"]
+    LG.train(path, [0, 1, 2], [3], tmp_path / "two", config, steps=40, lr=3e-2, val_every=10, progress=False,
+             until=20)
+    LG.train(path, [0, 1, 2], [3], tmp_path / "two", config, steps=40, lr=3e-2, val_every=10, progress=False)
+    again = [json.loads(x) for x in (tmp_path / "two" / "metrics.jsonl").read_text().splitlines()]
+    assert again[-1]["step"] == 40
+    assert np.isclose(again[-1]["train_loss"], records[-1]["train_loss"], rtol=1e-6)
+    assert one["val_loss"] < records[0]["val_loss"]
+
+
+def test_packed_model_steps_like_the_learned_operators(tmp_path):
+    # the frame_solve format carries the learned K, S, masses and α: the public step reproduces the rollout
+    from tignn_jax import api
+    from tignn_jax import framesolve as FS
+    from tignn_jax import model as M
+
+    pts, edges, cells, node_type = bar()
+    geo = LG.geometry(pts, edges, cells, node_type)
+    config = LG.LinearConfig(hidden=8, mu=1.0, kappa=20.0, density=1.0, alpha=2.0)
+    params = random_params(config, geo)
+    lin = LG.to_rest_linearization(params, geo, config)
+    from tignn_jax import data as D
+
+    norm = D.normalization(D.load(synthetic(tmp_path, pts, edges, cells, node_type)), np.arange(4))
+    like = api.make_params(M.ModelConfig(hidden=8, passes=1), norm, None, pts, edges, node_type)
+    like["norm"] = {k: np.asarray(v) for k, v in like["norm"].items()}
+    model = FS.model_from_operators(like, lin, 0.05)
+    forces = np.zeros((5, len(pts), 3), np.float32)
+    forces[:, pts[:, 0] > 3.9, 1] = 0.05
+    _, graph = api.load_pretrained(api.save_model(model, tmp_path / "m" / "model.npz"))
+    states = np.asarray(api.rollout(api.load_model(tmp_path / "m" / "model.npz"), graph, forces))
+    ops, ga, _ = operators(config, geo, params)
+    u, v, s = (np.asarray(x)[0] for x in LG.rollout(ops, ga, geo.h, jnp.asarray(forces[None], jnp.float64), 0.05))
+    scale = np.abs(u).max()
+    assert scale > 1e-4
+    assert np.abs(states[1:, :, :3] - pts - u).max() < 2e-3 * scale
+    assert np.abs(states[1:, :, 3:6] - v).max() < 2e-3 * np.abs(v).max()
+    assert np.abs(states[1:, :, 6:] - s).max() < 2e-3 * np.abs(s).max()

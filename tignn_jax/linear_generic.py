@@ -1,0 +1,433 @@
+"""A learned linear GENERIC model on a mesh: energy, dissipation and stress operators from graph networks over
+the rest geometry, stepped by backward Euler.
+
+For a body that stays near its rest state (the bunny under its unit loads) the GENERIC dynamics linearise to a
+quadratic energy and dissipation about the rest state z₀::
+
+    E = ½ vᵀ M v + ½ uᵀ K u,   dissipation ½ α vᵀ M v,   L the canonical coupling of u and v plus σ̇ = S v
+    u̇ = v,   M v̇ = f − K u − α M v,   σ̇ = S v
+
+with M = diag(ρ V_i) the lumped masses (V_i the nodes' lumped volumes), K symmetric positive semi-definite, α ≥ 0.
+Here every operator is *learned* from trajectories, none is taken from the FEM: K = Σ_i B_iᵀ B_i is assembled
+from per-node channels B_i u computed by message passing over node i's one-ring,
+
+    ∇u_i = Σ_j (u_j − u_i) ⊗ g_ij        (a learned gradient operator; g_ij starts at the least-squares weights)
+    B_i u = [√(2 μ_i V_i) dev sym ∇u_i,  √(κ_i V_i) tr ∇u_i,  √k_ij (u_j − u_i − ∇u_i Δx_ij) for each edge]
+
+(a nodal strain energy with learned shear and bulk moduli fields μ_i, κ_i, and a learned edge stabilisation that
+vanishes on linear displacement fields, so rigid motions and uniform strains are represented exactly), and the
+stress observable σ_i = 2 μˢ_i dev sym ∇ˢu_i + κˢ_i tr(∇ˢu_i) I by a second learned gradient operator. The
+coefficients g_ij, μ_i, κ_i, k_ij and their stress counterparts come from flax MLPs over rotation-invariant features
+of the rest mesh (edge lengths, the least-squares weights, lumped volumes, degrees, clamps, one message-passing
+round), so the model is equivariant to rotations of the mesh. K is PSD by construction and α, ρ > 0, so the
+backward-Euler step is unconditionally stable: no learned state can grow, the property the explicit networks of
+this project lacked (`benchmarks/results/stability.md`).
+
+A backward-Euler step of this system is the ``frame_solve`` + ``linear_prior`` step of `tignn_jax.framesolve`
+with J₀ = these operators, so a trained model is packed in that format (`to_rest_linearization`) and runs
+through `tignn_jax.step`, `rollout`, the stress tests and the demo unchanged. Training (`train`) fits whole
+20-frame rollouts from rest through a dense Cholesky factor of A = (1 + αΔt) M / Δt² + K on the free degrees of
+freedom, in float64.
+"""
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import flax.linen as nn
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+VOIGT = ((0, 0), (1, 1), (2, 2), (0, 1), (0, 2), (1, 2))   # S11 S22 S33 S12 S13 S23, the data's order
+
+
+class Geometry(NamedTuple):
+    """Rest-mesh data of the model (numpy; fixed, never learned).
+
+    nbr [N, D] neighbour node ids (padded with the node itself), mask [N, D] real neighbours, dx [N, D, 3] rest
+    edge vectors x_j − x_i over ``h`` (the median edge length), g_ls [N, D, 3] least-squares gradient weights
+    (Σ_j dx_ij ⊗ g_ls_ij = I, in units of 1/h), volume [N] lumped nodal volumes (sum over a node's cells of a
+    quarter or eighth of their volume), free [N] bool (node_type == 0), h the length scale."""
+    nbr: np.ndarray
+    mask: np.ndarray
+    dx: np.ndarray
+    g_ls: np.ndarray
+    volume: np.ndarray
+    free: np.ndarray
+    h: float
+
+
+def geometry(q0, edges, cells, node_type) -> Geometry:
+    """`Geometry` of a mesh: q0 [N,3], edges [2,E] directed (both directions), cells [K,4] tets or [K,8] hexes,
+    node_type [N] (0 free)."""
+    q0 = np.asarray(q0, np.float64)
+    n = q0.shape[0]
+    edges = np.asarray(edges)
+    if edges.ndim != 2 or edges.shape[0] != 2:
+        raise ValueError(f"edges must be [2, E], got shape {edges.shape}")
+    cells = np.asarray(cells)
+    if cells.ndim != 2 or cells.shape[1] not in (4, 8):
+        raise ValueError(f"cells must be [K, 4] tets or [K, 8] hexes, got shape {cells.shape}")
+    node_type = np.asarray(node_type)
+    if node_type.shape != (n,):
+        raise ValueError(f"node_type must be [{n}], got shape {node_type.shape}")
+    lists = [[] for _ in range(n)]
+    for s, r in zip(*edges):
+        if s != r and s not in lists[r]:
+            lists[r].append(int(s))
+    deg = max(len(x) for x in lists)
+    nbr = np.tile(np.arange(n)[:, None], (1, deg))
+    mask = np.zeros((n, deg), bool)
+    for i, x in enumerate(lists):
+        nbr[i, :len(x)] = x
+        mask[i, :len(x)] = True
+    d = q0[nbr] - q0[:, None, :]
+    h = float(np.median(np.linalg.norm(d[mask], axis=-1)))
+    dx = d / h * mask[..., None]
+    gram = np.einsum("nda,ndb->nab", dx, dx)
+    g_ls = np.einsum("nab,ndb->nda", np.linalg.inv(gram), dx) * mask[..., None]
+    volume = np.zeros(n)
+    if cells.shape[1] == 4:
+        x = q0[cells]
+        vol = np.abs(np.einsum("ka,ka->k", np.cross(x[:, 1] - x[:, 0], x[:, 2] - x[:, 0]), x[:, 3] - x[:, 0])) / 6
+    else:   # a hex's volume by its two-tet-per-face split is overkill here: the box of its diagonal's spans
+        x = q0[cells]
+        vol = np.prod(x.max(axis=1) - x.min(axis=1), axis=-1)
+    np.add.at(volume, cells.reshape(-1), np.repeat(vol / cells.shape[1], cells.shape[1]))
+    return Geometry(nbr.astype(np.int32), mask, dx, g_ls, volume, node_type == 0, h)
+
+
+class LinearConfig(NamedTuple):
+    """Sizes of the coefficient networks and the initial physical scales (shear and bulk modulus in the data's
+    stress units, density in mass per volume, mass damping α in 1/time). The scales only start the search:
+    every one of them is a learned parameter."""
+    hidden: int = 32
+    mu: float = 1.0
+    kappa: float = 10.0
+    density: float = 1.0
+    alpha: float = 1.0
+    stabilisation: float = 0.1
+
+
+class MLP(nn.Module):
+    width: int
+    out: int
+
+    @nn.compact
+    def __call__(self, x):
+        x = nn.swish(nn.Dense(self.width)(x))
+        x = nn.swish(nn.Dense(self.width)(x))
+        return nn.Dense(self.out, kernel_init=nn.initializers.zeros)(x)
+
+
+EDGE_OUT = 5    # gradient weights (a, b) of the energy, stabilisation, gradient weights (a, b) of the stress
+NODE_OUT = 4    # log μ, log κ, log μˢ, log κˢ corrections
+
+
+class Coefficients(nn.Module):
+    """Per-node and per-edge coefficients of the operators from rotation-invariant rest-mesh features: one
+    message-passing round (edge MLP → masked mean at the node) and two heads. The zero-initialised heads start
+    the model at the least-squares gradient and uniform moduli."""
+    width: int
+
+    @nn.compact
+    def __call__(self, geo):
+        mask = geo["mask"][..., None]
+        length = jnp.linalg.norm(geo["dx"], axis=-1, keepdims=True)
+        along = jnp.sum(geo["dx"] * geo["g_ls"], axis=-1, keepdims=True)
+        gnorm = jnp.linalg.norm(geo["g_ls"], axis=-1, keepdims=True)
+        deg = jnp.sum(mask, axis=1) / jnp.mean(jnp.sum(mask, axis=1))
+        vol = geo["volume"][:, None] / jnp.mean(geo["volume"])
+        clamp = 1.0 - geo["free"][:, None]
+        node = jnp.concatenate([jnp.log(vol), deg, clamp], axis=-1)
+        edge_in = jnp.concatenate([length, along, gnorm, jnp.broadcast_to(node[:, None], length.shape[:2] + (3,)),
+                                   node[geo["nbr"]]], axis=-1)
+        msg = MLP(self.width, self.width)(edge_in) * mask
+        pooled = jnp.sum(msg, axis=1) / jnp.maximum(jnp.sum(mask, axis=1), 1.0)
+        node_h = jnp.concatenate([node, pooled], axis=-1)
+        node_out = MLP(self.width, NODE_OUT)(node_h)
+        edge_h = jnp.concatenate([edge_in, jnp.broadcast_to(node_h[:, None], length.shape[:2] + node_h.shape[-1:]),
+                                  node_h[geo["nbr"]]], axis=-1)
+        edge_out = MLP(self.width, EDGE_OUT)(edge_h) * mask
+        scales = self.param("log_scales", nn.initializers.zeros, (6,))   # μ, κ, μˢ, κˢ, k, ρ α share below
+        return node_out, edge_out, scales
+
+
+def geometry_arrays(geo: Geometry) -> dict:
+    return {"nbr": jnp.asarray(geo.nbr), "mask": jnp.asarray(geo.mask, jnp.float64 if jax.config.jax_enable_x64
+                                                                       else jnp.float32),
+            "dx": jnp.asarray(geo.dx), "g_ls": jnp.asarray(geo.g_ls), "volume": jnp.asarray(geo.volume),
+            "free": jnp.asarray(geo.free, jnp.float32)}
+
+
+class Operators(NamedTuple):
+    """Per-node operator coefficients (jax arrays): g, gs [N, D, 3] gradient weights (1/length) of the energy and
+    the stress; mu, kappa, mu_s, kappa_s [N]; k [N, D] edge stabilisation stiffness; mass [N]; alpha ()."""
+    g: jax.Array
+    gs: jax.Array
+    mu: jax.Array
+    kappa: jax.Array
+    mu_s: jax.Array
+    kappa_s: jax.Array
+    k: jax.Array
+    mass: jax.Array
+    alpha: jax.Array
+
+
+def operators(weights, geo: dict, h: float, config: LinearConfig, extra) -> Operators:
+    """The learned coefficients. ``extra`` holds the global log-scales of density and damping."""
+    node_out, edge_out, scales = Coefficients(config.hidden).apply(weights, geo)
+    mask = geo["mask"][..., None]
+    unit = geo["dx"] / jnp.maximum(jnp.sum(geo["dx"] ** 2, -1, keepdims=True), 1e-12)
+    g = consistent(geo["g_ls"] * (1.0 + edge_out[..., 0:1]) + unit * edge_out[..., 1:2], geo) / h
+    gs = consistent(geo["g_ls"] * (1.0 + edge_out[..., 3:4]) + unit * edge_out[..., 4:5], geo) / h
+    mu = config.mu * jnp.exp(scales[0] + node_out[:, 0])
+    kappa = config.kappa * jnp.exp(scales[1] + node_out[:, 1])
+    mu_s = config.mu * jnp.exp(scales[2] + node_out[:, 2])
+    kappa_s = config.kappa * jnp.exp(scales[3] + node_out[:, 3])
+    k = config.stabilisation * config.mu * h * jnp.exp(scales[4] + edge_out[..., 2]) * geo["mask"]
+    mass = config.density * jnp.exp(extra["log_density"]) * geo["volume"]
+    alpha = config.alpha * jnp.exp(extra["log_alpha"])
+    return Operators(g, gs, mu, kappa, mu_s, kappa_s, k, mass, alpha)
+
+
+def consistent(g_raw, geo: dict):
+    """Gradient weights [N, D, 3] that reproduce the gradient of every linear field exactly
+    (Σ_j Δx_ij ⊗ g_ij = I): g = g̃ + (I − Σ_j Δx_ij ⊗ g̃_ij)ᵀ g_ls. So rigid motions carry no strain and a uniform
+    strain is seen as itself, whatever the networks output."""
+    g_raw = g_raw * geo["mask"][..., None]
+    defect = jnp.eye(3) - jnp.einsum("nda,ndb->nab", geo["dx"], g_raw)
+    return g_raw + jnp.einsum("nab,nda->ndb", defect, geo["g_ls"])
+
+
+def _gradient(u_local, g):
+    """∇u_i [3,3] (∂u_a/∂x_b) from the one-ring's displacements u_local [D+1, 3] (slot 0: the node)."""
+    return jnp.einsum("da,db->ab", u_local[1:] - u_local[:1], g)
+
+
+def channels(u_local, g, mu, kappa, k, volume, dx_len):
+    """B_i u: the node's energy channels (½|B_i u|² is its share of the stored energy)."""
+    grad = _gradient(u_local, g)
+    eps = 0.5 * (grad + grad.T)
+    tr = jnp.trace(eps)
+    dev = eps - tr / 3.0 * jnp.eye(3)
+    lin = u_local[1:] - u_local[:1] - jnp.einsum("ab,db->da", grad, dx_len)
+    return jnp.concatenate([jnp.sqrt(2.0 * mu * volume) * dev.reshape(-1), jnp.sqrt(kappa * volume) * tr[None],
+                            (_safe_sqrt(k)[:, None] * lin).reshape(-1)])
+
+
+def _safe_sqrt(x):
+    """√x with a zero (not NaN) gradient at the padded slots' x = 0."""
+    return jnp.where(x > 0, jnp.sqrt(jnp.where(x > 0, x, 1.0)), 0.0)
+
+
+def stress(u_local, gs, mu_s, kappa_s):
+    """σ_i [6] in the data's Voigt order from the one-ring's displacements."""
+    grad = _gradient(u_local, gs)
+    eps = 0.5 * (grad + grad.T)
+    tr = jnp.trace(eps)
+    sig = 2.0 * mu_s * (eps - tr / 3.0 * jnp.eye(3)) + kappa_s * tr * jnp.eye(3)
+    return jnp.stack([sig[a, b] for a, b in VOIGT])
+
+
+def local_blocks(ops: Operators, geo: dict, h: float):
+    """(K_local [N, 3(D+1), 3(D+1)], S_local [N, 6, 3(D+1)]): each node's stiffness share B_iᵀB_i and stress map
+    on its one-ring's displacements (slot 0 the node, slots 1.. its neighbours)."""
+    d = geo["nbr"].shape[1]
+    zero = jnp.zeros((d + 1, 3), ops.mu.dtype)
+    dx_len = geo["dx"] * h
+
+    def per_node(g, mu, kappa, k, volume, dxl, gs, mu_s, kappa_s):
+        b = jax.jacfwd(lambda u: channels(u, g, mu, kappa, k, volume, dxl))(zero).reshape(-1, 3 * (d + 1))
+        s = jax.jacfwd(lambda u: stress(u, gs, mu_s, kappa_s))(zero).reshape(6, 3 * (d + 1))
+        return b.T @ b, s
+
+    return jax.vmap(per_node)(ops.g, ops.mu, ops.kappa, ops.k, geo["volume"], dx_len, ops.gs, ops.mu_s,
+                              ops.kappa_s)
+
+
+def local_dofs(geo: dict):
+    """[N, 3(D+1)] global degree-of-freedom ids of each node's one-ring slots."""
+    nodes = jnp.concatenate([jnp.arange(geo["nbr"].shape[0])[:, None], geo["nbr"]], axis=1)
+    return (3 * nodes[..., None] + jnp.arange(3)).reshape(nodes.shape[0], -1)
+
+
+def dense_stiffness(k_local, dofs, n_nodes: int):
+    """K [3N, 3N] assembled from the nodes' shares."""
+    k = jnp.zeros((3 * n_nodes, 3 * n_nodes), k_local.dtype)
+    return k.at[dofs[:, :, None], dofs[:, None, :]].add(k_local)
+
+
+def nodal_stress(u, ops: Operators, geo: dict):
+    """σ [..., N, 6] of displacements u [..., N, 3]."""
+    def one(uu):
+        local = jnp.concatenate([uu[:, None], uu[geo["nbr"]]], axis=1)
+        return jax.vmap(stress)(local, ops.gs, ops.mu_s, ops.kappa_s)
+    flat = u.reshape((-1,) + u.shape[-2:])
+    return jax.vmap(one)(flat).reshape(u.shape[:-1] + (6,))
+
+
+def rollout(ops: Operators, geo: dict, h: float, forces, dt: float):
+    """Backward-Euler rollouts from rest: forces [C, T, N, 3] → (u, v, σ) each [C, T, N, ·] (frames 1..T).
+    Clamped nodes stay at rest."""
+    k_local, _ = local_blocks(ops, geo, h)
+    K = dense_stiffness(k_local, local_dofs(geo), geo["nbr"].shape[0])
+    u, v = solve_rollout(K, ops.mass, ops.alpha, np.asarray(geo["free"]) > 0, forces, dt)
+    return u, v, nodal_stress(u, ops, geo)
+
+
+def solve_rollout(K, mass, alpha, free, forces, dt: float):
+    """(u, v) [C, T, N, 3]: backward Euler of M v̇ = f − K u − α M v, u̇ = v from rest under forces [C, T, N, 3]
+    (force k acts during frame k → k+1), by one Cholesky factor of A = (1 + αΔt) M / Δt² + K on the free
+    degrees of freedom (``free`` [N] bool, numpy)."""
+    n = mass.shape[0]
+    idx = np.where(np.repeat(np.asarray(free), 3))[0]
+    m3 = jnp.repeat(mass, 3)[idx]
+    c = (1.0 + alpha * dt) / dt ** 2
+    A = K[idx][:, idx] + jnp.diag(c * m3)
+    chol = jax.scipy.linalg.cho_factor(A, lower=True)
+    f = forces.reshape(forces.shape[:2] + (-1,))[..., idx]          # [C, T, F]
+
+    def frame(carry, fk):
+        u, v = carry
+        u_next = jax.scipy.linalg.cho_solve(chol, (c * m3 * u + m3 * v / dt + fk).T).T
+        v_next = (u_next - u) / dt
+        return (u_next, v_next), (u_next, v_next)
+
+    zeros = jnp.zeros((forces.shape[0], idx.size), A.dtype)
+    _, (us, vs) = jax.lax.scan(frame, (zeros, zeros), jnp.swapaxes(f, 0, 1))
+
+    def full(x):
+        x = jnp.swapaxes(x, 0, 1)
+        return jnp.zeros(x.shape[:2] + (3 * n,), x.dtype).at[..., idx].set(x).reshape(x.shape[:2] + (n, 3))
+
+    return full(us), full(vs)
+
+
+def relative_errors(u, v, sigma, target):
+    """[C, T, 3] relative L2 errors (u, v, σ) per snapshot against target (u, v, σ) [C, T, N, ·] arrays."""
+    def rel(p, t):
+        return jnp.sqrt(jnp.sum((p - t) ** 2, axis=(-2, -1)) / jnp.maximum(jnp.sum(t ** 2, axis=(-2, -1)), 1e-30))
+    return jnp.stack([rel(u, target[0]), rel(v, target[1]), rel(sigma, target[2])], axis=-1)
+
+
+def targets(z, f, q0, rows):
+    """(forces [C,T,N,3], (u, v, σ) [C,T,N,·]) of the cases ``rows`` of data states z [C,T+1,N,12] (float64)."""
+    z = np.asarray(z[rows], np.float64)
+    return (np.asarray(f[rows], np.float64),
+            (z[:, 1:, :, :3] - np.asarray(q0, np.float64), z[:, 1:, :, 3:6], z[:, 1:, :, 6:12]))
+
+
+def init(config: LinearConfig, geo: Geometry, seed: int = 0) -> dict:
+    """Initial parameters: the coefficient networks (zero heads: the least-squares gradient and uniform moduli
+    at the config's scales) and the log-scales of density and damping."""
+    weights = Coefficients(config.hidden).init(jax.random.PRNGKey(seed), geometry_arrays(geo))
+    return {"net": weights, "log_density": jnp.zeros(()), "log_alpha": jnp.zeros(())}
+
+
+def loss_fn(params, geo: dict, h: float, config: LinearConfig, forces, target, dt: float):
+    """Mean over cases and snapshots of the relative errors of u, v and σ (the cards' measure, summed)."""
+    ops = operators(params["net"], geo, h, config, params)
+    u, v, sigma = rollout(ops, geo, h, forces, dt)
+    err = relative_errors(u, v, sigma, target)
+    return jnp.mean(jnp.sum(err, axis=-1)), jnp.mean(err, axis=(0, 1))
+
+
+def train(data_path, train_rows, val_rows, run_dir, config: LinearConfig = LinearConfig(), steps: int = 300,
+          lr: float = 3e-3, seed: int = 0, val_every: int = 10, progress: bool = True,
+          until: int | None = None) -> dict:
+    """Fit the model to whole rollouts of the cases ``train_rows`` (full batch, Adam with a cosine schedule),
+    selecting on ``val_rows``. Needs float64 (``jax.config.update("jax_enable_x64", True)`` before any jax work).
+
+    Writes ``run_dir``/metrics.jsonl (one line per validation), ckpt.msgpack (parameters, optimiser state and
+    step after every validation: a rerun resumes from it and reaches the same result) and best.msgpack (the
+    parameters with the lowest validation loss). ``until`` stops after that step as an interruption would (a
+    rerun resumes). Returns the best parameters' record."""
+    import json
+    from pathlib import Path
+
+    import optax
+    from flax import serialization
+    from tqdm import tqdm
+
+    from tignn_jax import data as D
+
+    if not jax.config.jax_enable_x64:
+        raise RuntimeError("linear_generic.train needs float64: call jax.config.update('jax_enable_x64', True) "
+                           "before any jax work")
+    if steps < 1 or val_every < 1:
+        raise ValueError(f"steps and val_every must be positive, got {steps} and {val_every}")
+    data = D.load(data_path)
+    with np.load(data_path, allow_pickle=False) as raw:
+        cells = raw["cells"]
+    geo = geometry(data.q0, data.edges, cells, data.node_type)
+    ga = geometry_arrays(geo)
+    f_tr, t_tr = targets(data.z, data.f, data.q0, np.asarray(train_rows))
+    f_va, t_va = targets(data.z, data.f, data.q0, np.asarray(val_rows))
+    schedule = optax.cosine_decay_schedule(lr, steps, alpha=0.05)
+    opt = optax.adam(schedule)
+    params = init(config, geo, seed)
+    state = opt.init(params)
+    run = Path(run_dir)
+    run.mkdir(parents=True, exist_ok=True)
+    ckpt, best_path, log = run / "ckpt.msgpack", run / "best.msgpack", run / "metrics.jsonl"
+    start, best = 0, {"val_loss": float("inf")}
+    if ckpt.exists():
+        saved = serialization.from_bytes({"params": params, "state": state, "step": 0, "best": 0.0},
+                                         ckpt.read_bytes())
+        params, state, start = saved["params"], saved["state"], int(saved["step"])
+        best = {"val_loss": float(saved["best"])}
+    fn = lambda p, f, t: loss_fn(p, ga, geo.h, config, f, t, data.dt)
+
+    @jax.jit
+    def update(p, s, f, t):
+        (loss, parts), grads = jax.value_and_grad(fn, has_aux=True)(p, f, t)
+        upd, s = opt.update(grads, s, p)
+        return optax.apply_updates(p, upd), s, loss, parts
+
+    evaluate = jax.jit(fn)
+    end = steps if until is None else min(steps, until)
+    bar = tqdm(range(start, end), desc="linear GENERIC", disable=not progress, initial=start, total=steps)
+    for step in bar:
+        params, state, loss, parts = update(params, state, f_tr, t_tr)
+        bar.set_postfix(loss=f"{float(loss):.4f}")
+        if (step + 1) % val_every == 0 or step + 1 == steps:
+            vloss, vparts = evaluate(params, f_va, t_va)
+            record = {"step": step + 1, "train_loss": float(loss), "train": np.asarray(parts).tolist(),
+                      "val_loss": float(vloss), "val": np.asarray(vparts).tolist(),
+                      "density": float(config.density * jnp.exp(params["log_density"])),
+                      "alpha": float(config.alpha * jnp.exp(params["log_alpha"]))}
+            with log.open("a") as fh:
+                fh.write(json.dumps(record) + "\n")
+            if record["val_loss"] < best["val_loss"]:
+                best = record
+                best_path.write_bytes(serialization.to_bytes(params))
+            tmp = ckpt.with_suffix(".tmp")
+            tmp.write_bytes(serialization.to_bytes({"params": params, "state": state, "step": step + 1,
+                                                    "best": best["val_loss"]}))
+            tmp.replace(ckpt)
+    return best
+
+
+def to_rest_linearization(params, geo: Geometry, config: LinearConfig):
+    """The trained operators as a `fem.implicit.RestLinearization` (numpy float64 node blocks), the format the
+    ``frame_solve`` + ``linear_prior`` step of `tignn_jax.framesolve` carries: K's non-zero node blocks, S's
+    one-ring blocks, the masses and α."""
+    from fem.implicit import RestLinearization
+
+    ga = geometry_arrays(geo)
+    ops = operators(params["net"], ga, geo.h, config, params)
+    k_local, s_local = local_blocks(ops, ga, geo.h)
+    n = geo.nbr.shape[0]
+    dofs = local_dofs(ga)
+    K = np.asarray(dense_stiffness(k_local, dofs, n), np.float64).reshape(n, 3, n, 3).transpose(0, 2, 1, 3)
+    K = 0.5 * (K + K.transpose(1, 0, 3, 2))
+    rows, cols = np.nonzero(np.abs(K).max(axis=(2, 3)) > 1e-12 * np.abs(K).max())
+    S = np.zeros((n, n, 6, 3))
+    slots = np.concatenate([np.arange(n)[:, None], geo.nbr], axis=1)
+    s_local = np.asarray(s_local, np.float64).reshape(n, 6, -1, 3)
+    for a in range(slots.shape[1]):
+        np.add.at(S, (np.arange(n), slots[:, a]), s_local[:, :, a, :])
+    s_rows, s_cols = np.nonzero(np.abs(S).max(axis=(2, 3)) > 0)
+    return RestLinearization(rows, cols, K[rows, cols], s_rows, s_cols, S[s_rows, s_cols],
+                             np.asarray(ops.mass, np.float64), float(ops.alpha), geo.free)
