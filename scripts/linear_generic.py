@@ -32,12 +32,13 @@ VAL_IDS = tuple(range(81, 91))
 def config_from(args):
     from tignn_jax.linear_generic import LinearConfig
 
-    return LinearConfig(hidden=args.hidden, mu=args.mu, kappa=args.kappa, density=args.density, alpha=args.alpha)
+    return LinearConfig(hidden=args.hidden, mu=args.mu, kappa=args.kappa, density=args.density, alpha=args.alpha,
+                        tied_pressure=args.tied_pressure, element_channels=args.element_channels)
 
 
 def cmd_train(args) -> int:
     import jax
-    jax.config.update("jax_enable_x64", True)
+    jax.config.update("jax_enable_x64", args.float64)
     from tignn_jax import data as D
     from tignn_jax import linear_generic as LG
 
@@ -49,10 +50,11 @@ def cmd_train(args) -> int:
     config = config_from(args)
     (run / "config.json").write_text(json.dumps({"config": config._asdict(), "steps": args.steps, "lr": args.lr,
                                                  "seed": args.seed, "data": str(args.data),
+                                                 "batch": args.batch, "float64": args.float64,
                                                  "train_ids": TRAIN_IDS, "val_ids": VAL_IDS}, indent=1))
     t0 = time.perf_counter()
     best = LG.train(args.data, rows_tr, rows_va, run, config, steps=args.steps, lr=args.lr, seed=args.seed,
-                    val_every=args.val_every)
+                    val_every=args.val_every, batch=args.batch)
     print(json.dumps({"best": best, "seconds_this_run": round(time.perf_counter() - t0, 1)}))
     return 0
 
@@ -124,11 +126,15 @@ def main(argv=None) -> int:
     tr.add_argument("--lr", type=float, default=3e-3)
     tr.add_argument("--seed", type=int, default=0)
     tr.add_argument("--val-every", type=int, default=10)
+    tr.add_argument("--batch", type=int, default=None, help="training cases per step (default: all)")
+    tr.add_argument("--float64", action="store_true", help="train in float64 (about 2x slower)")
     tr.add_argument("--hidden", type=int, default=32, help="width of the coefficient networks")
     tr.add_argument("--mu", type=float, default=1.0, help="initial shear modulus scale (learned)")
     tr.add_argument("--kappa", type=float, default=10.0, help="initial bulk modulus scale (learned)")
     tr.add_argument("--density", type=float, default=1e-3, help="initial density scale (learned)")
     tr.add_argument("--alpha", type=float, default=1.0, help="initial mass damping scale (learned)")
+    tr.add_argument("--element-channels", action="store_true", help="cells' own shear strains too (LinearConfig)")
+    tr.add_argument("--tied-pressure", action="store_true", help="the stress's pressure is the energy's (LinearConfig)")
     pk = sub.add_parser("pack", help="write the best parameters as a model folder")
     pk.add_argument("--data", required=True, help="a data file of the same mesh (its cells give the volumes)")
     pk.add_argument("--run", required=True)

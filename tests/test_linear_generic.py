@@ -46,8 +46,7 @@ def random_params(config, geo, seed=1):
 def operators(config, geo, params):
     ga = LG.geometry_arrays(geo)
     ops = LG.operators(params["net"], ga, geo.h, config, params)
-    k_local, s_local = LG.local_blocks(ops, ga, geo.h)
-    K = np.asarray(LG.dense_stiffness(k_local, LG.local_dofs(ga), geo.nbr.shape[0]))
+    K = np.asarray(LG.stiffness(ops, ga, geo.h))
     return ops, ga, K
 
 
@@ -66,16 +65,31 @@ def test_gradient_weights_reproduce_linear_fields():
     ops, ga, _ = operators(config, geo, random_params(config, geo))
     A = np.array([[0.3, -0.1, 0.2], [0.05, 0.4, -0.2], [0.1, 0.0, -0.3]])
     u = pts @ A.T
-    for g in (np.asarray(ga["g_ls"]) / geo.h, np.asarray(ops.g), np.asarray(ops.gs)):
+    for g in (np.asarray(ga["g_ls"]) / geo.h, np.asarray(ga["g_avg"]) / geo.h, np.asarray(ops.g), np.asarray(ops.gs)):
         grads = np.stack([LG._gradient(np.concatenate([u[i:i + 1], u[geo.nbr[i]]]), g[i]) for i in range(len(pts))])
         assert np.abs(grads - A).max() < 1e-10
 
 
-def test_stiffness_is_symmetric_psd_and_free_of_rigid_motions():
+def test_averaged_gradient_of_a_single_tet_is_the_tet_gradient():
+    # one tet: every node's volume-averaged gradient is the element's own, ∇N_j
+    pts = np.array([[0.0, 0.0, 0.0], [1.0, 0.1, 0.0], [0.2, 1.0, 0.1], [0.1, 0.2, 1.3]])
+    cells = np.array([[0, 1, 2, 3]])
+    edges = np.array([(a, b) for a in range(4) for b in range(4) if a != b]).T
+    geo = LG.geometry(pts, edges, cells, np.zeros(4, np.int32))
+    grad_n = np.linalg.inv(np.stack([pts[1] - pts[0], pts[2] - pts[0], pts[3] - pts[0]]))   # columns ∇N_1..3
+    grad_n = np.concatenate([-grad_n.sum(axis=1, keepdims=True), grad_n], axis=1).T       # rows ∇N_0..3
+    for i in range(4):
+        for d, j in enumerate(geo.nbr[i]):
+            assert np.allclose(geo.g_avg[i, d] / geo.h, grad_n[j], atol=1e-12)
+    assert np.isclose(geo.volume.sum(), abs(np.linalg.det(np.stack([pts[1], pts[2], pts[3]]))) / 6)
+
+
+@pytest.mark.parametrize("element_channels", [False, True])
+def test_stiffness_is_symmetric_psd_and_free_of_rigid_motions(element_channels):
     # K = Σ B_iᵀB_i: symmetric PSD; rigid translations and rotations store no energy, a uniform strain does
     pts, edges, cells, node_type = bar()
     geo = LG.geometry(pts, edges, cells, node_type)
-    config = LG.LinearConfig(hidden=8)
+    config = LG.LinearConfig(hidden=8, element_channels=element_channels)
     _, _, K = operators(config, geo, random_params(config, geo))
     assert np.abs(K - K.T).max() <= 1e-12 * np.abs(K).max()
     assert np.linalg.eigvalsh(K).min() >= -1e-10 * np.abs(K).max()
@@ -98,7 +112,7 @@ def test_stress_is_zero_for_rigid_motions_and_isotropic_for_a_uniform_strain():
     eps = np.array([[1e-3, 2e-4, 0], [2e-4, -5e-4, 1e-4], [0, 1e-4, 3e-4]])
     tr = np.trace(eps)
     for i in range(len(pts)):
-        s = 2 * float(ops.mu_s[i]) * (eps - tr / 3 * np.eye(3)) + float(ops.kappa_s[i]) * tr * np.eye(3)
+        s = 2 * float(ops.mu_s[i]) * (eps - tr / 3 * np.eye(3)) + float(ops.kappa_p[i]) * tr * np.eye(3)
         assert np.allclose(sig[i], [s[a, b] for a, b in LG.VOIGT], rtol=1e-9, atol=1e-14)
 
 
@@ -173,7 +187,8 @@ def test_packed_model_steps_like_the_learned_operators(tmp_path):
 
     pts, edges, cells, node_type = bar()
     geo = LG.geometry(pts, edges, cells, node_type)
-    config = LG.LinearConfig(hidden=8, mu=1.0, kappa=20.0, density=1.0, alpha=2.0)
+    config = LG.LinearConfig(hidden=8, mu=1.0, kappa=20.0, density=1.0, alpha=2.0, element_channels=True,
+                             tied_pressure=True)
     params = random_params(config, geo)
     lin = LG.to_rest_linearization(params, geo, config)
     from tignn_jax import data as D
