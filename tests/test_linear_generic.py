@@ -100,20 +100,22 @@ def test_stiffness_is_symmetric_psd_and_free_of_rigid_motions(element_channels):
 
 
 def test_stress_is_zero_for_rigid_motions_and_isotropic_for_a_uniform_strain():
-    # σ = 2μˢ dev ε + κˢ tr ε I: no stress for a rigid motion, the linear-elastic stress for a uniform strain
+    # no stress for a rigid motion whatever was learned; with uniform moduli (the start) a uniform strain gives
+    # the linear-elastic stress 2μˢ dev ε + κ tr ε I at every node (the smoothing W averages with weights summing to 1)
     pts, edges, cells, node_type = bar()
     geo = LG.geometry(pts, edges, cells, node_type)
-    config = LG.LinearConfig(hidden=8)
-    ops, ga, _ = operators(config, geo, random_params(config, geo))
+    assert np.allclose(geo.w_avg.sum(axis=1), 1.0)
+    config = LG.LinearConfig(hidden=8, mu=0.7, kappa=20.0, tied_pressure=True)
     rigid, strain = rigid_and_uniform(pts)
+    ops, ga, _ = operators(config, geo, random_params(config, geo))
     for u in rigid:
         assert np.abs(np.asarray(LG.nodal_stress(jnp.asarray(u), ops, ga))).max() < 1e-10
+    ops, ga, _ = operators(config, geo, LG.init(config, geo))
     sig = np.asarray(LG.nodal_stress(jnp.asarray(strain), ops, ga))
     eps = np.array([[1e-3, 2e-4, 0], [2e-4, -5e-4, 1e-4], [0, 1e-4, 3e-4]])
     tr = np.trace(eps)
-    for i in range(len(pts)):
-        s = 2 * float(ops.mu_s[i]) * (eps - tr / 3 * np.eye(3)) + float(ops.kappa_p[i]) * tr * np.eye(3)
-        assert np.allclose(sig[i], [s[a, b] for a, b in LG.VOIGT], rtol=1e-9, atol=1e-14)
+    s = 2 * 0.7 * (eps - tr / 3 * np.eye(3)) + 20.0 * tr * np.eye(3)
+    assert np.allclose(sig, [s[a, b] for a, b in LG.VOIGT], rtol=1e-9, atol=1e-14)
 
 
 def test_rollout_solves_backward_euler_and_keeps_clamps():
@@ -208,3 +210,38 @@ def test_packed_model_steps_like_the_learned_operators(tmp_path):
     assert np.abs(states[1:, :, :3] - pts - u).max() < 2e-3 * scale
     assert np.abs(states[1:, :, 3:6] - v).max() < 2e-3 * np.abs(v).max()
     assert np.abs(states[1:, :, 6:] - s).max() < 2e-3 * np.abs(s).max()
+
+
+def test_model_class_holds_the_fem_rest_linearisation():
+    # at nodal / cell shear shares 0.7 / 0.3, smoothing share 0.7 and the material's moduli, the learned operators
+    # are the FEM's linearisation about rest (the stabilised nodal tet with blend 0.3): what training can reach
+    from fem import implicit
+    from fem.material import mooney_rivlin
+    from fem.solver import setup
+
+    pts, edges, cells, node_type = bar()
+    c10, d1 = 0.26, 0.049
+    material = mooney_rivlin(c10, 0.0, d1, 1e-3)
+    problem = setup(pts, cells, material=material, frame_dt=0.05, n_frames=1, clamped=np.where(node_type)[0],
+                    cell_type="tetra", damping=2.0, n_sub=1)
+    lin = implicit.rest_linearization(problem, material)
+    geo = LG.geometry(pts, edges, cells, node_type)
+    config = LG.LinearConfig(hidden=8, mu=2 * c10, kappa=2 / d1, density=1e-3, alpha=2.0, stabilisation=1e-12,
+                             element_channels=True, tied_pressure=True)
+    params = LG.init(config, geo)
+    params["net"]["params"]["log_scales"] = jnp.zeros(8).at[0].set(np.log(0.7 / 0.5)).at[6].set(
+        np.log(0.3 / 0.5)).at[7].set(np.log(0.7 / 0.3))
+    mine = LG.to_rest_linearization(params, geo, config)
+    n = len(pts)
+
+    def dense(rows, cols, blocks, r):
+        out = np.zeros((n, n, r, 3))
+        out[rows, cols] = blocks
+        return out
+
+    free = node_type == 0
+    K0, K = dense(lin.k_rows, lin.k_cols, lin.k_blocks, 3), dense(mine.k_rows, mine.k_cols, mine.k_blocks, 3)
+    assert np.abs(K - K0)[free][:, free].max() < 1e-6 * np.abs(K0).max()
+    S0, S = dense(lin.s_rows, lin.s_cols, lin.s_blocks, 6), dense(mine.s_rows, mine.s_cols, mine.s_blocks, 6)
+    assert np.abs(S - S0).max() < 1e-6 * np.abs(S0).max()
+    assert np.allclose(mine.mass, lin.mass, rtol=1e-9) and np.isclose(mine.alpha, lin.alpha)

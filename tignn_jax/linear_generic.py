@@ -51,7 +51,8 @@ class Geometry(NamedTuple):
     discrete gradient, also consistent; g_ls for hexes), volume [N] lumped nodal volumes (sum over a node's cells of a
     quarter or eighth of their volume), free [N] bool (node_type == 0), h the length scale; for tets, cells
     [K, 4], cell_grad [K, 4, 3] the shape-function gradients ∇N_a (1/length) and cell_volume [K] (empty for
-    hexes)."""
+    hexes); w_avg [N, D+1] the node → cell → node averaging weights of node i over itself (slot 0) and its
+    neighbours, Σ_{t ∋ i, j} (V_t / 4)(1/n_t) / V_i (rows sum to 1)."""
     nbr: np.ndarray
     mask: np.ndarray
     dx: np.ndarray
@@ -63,6 +64,7 @@ class Geometry(NamedTuple):
     cells: np.ndarray
     cell_grad: np.ndarray
     cell_volume: np.ndarray
+    w_avg: np.ndarray
 
 
 def geometry(q0, edges, cells, node_type) -> Geometry:
@@ -108,7 +110,20 @@ def geometry(q0, edges, cells, node_type) -> Geometry:
         vol = np.prod(x.max(axis=1) - x.min(axis=1), axis=-1)
         np.add.at(volume, cells.reshape(-1), np.repeat(vol / 8, 8))
         tets = empty
-    return Geometry(nbr.astype(np.int32), mask, dx, g_ls, g_avg, volume, node_type == 0, h, *tets)
+    w_avg = _averaging_weights(cells, vol, volume, nbr, mask)
+    return Geometry(nbr.astype(np.int32), mask, dx, g_ls, g_avg, volume, node_type == 0, h, *tets, w_avg)
+
+
+def _averaging_weights(cells, vol, volume, nbr, mask):
+    """[N, D+1]: node i's weights of the mean over its cells of their nodes' values (slot 0: itself)."""
+    slot = {(int(i), int(j)): d + 1 for i in range(nbr.shape[0]) for d, j in enumerate(nbr[i]) if mask[i, d]}
+    n_per = cells.shape[1]
+    out = np.zeros((nbr.shape[0], nbr.shape[1] + 1))
+    for t, cell in enumerate(cells):
+        for i in cell:
+            for j in cell:
+                out[i, 0 if i == j else slot.get((int(i), int(j)), 0)] += vol[t] / n_per / n_per / volume[i]
+    return out
 
 
 def _tet_gradients(x):
@@ -160,7 +175,7 @@ class MLP(nn.Module):
 
 
 EDGE_OUT = 7    # gradient weights (a, b, c) of the energy, stabilisation, gradient weights (a, b, c) of the stress
-NODE_OUT = 4    # log μ, log κ, log μˢ, log κˢ corrections
+NODE_OUT = 5    # log μ, log κ, log μˢ, log κˢ corrections, logit of β
 
 
 class Coefficients(nn.Module):
@@ -191,7 +206,7 @@ class Coefficients(nn.Module):
         edge_h = jnp.concatenate([edge_in, jnp.broadcast_to(node_h[:, None], length.shape[:2] + node_h.shape[-1:]),
                                   node_h[geo["nbr"]]], axis=-1)
         edge_out = MLP(self.width, EDGE_OUT)(edge_h) * mask
-        scales = self.param("log_scales", nn.initializers.zeros, (7,))   # μ, κ, μˢ, κˢ, k, μ of the cells
+        scales = self.param("log_scales", nn.initializers.zeros, (8,))   # μ, κ, μˢ, κˢ, k, μ of the cells, β
         if self.cells:
             cvol = geo["cell_volume"][:, None] / jnp.mean(geo["cell_volume"])
             gsize = jnp.linalg.norm(geo["cell_grad"], axis=-1) * jnp.mean(geo["cell_volume"]) ** (1 / 3)
@@ -208,14 +223,16 @@ def geometry_arrays(geo: Geometry) -> dict:
                                                                        else jnp.float32),
             "dx": jnp.asarray(geo.dx), "g_ls": jnp.asarray(geo.g_ls), "g_avg": jnp.asarray(geo.g_avg), "volume": jnp.asarray(geo.volume),
             "free": jnp.asarray(geo.free, jnp.float32), "cells": jnp.asarray(geo.cells),
-            "cell_grad": jnp.asarray(geo.cell_grad), "cell_volume": jnp.asarray(geo.cell_volume)}
+            "cell_grad": jnp.asarray(geo.cell_grad), "cell_volume": jnp.asarray(geo.cell_volume),
+            "w_avg": jnp.asarray(geo.w_avg)}
 
 
 class Operators(NamedTuple):
     """Per-node operator coefficients (jax arrays): g, gs [N, D, 3] gradient weights (1/length) of the energy and
     the stress; mu, kappa, mu_s, kappa_s [N]; k [N, D] edge stabilisation stiffness; gp, kappa_p the stress's
     pressure operator and modulus (the energy's g and κ with ``tied_pressure``, else gs and κˢ); mu_e [K] the
-    cells' shear moduli (empty without ``element_channels``); mass [N];
+    cells' shear moduli (empty without ``element_channels``); beta [N] the share of the smoothed deviatoric
+    stress; mass [N];
     alpha ()."""
     g: jax.Array
     gs: jax.Array
@@ -227,6 +244,7 @@ class Operators(NamedTuple):
     gp: jax.Array
     kappa_p: jax.Array
     mu_e: jax.Array
+    beta: jax.Array
     mass: jax.Array
     alpha: jax.Array
 
@@ -252,7 +270,8 @@ def operators(weights, geo: dict, h: float, config: LinearConfig, extra) -> Oper
     mass = config.density * jnp.exp(extra["log_density"]) * geo["volume"]
     alpha = config.alpha * jnp.exp(extra["log_alpha"])
     gp, kappa_p = (g, kappa) if config.tied_pressure else (gs, kappa_s)
-    return Operators(g, gs, mu, kappa, mu_s, kappa_s, k, gp, kappa_p, mu_e, mass, alpha)
+    beta = jax.nn.sigmoid(scales[7] + node_out[:, 4])
+    return Operators(g, gs, mu, kappa, mu_s, kappa_s, k, gp, kappa_p, mu_e, beta, mass, alpha)
 
 
 def consistent(g_raw, geo: dict):
@@ -285,32 +304,27 @@ def _safe_sqrt(x):
     return jnp.where(x > 0, jnp.sqrt(jnp.where(x > 0, x, 1.0)), 0.0)
 
 
-def stress(u_local, gs, mu_s, gp, kappa_p):
-    """σ_i [6] in the data's Voigt order from the one-ring's displacements: 2 μˢ dev sym ∇ˢu + κᵖ tr(∇ᵖu) I, the
-    deviatoric part by the gradient weights gs, the pressure by gp."""
+def stress_parts(u_local, gs, mu_s, gp, kappa_p):
+    """(2 μˢ dev sym ∇ˢu [6] in the data's Voigt order, κᵖ tr ∇ᵖu) at a node from its one-ring's displacements:
+    the deviatoric part by the gradient weights gs, the pressure by gp."""
     grad = _gradient(u_local, gs)
     eps = 0.5 * (grad + grad.T)
-    sig = 2.0 * mu_s * (eps - jnp.trace(eps) / 3.0 * jnp.eye(3)) + kappa_p * jnp.trace(_gradient(u_local, gp)) * jnp.eye(3)
-    return jnp.stack([sig[a, b] for a, b in VOIGT])
-
-
-
+    dev = 2.0 * mu_s * (eps - jnp.trace(eps) / 3.0 * jnp.eye(3))
+    return jnp.stack([dev[a, b] for a, b in VOIGT]), kappa_p * jnp.trace(_gradient(u_local, gp))
 
 
 def local_blocks(ops: Operators, geo: dict, h: float):
-    """(K_local [N, 3(D+1), 3(D+1)], S_local [N, 6, 3(D+1)]): each node's stiffness share B_iᵀB_i and stress map
-    on its one-ring's displacements (slot 0 the node, slots 1.. its neighbours)."""
+    """K_local [N, 3(D+1), 3(D+1)]: each node's stiffness share B_iᵀB_i on its one-ring's displacements (slot 0
+    the node, slots 1.. its neighbours)."""
     d = geo["nbr"].shape[1]
     zero = jnp.zeros((d + 1, 3), ops.mu.dtype)
     dx_len = geo["dx"] * h
 
-    def per_node(g, mu, kappa, k, volume, dxl, gs, mu_s, gp, kappa_p):
+    def per_node(g, mu, kappa, k, volume, dxl):
         b = jax.jacfwd(lambda u: channels(u, g, mu, kappa, k, volume, dxl))(zero).reshape(-1, 3 * (d + 1))
-        s = jax.jacfwd(lambda u: stress(u, gs, mu_s, gp, kappa_p))(zero).reshape(6, 3 * (d + 1))
-        return b.T @ b, s
+        return b.T @ b
 
-    return jax.vmap(per_node)(ops.g, ops.mu, ops.kappa, ops.k, geo["volume"], dx_len, ops.gs, ops.mu_s,
-                              ops.gp, ops.kappa_p)
+    return jax.vmap(per_node)(ops.g, ops.mu, ops.kappa, ops.k, geo["volume"], dx_len)
 
 
 def local_dofs(geo: dict):
@@ -327,7 +341,7 @@ def dense_stiffness(k_local, dofs, n_nodes: int):
 
 def stiffness(ops: Operators, geo: dict, h: float):
     """K [3N, 3N]: the nodes' shares and, with element channels, the cells' B_tᵀB_t."""
-    k_local, _ = local_blocks(ops, geo, h)
+    k_local = local_blocks(ops, geo, h)
     K = dense_stiffness(k_local, local_dofs(geo), geo["nbr"].shape[0])
     if ops.mu_e.shape[0] == 0:
         return K
@@ -346,10 +360,16 @@ def stiffness(ops: Operators, geo: dict, h: float):
 
 
 def nodal_stress(u, ops: Operators, geo: dict):
-    """σ [..., N, 6] of displacements u [..., N, 3]."""
+    """σ [..., N, 6] of displacements u [..., N, 3]: the nodes' own deviatoric stresses σ̂ and pressures p̂
+    (`stress_parts`), smoothed over each node's one-ring by the mesh's node → cell → node averaging W (what a
+    nodal stress recovered from cell stresses is): σ_i = (1 − β_i) σ̂_i + β_i (W σ̂)_i + (W p̂)_i I, with β_i ∈ (0, 1)
+    learned."""
     def one(uu):
         local = jnp.concatenate([uu[:, None], uu[geo["nbr"]]], axis=1)
-        return jax.vmap(stress)(local, ops.gs, ops.mu_s, ops.gp, ops.kappa_p)
+        dev, p = jax.vmap(stress_parts)(local, ops.gs, ops.mu_s, ops.gp, ops.kappa_p)
+        smooth = lambda x: geo["w_avg"][:, 0, None] * x + jnp.einsum("nd,ndc->nc", geo["w_avg"][:, 1:], x[geo["nbr"]])
+        dev = (1.0 - ops.beta)[:, None] * dev + ops.beta[:, None] * smooth(dev)
+        return dev + smooth(p[:, None]) * jnp.array([1.0, 1.0, 1.0, 0.0, 0.0, 0.0], dev.dtype)
     flat = u.reshape((-1,) + u.shape[-2:])
     return jax.vmap(one)(flat).reshape(u.shape[:-1] + (6,))
 
@@ -518,16 +538,12 @@ def to_rest_linearization(params, geo: Geometry, config: LinearConfig):
 
     ga = geometry_arrays(geo)
     ops = operators(params["net"], ga, geo.h, config, params)
-    _, s_local = local_blocks(ops, ga, geo.h)
     n = geo.nbr.shape[0]
     K = np.asarray(stiffness(ops, ga, geo.h), np.float64).reshape(n, 3, n, 3).transpose(0, 2, 1, 3)
     K = 0.5 * (K + K.transpose(1, 0, 3, 2))
     rows, cols = np.nonzero(np.abs(K).max(axis=(2, 3)) > 1e-12 * np.abs(K).max())
-    S = np.zeros((n, n, 6, 3))
-    slots = np.concatenate([np.arange(n)[:, None], geo.nbr], axis=1)
-    s_local = np.asarray(s_local, np.float64).reshape(n, 6, -1, 3)
-    for a in range(slots.shape[1]):
-        np.add.at(S, (np.arange(n), slots[:, a]), s_local[:, :, a, :])
+    S = jax.jacfwd(lambda u: nodal_stress(u, ops, ga))(jnp.zeros((n, 3), ops.mu.dtype))     # [N, 6, N, 3]
+    S = np.asarray(S, np.float64).transpose(0, 2, 1, 3)
     s_rows, s_cols = np.nonzero(np.abs(S).max(axis=(2, 3)) > 0)
     return RestLinearization(rows, cols, K[rows, cols], s_rows, s_cols, S[s_rows, s_cols],
                              np.asarray(ops.mass, np.float64), float(ops.alpha), geo.free)
