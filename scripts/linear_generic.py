@@ -83,8 +83,15 @@ def cmd_pack(args) -> int:
     model = FS.model_from_operators(like, lin, float(data.dt))
     records = [json.loads(x) for x in (run / "metrics.jsonl").read_text().splitlines()]
     best = min(records, key=lambda r: r["val_loss"])
+    with np.load(args.data, allow_pickle=False) as raw:
+        meta = json.loads(str(raw["metadata"]))
     info = {"kind": "learned linear GENERIC operators (tignn_jax.linear_generic), backward Euler",
             "scene": "bunny", "learned": {"density": best["density"], "alpha": best["alpha"]},
+            # the FEM scene the training data came from (the stress tests rebuild it from these)
+            "fem_density": meta["material"]["density"], "fem_damping": meta["damping"],
+            "fem_load_radius": meta.get("load_radius"),
+            "fem_integrator": "implicit" if str(meta.get("integrator", "")).startswith("implicit") else "explicit",
+            "data": f"{meta.get('command', 'tignn generate')} ({args.data}, seed {meta.get('seed')})",
             "training": {**{k: saved[k] for k in ("steps", "lr", "seed", "train_ids", "val_ids")},
                          "config": saved["config"], "best_step": best["step"], "val": best["val"]},
             "velocity": like.get("info", {}).get("velocity", "solver")}

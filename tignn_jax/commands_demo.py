@@ -25,7 +25,7 @@ import time
 from pathlib import Path
 
 BUNNY_PRESS_NODE = 917
-DEFAULT_MODELS = {"beam": "beam-abaqus", "two-beams": "beam-abaqus", "bunny": "bunny-linear"}
+DEFAULT_MODELS = {"beam": "beam-abaqus", "two-beams": "beam-abaqus", "bunny": "bunny"}
 # the rest-linearised FEM a learned model's body is handed to when it leaves its training envelope
 # (api.fallback_step); models without one are reset to rest instead
 FALLBACKS = {"beam-abaqus": "beam-linear", "beam-abaqus-small": "beam-linear"}
