@@ -45,8 +45,8 @@ def random_params(config, geo, seed=1):
 
 def operators(config, geo, params):
     ga = LG.geometry_arrays(geo)
-    ops = LG.operators(params["net"], ga, geo.h, config, params)
-    K = np.asarray(LG.stiffness(ops, ga, geo.h))
+    ops = jax.jit(lambda p, g: LG.operators(p["net"], g, geo.h, config, p))(params, ga)
+    K = np.asarray(jax.jit(lambda o, g: LG.stiffness(o, g, geo.h))(ops, ga))
     return ops, ga, K
 
 
@@ -66,7 +66,8 @@ def test_gradient_weights_reproduce_linear_fields():
     A = np.array([[0.3, -0.1, 0.2], [0.05, 0.4, -0.2], [0.1, 0.0, -0.3]])
     u = pts @ A.T
     for g in (np.asarray(ga["g_ls"]) / geo.h, np.asarray(ga["g_avg"]) / geo.h, np.asarray(ops.g), np.asarray(ops.gs)):
-        grads = np.stack([LG._gradient(np.concatenate([u[i:i + 1], u[geo.nbr[i]]]), g[i]) for i in range(len(pts))])
+        local = np.concatenate([u[:, None], u[geo.nbr]], axis=1)
+        grads = np.asarray(jax.vmap(LG._gradient)(jnp.asarray(local), jnp.asarray(g)))
         assert np.abs(grads - A).max() < 1e-10
 
 
@@ -169,14 +170,14 @@ def test_training_fits_a_hidden_linear_model_and_resumes_to_the_same_result(tmp_
     pts, edges, cells, node_type = bar()
     path = synthetic(tmp_path, pts, edges, cells, node_type)
     config = LG.LinearConfig(hidden=8, mu=1.0, kappa=10.0, density=1.0, alpha=1.0)
-    one = LG.train(path, [0, 1, 2], [3], tmp_path / "one", config, steps=40, lr=3e-2, val_every=10, progress=False)
+    one = LG.train(path, [0, 1, 2], [3], tmp_path / "one", config, steps=20, lr=3e-2, val_every=5, progress=False)
     records = [json.loads(x) for x in (tmp_path / "one" / "metrics.jsonl").read_text().splitlines()]
     assert records[-1]["train_loss"] < 0.5 * records[0]["train_loss"]
-    LG.train(path, [0, 1, 2], [3], tmp_path / "two", config, steps=40, lr=3e-2, val_every=10, progress=False,
-             until=20)
-    LG.train(path, [0, 1, 2], [3], tmp_path / "two", config, steps=40, lr=3e-2, val_every=10, progress=False)
+    LG.train(path, [0, 1, 2], [3], tmp_path / "two", config, steps=20, lr=3e-2, val_every=5, progress=False,
+             until=10)
+    LG.train(path, [0, 1, 2], [3], tmp_path / "two", config, steps=20, lr=3e-2, val_every=5, progress=False)
     again = [json.loads(x) for x in (tmp_path / "two" / "metrics.jsonl").read_text().splitlines()]
-    assert again[-1]["step"] == 40
+    assert again[-1]["step"] == 20
     assert np.isclose(again[-1]["train_loss"], records[-1]["train_loss"], rtol=1e-6)
     assert one["val_loss"] < records[0]["val_loss"]
 
