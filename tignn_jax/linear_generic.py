@@ -8,26 +8,32 @@ quadratic energy and dissipation about the rest state z₀::
     u̇ = v,   M v̇ = f − K u − α M v,   σ̇ = S v
 
 with M = diag(ρ V_i) the lumped masses (V_i the nodes' lumped volumes), K symmetric positive semi-definite, α ≥ 0.
-Here every operator is *learned* from trajectories, none is taken from the FEM: K = Σ_i B_iᵀ B_i is assembled
-from per-node channels B_i u computed by message passing over node i's one-ring,
+Here the operators are *learned* from trajectories: K = Σ_i B_iᵀ B_i (+ Σ_t B_tᵀ B_t) is assembled from
+channels computed by message passing over each node's one-ring (and, with ``element_channels``, each tet),
 
-    ∇u_i = Σ_j (u_j − u_i) ⊗ g_ij        (a learned gradient operator; g_ij starts at the least-squares weights)
+    ∇u_i = Σ_j (u_j − u_i) ⊗ g_ij        (a learned gradient operator; it starts at the mesh's volume-averaged one)
     B_i u = [√(2 μ_i V_i) dev sym ∇u_i,  √(κ_i V_i) tr ∇u_i,  √k_ij (u_j − u_i − ∇u_i Δx_ij) for each edge]
+    B_t u = √(2 μ_t V_t) dev sym ∇u_t     (the tet's own strain)
 
-(a nodal strain energy with learned shear and bulk moduli fields μ_i, κ_i, and a learned edge stabilisation that
-vanishes on linear displacement fields, so rigid motions and uniform strains are represented exactly), and the
-stress observable σ_i = 2 μˢ_i dev sym ∇ˢu_i + κˢ_i tr(∇ˢu_i) I by a second learned gradient operator. The
-coefficients g_ij, μ_i, κ_i, k_ij and their stress counterparts come from flax MLPs over rotation-invariant features
-of the rest mesh (edge lengths, the least-squares weights, lumped volumes, degrees, clamps, one message-passing
-round), so the model is equivariant to rotations of the mesh. K is PSD by construction and α, ρ > 0, so the
-backward-Euler step is unconditionally stable: no learned state can grow, the property the explicit networks of
-this project lacked (`benchmarks/results/stability.md`).
+(nodal and cell strain energies with learned shear and bulk moduli fields, and a learned edge stabilisation; the
+gradient weights are projected so that every linear displacement field is read exactly, so rigid motions store
+no energy), and the stress observable: the nodes' deviatoric stress 2 μˢ_i dev sym ∇ˢu_i by a second learned
+gradient operator, and the pressure κ tr ∇u (the energy's with ``tied_pressure``), recovered at the nodes
+through the mesh's node → cell → node averaging with a learned share (what a nodal stress recovered from cell
+stresses is). The coefficients come from flax MLPs over rotation-invariant features of the rest mesh (edge
+lengths, the least-squares and volume-averaged gradient weights, lumped volumes, degrees, clamps, one
+message-passing round), so the model is equivariant to rotations of the mesh; density and damping are learned
+scalars. The mesh's discrete gradient and averaging operators are geometry, fixed. At particular values of the
+learned scales this class is exactly the FEM's rest linearisation of the stabilised nodal tet (tested): training
+can reach it and move past it. K is PSD by construction and α, ρ > 0, so the backward-Euler step never creates
+energy whatever the state and step size, the property the explicit networks of this project lacked
+(`benchmarks/results/stability.md`).
 
 A backward-Euler step of this system is the ``frame_solve`` + ``linear_prior`` step of `tignn_jax.framesolve`
 with J₀ = these operators, so a trained model is packed in that format (`to_rest_linearization`) and runs
 through `tignn_jax.step`, `rollout`, the stress tests and the demo unchanged. Training (`train`) fits whole
 20-frame rollouts from rest through a dense Cholesky factor of A = (1 + αΔt) M / Δt² + K on the free degrees of
-freedom, in float64.
+freedom (float32, or float64 where jax has it enabled), the solve differentiated implicitly.
 """
 from __future__ import annotations
 
@@ -164,6 +170,7 @@ class LinearConfig(NamedTuple):
 
 
 class MLP(nn.Module):
+    """Two swish layers of ``width`` and a zero-initialised linear head of ``out`` units."""
     width: int
     out: int
 
@@ -180,8 +187,9 @@ NODE_OUT = 5    # log μ, log κ, log μˢ, log κˢ corrections, logit of β
 
 class Coefficients(nn.Module):
     """Per-node and per-edge coefficients of the operators from rotation-invariant rest-mesh features: one
-    message-passing round (edge MLP → masked mean at the node) and two heads. The zero-initialised heads start
-    the model at the least-squares gradient and uniform moduli."""
+    message-passing round (edge MLP → masked mean at the node), node and edge heads, a cell head with
+    ``cells``, and the global log-scales. The zero-initialised heads start the model at the mesh's
+    volume-averaged gradient and uniform moduli."""
     width: int
     cells: bool = False
 
@@ -197,8 +205,8 @@ class Coefficients(nn.Module):
         vol = geo["volume"][:, None] / jnp.mean(geo["volume"])
         clamp = 1.0 - geo["free"][:, None]
         node = jnp.concatenate([jnp.log(vol), deg, clamp], axis=-1)
-        edge_in = jnp.concatenate([length, along, gnorm, along_avg, avg_norm, jnp.broadcast_to(node[:, None], length.shape[:2] + (3,)),
-                                   node[geo["nbr"]]], axis=-1)
+        edge_in = jnp.concatenate([length, along, gnorm, along_avg, avg_norm,
+                                   jnp.broadcast_to(node[:, None], length.shape[:2] + (3,)), node[geo["nbr"]]], axis=-1)
         msg = MLP(self.width, self.width)(edge_in) * mask
         pooled = jnp.sum(msg, axis=1) / jnp.maximum(jnp.sum(mask, axis=1), 1.0)
         node_h = jnp.concatenate([node, pooled], axis=-1)
@@ -219,9 +227,10 @@ class Coefficients(nn.Module):
 
 
 def geometry_arrays(geo: Geometry) -> dict:
-    return {"nbr": jnp.asarray(geo.nbr), "mask": jnp.asarray(geo.mask, jnp.float64 if jax.config.jax_enable_x64
-                                                                       else jnp.float32),
-            "dx": jnp.asarray(geo.dx), "g_ls": jnp.asarray(geo.g_ls), "g_avg": jnp.asarray(geo.g_avg), "volume": jnp.asarray(geo.volume),
+    """The `Geometry` as jax arrays in jax's float type (the networks' and operators' input)."""
+    real = jnp.float64 if jax.config.jax_enable_x64 else jnp.float32
+    return {"nbr": jnp.asarray(geo.nbr), "mask": jnp.asarray(geo.mask, real), "dx": jnp.asarray(geo.dx),
+            "g_ls": jnp.asarray(geo.g_ls), "g_avg": jnp.asarray(geo.g_avg), "volume": jnp.asarray(geo.volume),
             "free": jnp.asarray(geo.free, jnp.float32), "cells": jnp.asarray(geo.cells),
             "cell_grad": jnp.asarray(geo.cell_grad), "cell_volume": jnp.asarray(geo.cell_volume),
             "w_avg": jnp.asarray(geo.w_avg)}
@@ -232,8 +241,7 @@ class Operators(NamedTuple):
     the stress; mu, kappa, mu_s, kappa_s [N]; k [N, D] edge stabilisation stiffness; gp, kappa_p the stress's
     pressure operator and modulus (the energy's g and κ with ``tied_pressure``, else gs and κˢ); mu_e [K] the
     cells' shear moduli (empty without ``element_channels``); beta [N] the share of the smoothed deviatoric
-    stress; mass [N];
-    alpha ()."""
+    stress; mass [N]; alpha ()."""
     g: jax.Array
     gs: jax.Array
     mu: jax.Array
