@@ -1,13 +1,13 @@
-"""Train, pack and evaluate the learned linear GENERIC bunny (`tignn_jax.linear_generic`).
+"""Train and pack the learned linear GENERIC bunny (`tignn_jax.linear_generic`).
 
     python scripts/linear_generic.py train --data data/bunny.npz --run runs/lg        # resumable
     python scripts/linear_generic.py pack --data data/bunny.npz --run runs/lg --out tignn_jax/models/bunny
-    python scripts/linear_generic.py evaluate --model tignn_jax/models/bunny --data data/bunny_test.npz --split test
+    tignn evaluate --model tignn_jax/models/bunny --data data/bunny.npz --splits val,test
 
-``train`` fits whole 20-frame rollouts of the training positions (full batch, float64), validating every
-``--val-every`` steps; ``pack`` writes the best parameters as a model in the ``frame_solve`` format (its network
-zero: the learned part is the operators) with their training record; ``evaluate`` rolls the packed model out
-through the public `tignn_jax.rollout` (float32, as a user runs it) and prints the cards' errors.
+``train`` fits whole 20-frame rollouts of the training positions (``--batch`` of them per step, or all),
+validating every ``--val-every`` steps; ``pack`` writes the best parameters as a model in the ``frame_solve``
+format (its network zero: the learned part is the operators) with their training record and the FEM scene of
+the data; a packed model is evaluated like any other (``tignn evaluate``, ``benchmarks/bunny_learned.py``).
 
 The training split is the shipped bunny models': positions 1–80 less the nine (1, 8, 12, 21, 34, 50, 58, 61, 79)
 that `runs/r3.train_ids` left out, val 81–90, test 91–100.
@@ -100,29 +100,6 @@ def cmd_pack(args) -> int:
     return 0
 
 
-def cmd_evaluate(args) -> int:
-    import tignn_jax
-    from tignn_jax import data as D
-    from tignn_jax.evaluate import relative_errors
-
-    params, graph = tignn_jax.load_pretrained(args.model)
-    data = D.load(args.data)
-    rows = D.split_rows(data, args.split)
-    errs = []
-    for r in rows:
-        pred = np.asarray(tignn_jax.rollout(params, graph, data.f[r]))
-        errs.append(relative_errors(pred, data.z[r], data.q0)[1:])
-    e = np.stack(errs)                                   # [cases, T, (q, v, σ, u)]
-    out = {"model": args.model, "data": args.data, "split": args.split, "cases": len(rows),
-           "mean": dict(zip(("q", "v", "sigma", "u"), e.mean(axis=(0, 1)).round(5).tolist())),
-           "median": dict(zip(("q", "v", "sigma", "u"), np.median(e, axis=(0, 1)).round(5).tolist())),
-           "finite": bool(np.isfinite(e).all())}
-    print(json.dumps(out))
-    if args.out:
-        Path(args.out).write_text(json.dumps(out, indent=1))
-    return 0
-
-
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     sub = ap.add_subparsers(dest="cmd", required=True)
@@ -147,13 +124,8 @@ def main(argv=None) -> int:
     pk.add_argument("--run", required=True)
     pk.add_argument("--like", default="bunny-linear", help="the model whose mesh and normalisation to use")
     pk.add_argument("--out", required=True)
-    ev = sub.add_parser("evaluate", help="rollout errors of a packed model through tignn_jax.rollout")
-    ev.add_argument("--model", required=True)
-    ev.add_argument("--data", required=True)
-    ev.add_argument("--split", default="test")
-    ev.add_argument("--out", help="write the errors as JSON here")
     args = ap.parse_args(argv)
-    return {"train": cmd_train, "pack": cmd_pack, "evaluate": cmd_evaluate}[args.cmd](args)
+    return {"train": cmd_train, "pack": cmd_pack}[args.cmd](args)
 
 
 if __name__ == "__main__":
