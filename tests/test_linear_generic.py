@@ -246,3 +246,23 @@ def test_model_class_holds_the_fem_rest_linearisation():
     S0, S = dense(lin.s_rows, lin.s_cols, lin.s_blocks, 6), dense(mine.s_rows, mine.s_cols, mine.s_blocks, 6)
     assert np.abs(S - S0).max() < 1e-6 * np.abs(S0).max()
     assert np.allclose(mine.mass, lin.mass, rtol=1e-9) and np.isclose(mine.alpha, lin.alpha)
+
+
+def test_demo_guards_the_learned_bunny_only_against_non_finite_states():
+    # backward Euler with a PSD energy cannot diverge: a state beyond the training envelope is not reset, NaN is
+    from fem import scenes
+    from tignn_jax import api, commands_demo
+
+    scene = scenes.bunny_scene()
+    params, _ = api.load_pretrained("bunny")
+    step, described, q0, _ = commands_demo._dynamics("bunny", False, scene.points, scene.cells, None,
+                                                     np.where(scene.node_type)[0])
+    z = np.zeros((len(q0), 12), np.float32)
+    z[:, :3] = q0
+    far = z.copy()
+    far[:, 3:6] = 100.0 * np.asarray(params["norm"]["z_dev_max"])[3:6]
+    assert "bunny" in described
+    assert bool(api.state_guard(params)(jnp.asarray(far)))          # the envelope guard would reset it
+    assert not bool(step.guard(jnp.asarray(far)))
+    z[0, 0] = np.nan
+    assert bool(step.guard(jnp.asarray(z)))

@@ -199,7 +199,10 @@ def _dynamics(model_name, stand_in, q0, cells, edges, clamped):
                 def step(z, forces):
                     return fn(z, forces)
 
-                step.guard = api.state_guard(params)   # each body's own flag (Body.guard)
+                # each body's own flag (Body.guard); a model whose network is zero steps a linear system with a PSD
+                # energy by backward Euler (the learned `bunny`, the rest-linearised FEM): stable by construction,
+                # so only a non-finite state is flagged, as for the FEM, not a state beyond the training envelope
+                step.guard = _finite_guard if api.network_is_zero(params) else api.state_guard(params)
                 if model_name in FALLBACKS:
                     linear, _ = api.load_pretrained(FALLBACKS[model_name])
                     step.fallback = api.fallback_step(params, linear)
@@ -222,11 +225,17 @@ def _model_units(params, q0):
     return mesh_q0, 0.0
 
 
+def _finite_guard(z):
+    """True where a state is not finite: the guard of a step that is stable by construction."""
+    import jax.numpy as jnp
+
+    return ~jnp.all(jnp.isfinite(z))
+
+
 def _fem_newton(linear_name, q0, iterations: int = 3, newton: int = 2):
     """(step, description, q0 in the model's units, units) of ``--model fem-newton``: the FEM's backward-Euler
     frame step (`newton.fem_stepper`) on the mesh of the shipped rest-linearised model ``linear_name``. Its
     guard flags a non-finite state only (the body is then reset to rest): the FEM has no training envelope."""
-    import jax.numpy as jnp
     import numpy as np
 
     from tignn_jax import api, newton as nw
@@ -240,7 +249,7 @@ def _fem_newton(linear_name, q0, iterations: int = 3, newton: int = 2):
     def step(z, forces):
         return fn(z, forces)
 
-    step.guard = lambda z: ~jnp.all(jnp.isfinite(z))
+    step.guard = _finite_guard
     described = (f"FEM backward Euler, {newton} Newton x {iterations} CG iterations per frame (tignn_jax.newton, "
                  f"on {linear_name}'s mesh; not learned)")
     return step, described, mesh_q0.astype(np.float32), units
