@@ -36,16 +36,12 @@ def untrained(run: Path, data_path: str):
     import jax
     jax.config.update("jax_enable_x64", True)
     from tignn_jax import api
-    from tignn_jax import data as D
     from tignn_jax import framesolve as FS
     from tignn_jax import linear_generic as LG
 
     saved = json.loads((run / "config.json").read_text())
     config = LG.LinearConfig(**saved["config"])
-    data = D.load(data_path)
-    with np.load(data_path, allow_pickle=False) as raw:
-        cells = raw["cells"]
-    geo = LG.geometry(data.q0, data.edges, cells, data.node_type)
+    data, geo = LG.geometry_from_file(data_path)
     lin = LG.to_rest_linearization(LG.init(config, geo, saved["seed"]), geo, config)
     like, graph = api.load_pretrained("bunny-linear")
     jax.config.update("jax_enable_x64", False)

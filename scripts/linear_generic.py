@@ -65,18 +65,13 @@ def cmd_pack(args) -> int:
     from flax import serialization
 
     from tignn_jax import api
-    from tignn_jax import data as D
     from tignn_jax import framesolve as FS
     from tignn_jax import linear_generic as LG
-    from tignn_jax.linear_generic import LinearConfig
 
     run = Path(args.run)
     saved = json.loads((run / "config.json").read_text())
-    config = LinearConfig(**saved["config"])
-    data = D.load(args.data)
-    with np.load(args.data, allow_pickle=False) as raw:
-        cells = raw["cells"]
-    geo = LG.geometry(data.q0, data.edges, cells, data.node_type)
+    config = LG.LinearConfig(**saved["config"])
+    data, geo = LG.geometry_from_file(args.data)
     params = serialization.from_bytes(LG.init(config, geo), (run / "best.msgpack").read_bytes())
     lin = LG.to_rest_linearization(params, geo, config)
     like, _ = api.load_pretrained(args.like)

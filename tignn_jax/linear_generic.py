@@ -120,9 +120,24 @@ def geometry(q0, edges, cells, node_type) -> Geometry:
     return Geometry(nbr.astype(np.int32), mask, dx, g_ls, g_avg, volume, node_type == 0, h, *tets, w_avg)
 
 
+def _slots(nbr, mask) -> dict:
+    """(i, j) → the slot of neighbour j in node i's row of ``nbr`` (real neighbours only)."""
+    return {(int(i), int(j)): d for i in range(nbr.shape[0]) for d, j in enumerate(nbr[i]) if mask[i, d]}
+
+
+def geometry_from_file(path):
+    """(`tignn_jax.data.Dataset`, `Geometry`) of a data-set file: its mesh, edges, clamps and cells."""
+    from tignn_jax import data as D
+
+    data = D.load(path)
+    with np.load(path, allow_pickle=False) as raw:
+        cells = raw["cells"]
+    return data, geometry(data.q0, data.edges, cells, data.node_type)
+
+
 def _averaging_weights(cells, vol, volume, nbr, mask):
     """[N, D+1]: node i's weights of the mean over its cells of their nodes' values (slot 0: itself)."""
-    slot = {(int(i), int(j)): d + 1 for i in range(nbr.shape[0]) for d, j in enumerate(nbr[i]) if mask[i, d]}
+    slot = {pair: d + 1 for pair, d in _slots(nbr, mask).items()}
     n_per = cells.shape[1]
     out = np.zeros((nbr.shape[0], nbr.shape[1] + 1))
     for t, cell in enumerate(cells):
@@ -142,7 +157,7 @@ def _tet_gradients(x):
 def _averaged_gradient(grads, cells, vol, volume, nbr, mask):
     """[N, D, 3]: Σ_{t ∋ i, j} (V_t / 4) ∇N_j^t / V_i, the weight of u_j − u_i in node i's volume-averaged
     gradient over its tets (grads [K,4,3] their ∇N, vol [K], volume [N] lumped volumes)."""
-    slot = {(int(i), int(j)): d for i in range(nbr.shape[0]) for d, j in enumerate(nbr[i]) if mask[i, d]}
+    slot = _slots(nbr, mask)
     out = np.zeros(nbr.shape + (3,))
     for t, cell in enumerate(cells):
         for a, i in enumerate(cell):
@@ -476,16 +491,11 @@ def train(data_path, train_rows, val_rows, run_dir, config: LinearConfig = Linea
     from flax import serialization
     from tqdm import tqdm
 
-    from tignn_jax import data as D
-
     if steps < 1 or val_every < 1:
         raise ValueError(f"steps and val_every must be positive, got {steps} and {val_every}")
     if batch is not None and not 1 <= batch <= len(train_rows):
         raise ValueError(f"batch must be between 1 and the {len(train_rows)} training cases, got {batch}")
-    data = D.load(data_path)
-    with np.load(data_path, allow_pickle=False) as raw:
-        cells = raw["cells"]
-    geo = geometry(data.q0, data.edges, cells, data.node_type)
+    data, geo = geometry_from_file(data_path)
     ga = geometry_arrays(geo)
     f_tr, t_tr = targets(data.z, data.f, data.q0, np.asarray(train_rows))
     f_va, t_va = targets(data.z, data.f, data.q0, np.asarray(val_rows))
@@ -535,7 +545,8 @@ def train(data_path, train_rows, val_rows, run_dir, config: LinearConfig = Linea
             tmp.write_bytes(serialization.to_bytes({"params": params, "state": state, "step": step + 1,
                                                     "best": best["val_loss"]}))
             tmp.replace(ckpt)
-    return best
+    # from the log, so that a resumed run returns the whole record, not only the checkpoint's best loss
+    return min((json.loads(x) for x in log.read_text().splitlines()), key=lambda r: r["val_loss"])
 
 
 def to_rest_linearization(params, geo: Geometry, config: LinearConfig):
