@@ -1,16 +1,22 @@
-"""Train and pack the learned linear GENERIC bunny (`tignn_jax.linear_generic`).
+"""Train and pack the learned linear GENERIC models (`tignn_jax.linear_generic`): the bunny and the beam.
 
     python scripts/linear_generic.py train --data data/bunny.npz --run runs/lg        # resumable
     python scripts/linear_generic.py pack --data data/bunny.npz --run runs/lg --out tignn_jax/models/bunny
     tignn evaluate --model tignn_jax/models/bunny --data data/bunny.npz --splits val,test
+
+    python scripts/linear_generic.py train --scene beam --data data/beam_ref_d60.npz data/beam_int_smooth_d60.npz \
+        --run runs/lg-beam --element-channels --cell-pressure --tied-pressure --measure peak ...
+    python scripts/linear_generic.py pack --scene beam --data data/beam_ref_d60.npz data/beam_int_smooth_d60.npz \
+        --run runs/lg-beam --out tignn_jax/models/beam
 
 ``train`` fits whole 20-frame rollouts of the training positions (``--batch`` of them per step, or all),
 validating every ``--val-every`` steps; ``pack`` writes the best parameters as a model in the ``frame_solve``
 format (its network zero: the learned part is the operators) with their training record and the FEM scene of
 the data; a packed model is evaluated like any other (``tignn evaluate``, ``benchmarks/bunny_learned.py``).
 
-The training split is the shipped bunny models': positions 1–80 less the nine (1, 8, 12, 21, 34, 50, 58, 61, 79)
-that `runs/r3.train_ids` left out, val 81–90, test 91–100.
+The bunny's training split is the shipped bunny models': positions 1–80 less the nine (1, 8, 12, 21, 34, 50, 58,
+61, 79) that `runs/r3.train_ids` left out, val 81–90, test 91–100. The beam's are the data files' own named
+splits (the reference cases' published split and the fingertip cases' split), concatenated.
 """
 from __future__ import annotations
 
@@ -33,28 +39,39 @@ def config_from(args):
     from tignn_jax.linear_generic import LinearConfig
 
     return LinearConfig(hidden=args.hidden, mu=args.mu, kappa=args.kappa, density=args.density, alpha=args.alpha,
-                        tied_pressure=args.tied_pressure, element_channels=args.element_channels)
+                        tied_pressure=args.tied_pressure, element_channels=args.element_channels,
+                        cell_pressure=args.cell_pressure)
+
+
+def split_ids(scene: str, data):
+    """(train rows, val rows, train ids, val ids) of the scene's split in the (concatenated) data set."""
+    from tignn_jax import data as D
+
+    if scene == "bunny":
+        train, val = list(TRAIN_IDS), list(VAL_IDS)
+    else:
+        train, val = [int(x) for x in data.splits["train"]], [int(x) for x in data.splits["val"]]
+    return D.split_rows(data, train), D.split_rows(data, val), train, val
 
 
 def cmd_train(args) -> int:
     import jax
     jax.config.update("jax_enable_x64", args.float64)
-    from tignn_jax import data as D
     from tignn_jax import linear_generic as LG
 
-    data = D.load(args.data)
-    rows_tr = D.split_rows(data, list(TRAIN_IDS))
-    rows_va = D.split_rows(data, list(VAL_IDS))
+    data, _ = LG.geometry_from_file(args.data)
+    rows_tr, rows_va, train_ids, val_ids = split_ids(args.scene, data)
     run = Path(args.run)
     run.mkdir(parents=True, exist_ok=True)
     config = config_from(args)
     (run / "config.json").write_text(json.dumps({"config": config._asdict(), "steps": args.steps, "lr": args.lr,
-                                                 "seed": args.seed, "data": str(args.data),
+                                                 "seed": args.seed, "data": [str(x) for x in args.data],
                                                  "batch": args.batch, "float64": args.float64,
-                                                 "train_ids": TRAIN_IDS, "val_ids": VAL_IDS}, indent=1))
+                                                 "scene": args.scene, "measure": args.measure,
+                                                 "train_ids": train_ids, "val_ids": val_ids}, indent=1))
     t0 = time.perf_counter()
     best = LG.train(args.data, rows_tr, rows_va, run, config, steps=args.steps, lr=args.lr, seed=args.seed,
-                    val_every=args.val_every, batch=args.batch)
+                    val_every=args.val_every, batch=args.batch, measure=args.measure)
     print(json.dumps({"best": best, "seconds_this_run": round(time.perf_counter() - t0, 1)}))
     return 0
 
@@ -74,20 +91,25 @@ def cmd_pack(args) -> int:
     data, geo = LG.geometry_from_file(args.data)
     params = serialization.from_bytes(LG.init(config, geo), (run / "best.msgpack").read_bytes())
     lin = LG.to_rest_linearization(params, geo, config)
-    like, _ = api.load_pretrained(args.like)
+    like, _ = api.load_pretrained(args.like or {"bunny": "bunny-linear", "beam": "beam-linear"}[args.scene])
     model = FS.model_from_operators(like, lin, float(data.dt))
     records = [json.loads(x) for x in (run / "metrics.jsonl").read_text().splitlines()]
     best = min(records, key=lambda r: r["val_loss"])
-    with np.load(args.data, allow_pickle=False) as raw:
+    with np.load(args.data[0], allow_pickle=False) as raw:
         meta = json.loads(str(raw["metadata"]))
+    commands = []
+    for path in args.data:
+        with np.load(path, allow_pickle=False) as raw:
+            m = json.loads(str(raw["metadata"]))
+        commands.append(f"{m.get('command', 'tignn generate')} ({path}, seed {m.get('seed')})")
     info = {"kind": "learned linear GENERIC operators (tignn_jax.linear_generic), backward Euler",
-            "scene": "bunny", "learned": {"density": best["density"], "alpha": best["alpha"]},
+            "scene": args.scene, "learned": {"density": best["density"], "alpha": best["alpha"]},
             # the FEM scene the training data came from (the stress tests rebuild it from these)
             "fem_density": meta["material"]["density"], "fem_damping": meta["damping"],
             "fem_load_radius": meta.get("load_radius"),
             "fem_integrator": "implicit" if str(meta.get("integrator", "")).startswith("implicit") else "explicit",
-            "data": f"{meta.get('command', 'tignn generate')} ({args.data}, seed {meta.get('seed')})",
-            "training": {**{k: saved[k] for k in ("steps", "lr", "seed", "train_ids", "val_ids")},
+            "data": "; ".join(commands),
+            "training": {**{k: saved.get(k) for k in ("steps", "lr", "seed", "train_ids", "val_ids", "measure")},
                          "config": saved["config"], "best_step": best["step"], "val": best["val"]},
             "velocity": like.get("info", {}).get("velocity", "solver")}
     path = api.save_model(model, Path(args.out) / "model.npz", info)
@@ -99,7 +121,11 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     sub = ap.add_subparsers(dest="cmd", required=True)
     tr = sub.add_parser("train", help="fit the operators to the training positions' rollouts (resumable)")
-    tr.add_argument("--data", required=True, help="the bunny data set (tignn generate bunny ...; README)")
+    tr.add_argument("--data", required=True, nargs="+",
+                    help="the data set, or several on the same mesh (tignn generate bunny|beam-... ; README)")
+    tr.add_argument("--scene", choices=("bunny", "beam"), default="bunny", help="which split (module docstring)")
+    tr.add_argument("--measure", choices=("snapshot", "peak"), default="snapshot",
+                    help="relative errors over each snapshot's norm or each case's peak (linear_generic.relative_errors)")
     tr.add_argument("--run", required=True, help="run folder (metrics.jsonl, ckpt.msgpack, best.msgpack)")
     tr.add_argument("--steps", type=int, default=300)
     tr.add_argument("--lr", type=float, default=3e-3)
@@ -114,10 +140,13 @@ def main(argv=None) -> int:
     tr.add_argument("--alpha", type=float, default=1.0, help="initial mass damping scale (learned)")
     tr.add_argument("--element-channels", action="store_true", help="cells' own shear strains too (LinearConfig)")
     tr.add_argument("--tied-pressure", action="store_true", help="the stress's pressure is the energy's (LinearConfig)")
+    tr.add_argument("--cell-pressure", action="store_true", help="cells' own volume changes too (LinearConfig)")
     pk = sub.add_parser("pack", help="write the best parameters as a model folder")
-    pk.add_argument("--data", required=True, help="a data file of the same mesh (its cells give the volumes)")
+    pk.add_argument("--data", required=True, nargs="+", help="the data files it was trained on (mesh, cells, provenance)")
+    pk.add_argument("--scene", choices=("bunny", "beam"), default="bunny")
     pk.add_argument("--run", required=True)
-    pk.add_argument("--like", default="bunny-linear", help="the model whose mesh and normalisation to use")
+    pk.add_argument("--like", default=None,
+                    help="the model whose mesh and normalisation to use (default: bunny-linear or beam-linear)")
     pk.add_argument("--out", required=True)
     args = ap.parse_args(argv)
     return {"train": cmd_train, "pack": cmd_pack}[args.cmd](args)
