@@ -31,7 +31,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _machine import describe  # noqa: E402
 
 RESULTS = Path(__file__).resolve().parent / "results"
-DEFAULT_MODELS = ("beam-abaqus", "beam", "beam-abaqus-small", "beam-abaqus+static_l")
+DEFAULT_MODELS = ("beam-abaqus", "beam-gnn", "beam-abaqus-small", "beam-abaqus+static_l")
 TERMS = ("L_hessian", "L_change", "M_hessian", "M_change")
 
 

@@ -75,7 +75,10 @@ def peak_errors(pred, true, q0) -> dict:
 
 
 def describe_model(m: dict) -> str:
-    """The table's config column: the architecture and step, or that the model is the linear FEM step."""
+    """The table's config column: the architecture and step, the learned linear operators, or that the model is
+    the linear FEM step."""
+    if m.get("kind", "").startswith("learned linear GENERIC"):
+        return "learned linear GENERIC operators, backward Euler"
     if not m["learned"]:
         return "the FEM's rest-linearised backward-Euler step (not learned)"
     c = m["config"]
@@ -84,7 +87,7 @@ def describe_model(m: dict) -> str:
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--models", default="beam", help="comma-separated shipped names or model paths")
+    ap.add_argument("--models", default="beam,beam-gnn", help="comma-separated shipped names or model paths")
     ap.add_argument("--reference", default="data/beam_ref_f2.npz", help="the reference cases (FEM)")
     ap.add_argument("--interactions", default="data/beam_int_f2.npz", help="the fingertip cases (FEM)")
     ap.add_argument("--profiles", default="data/beam_int_smooth_d60.npz",
@@ -109,6 +112,7 @@ def main(argv=None) -> int:
         cfg = params["config"]
         result["models"][name] = {"groups": rows, "seconds": time.perf_counter() - t0,
                                   "learned": not api.network_is_zero(params),
+                                  "kind": str(params.get("info", {}).get("kind", "")),
                                   "config": {k: cfg.get(k) for k in ("hidden", "passes", "integrator", "substeps",
                                                                      "relaxation", "frame_solve", "convex",
                                                                      "free_energy")}}

@@ -36,7 +36,7 @@ from _machine import describe  # noqa: E402
 
 RESULTS = Path(__file__).resolve().parent / "results"
 FEATURES = ("q1", "q2", "q3", "v1", "v2", "v3", "σ11", "σ22", "σ33", "σ12", "σ13", "σ23")
-DEFAULT_MODELS = ("beam-abaqus", "beam", "beam-abaqus-small", "bunny-linear", "bunny-128x6")
+DEFAULT_MODELS = ("beam-abaqus", "beam-gnn", "beam-abaqus-small", "bunny-linear", "bunny-128x6")
 
 
 def scene_of(params) -> str:

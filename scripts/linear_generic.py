@@ -40,7 +40,29 @@ def config_from(args):
 
     return LinearConfig(hidden=args.hidden, mu=args.mu, kappa=args.kappa, density=args.density, alpha=args.alpha,
                         tied_pressure=args.tied_pressure, element_channels=args.element_channels,
-                        cell_pressure=args.cell_pressure)
+                        cell_pressure=args.cell_pressure, prior=args.prior)
+
+
+def fem_prior(run: Path, scene: str, data_path, compute: bool):
+    """The FEM's rest linearisation of the data's scene (its damping and density) for a model with a prior:
+    computed once into ``run``/prior.npz (about 40 s for the beam), then read from there."""
+    from fem import implicit, scenes
+
+    path = run / "prior.npz"
+    if path.exists():
+        with np.load(path) as raw:
+            return implicit.RestLinearization(*(raw[k] if raw[k].ndim else float(raw[k])
+                                                for k in implicit.RestLinearization._fields))
+    if not compute:
+        raise FileNotFoundError(f"{path} is missing: the run was trained without --prior, or elsewhere")
+    with np.load(data_path, allow_pickle=False) as raw:
+        meta = json.loads(str(raw["metadata"]))
+    density = meta["material"]["density"]
+    sc = (scenes.beam_scene(density=density, damping=meta["damping"]) if scene == "beam"
+          else scenes.bunny_scene(density=density)._replace(damping=meta["damping"]))
+    lin = implicit.rest_linearization(scenes.setup_scene(sc), sc.material)
+    np.savez(path, **lin._asdict())
+    return lin
 
 
 def split_ids(scene: str, data):
@@ -68,10 +90,13 @@ def cmd_train(args) -> int:
                                                  "seed": args.seed, "data": [str(x) for x in args.data],
                                                  "batch": args.batch, "float64": args.float64,
                                                  "scene": args.scene, "measure": args.measure,
+                                                 "weights": args.weights,
                                                  "train_ids": train_ids, "val_ids": val_ids}, indent=1))
     t0 = time.perf_counter()
+    prior = fem_prior(run, args.scene, args.data[0], True) if args.prior else None
     best = LG.train(args.data, rows_tr, rows_va, run, config, steps=args.steps, lr=args.lr, seed=args.seed,
-                    val_every=args.val_every, batch=args.batch, measure=args.measure)
+                    val_every=args.val_every, batch=args.batch, measure=args.measure, prior=prior,
+                    weights=args.weights)
     print(json.dumps({"best": best, "seconds_this_run": round(time.perf_counter() - t0, 1)}))
     return 0
 
@@ -89,6 +114,8 @@ def cmd_pack(args) -> int:
     saved = json.loads((run / "config.json").read_text())
     config = LG.LinearConfig(**saved["config"])
     data, geo = LG.geometry_from_file(args.data)
+    if config.prior:
+        geo = LG.with_prior(geo, fem_prior(run, args.scene, args.data[0], False))
     params = serialization.from_bytes(LG.init(config, geo), (run / "best.msgpack").read_bytes())
     lin = LG.to_rest_linearization(params, geo, config)
     like, _ = api.load_pretrained(args.like or {"bunny": "bunny-linear", "beam": "beam-linear"}[args.scene])
@@ -109,7 +136,8 @@ def cmd_pack(args) -> int:
             "fem_load_radius": meta.get("load_radius"),
             "fem_integrator": "implicit" if str(meta.get("integrator", "")).startswith("implicit") else "explicit",
             "data": "; ".join(commands),
-            "training": {**{k: saved.get(k) for k in ("steps", "lr", "seed", "train_ids", "val_ids", "measure")},
+            "training": {**{k: saved.get(k) for k in ("steps", "lr", "seed", "train_ids", "val_ids", "measure",
+                                                      "weights")},
                          "config": saved["config"], "best_step": best["step"], "val": best["val"]},
             "velocity": like.get("info", {}).get("velocity", "solver")}
     path = api.save_model(model, Path(args.out) / "model.npz", info)
@@ -141,6 +169,10 @@ def main(argv=None) -> int:
     tr.add_argument("--element-channels", action="store_true", help="cells' own shear strains too (LinearConfig)")
     tr.add_argument("--tied-pressure", action="store_true", help="the stress's pressure is the energy's (LinearConfig)")
     tr.add_argument("--cell-pressure", action="store_true", help="cells' own volume changes too (LinearConfig)")
+    tr.add_argument("--weights", type=lambda t: tuple(float(x) for x in t.split(",")), default=(1.0, 1.0, 1.0),
+                    help="weights of the u, v and σ errors in the loss, e.g. 1,0.25,1 (default 1,1,1)")
+    tr.add_argument("--prior", action="store_true",
+                    help="start from the FEM's rest linearisation of the data's scene and learn a correction (LinearConfig)")
     pk = sub.add_parser("pack", help="write the best parameters as a model folder")
     pk.add_argument("--data", required=True, nargs="+", help="the data files it was trained on (mesh, cells, provenance)")
     pk.add_argument("--scene", choices=("bunny", "beam"), default="bunny")

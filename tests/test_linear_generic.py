@@ -287,3 +287,37 @@ def test_demo_guards_the_learned_bunny_only_against_non_finite_states():
     assert not bool(step.guard(jnp.asarray(far)))
     z[0, 0] = np.nan
     assert bool(step.guard(jnp.asarray(z)))
+
+
+def test_prior_starts_the_model_at_the_fem_rest_linearisation_of_a_hex_bar():
+    # with a prior (the FEM's rest linearisation) and learned channels started a millionth as stiff, the operators
+    # are the prior's: K, S, masses and α; training then learns a correction (its scales, a PSD K throughout)
+    from fem import implicit
+    from fem.material import mooney_rivlin
+    from fem.solver import setup
+
+    pts, edges, cells, node_type = bar("hex")
+    material = mooney_rivlin(1.5, 0.05, 0.01, 1e-3)
+    problem = setup(pts, cells, material=material, frame_dt=0.05, n_frames=1, clamped=np.where(node_type)[0],
+                    cell_type="hexahedron", damping=3.0, n_sub=1)
+    lin = implicit.rest_linearization(problem, material)
+    geo = LG.with_prior(LG.geometry(pts, edges, cells, node_type), lin)
+    config = LG.LinearConfig(hidden=8, mu=3.1e-6, kappa=2e-4, density=1e-3, alpha=3.0, element_channels=True,
+                             cell_pressure=True, tied_pressure=True, prior=True)
+    mine = LG.to_rest_linearization(LG.init(config, geo), geo, config)
+    n = len(pts)
+
+    def dense(rows, cols, blocks, r):
+        out = np.zeros((n, n, r, 3))
+        out[rows, cols] = blocks
+        return out
+
+    free = node_type == 0
+    K0, K = dense(lin.k_rows, lin.k_cols, lin.k_blocks, 3), dense(mine.k_rows, mine.k_cols, mine.k_blocks, 3)
+    assert np.abs(K - K0)[free][:, free].max() < 1e-5 * np.abs(K0).max()
+    S0, S = dense(lin.s_rows, lin.s_cols, lin.s_blocks, 6), dense(mine.s_rows, mine.s_cols, mine.s_blocks, 6)
+    assert np.abs(S - S0).max() < 1e-5 * np.abs(S0).max()
+    assert np.allclose(mine.mass, lin.mass, rtol=1e-9) and np.isclose(mine.alpha, lin.alpha)
+    with pytest.raises(ValueError, match="prior"):
+        LG.operators(LG.init(config, geo)["net"], LG.geometry_arrays(LG.geometry(pts, edges, cells, node_type)),
+                     geo.h, config, LG.init(config, geo))

@@ -59,7 +59,8 @@ class Geometry(NamedTuple):
     eighth of their volume), free [N] bool (node_type == 0), h the length scale; cells [K, 4] or [K, 8],
     cell_grad [K, 4|8, 3] the cells' shape-function gradients ∇N_a (1/length; for hexes the uniform gradient
     (1/V) ∫ ∇N_a dV of `fem.elements.hex_geometry`) and cell_volume [K]. The node → cell → node averaging of a
-    nodal field (`smooth`) is Σ_{t ∋ i} (V_t / n_t) mean_{j ∈ t} x_j / V_i, built from the cells."""
+    nodal field (`smooth`) is Σ_{t ∋ i} (V_t / n_t) mean_{j ∈ t} x_j / V_i, built from the cells. k0 [3N, 3N] and
+    s0 [6N, 3N]: a prior's stiffness and nodal stress operators (`with_prior`), None without one."""
     nbr: np.ndarray
     mask: np.ndarray
     dx: np.ndarray
@@ -71,6 +72,21 @@ class Geometry(NamedTuple):
     cells: np.ndarray
     cell_grad: np.ndarray
     cell_volume: np.ndarray
+    k0: np.ndarray | None = None
+    s0: np.ndarray | None = None
+
+
+def with_prior(geo: Geometry, lin) -> Geometry:
+    """The geometry with a prior's operators: K₀ and S₀ of a `fem.implicit.RestLinearization` on the same nodes
+    (the FEM's rest linearisation), as dense arrays, for a model with ``LinearConfig(prior=True)``."""
+    n = geo.nbr.shape[0]
+    if np.asarray(lin.mass).shape != (n,):
+        raise ValueError(f"the prior has {np.asarray(lin.mass).shape[0]} nodes, the mesh {n}")
+    k0 = np.zeros((n, 3, n, 3))
+    k0[lin.k_rows, :, lin.k_cols, :] = lin.k_blocks
+    s0 = np.zeros((n, 6, n, 3))
+    s0[lin.s_rows, :, lin.s_cols, :] = lin.s_blocks
+    return geo._replace(k0=k0.reshape(3 * n, 3 * n), s0=s0.reshape(6 * n, 3 * n))
 
 
 def geometry(q0, edges, cells, node_type) -> Geometry:
@@ -176,7 +192,10 @@ class LinearConfig(NamedTuple):
     each. ``cell_pressure`` (with ``element_channels``): each cell also adds √(κ_t V_t) tr ∇u_t, its own volume
     change, with a learned bulk modulus per cell (the nodal and cell bulk moduli start at half the scale each),
     and a tied pressure is the nodes' and the cells' together: the volumetric strain of a hex mesh lives in its
-    cells (the FEM's one-point hex)."""
+    cells (the FEM's one-point hex). ``prior``: K and S also hold a prior's operators (the geometry's k0, s0,
+    `with_prior`: the FEM's rest linearisation) times learned global scales that start at 1, so that training
+    starts at the prior plus the learned channels (start those small with small ``mu`` and ``kappa``) and
+    learns the correction; K stays PSD where K₀ is (a Hessian at a stress-free rest state)."""
     hidden: int = 32
     mu: float = 1.0
     kappa: float = 10.0
@@ -186,6 +205,7 @@ class LinearConfig(NamedTuple):
     tied_pressure: bool = False
     element_channels: bool = False
     cell_pressure: bool = False
+    prior: bool = False
 
 
 class MLP(nn.Module):
@@ -252,7 +272,9 @@ def geometry_arrays(geo: Geometry) -> dict:
     return {"nbr": jnp.asarray(geo.nbr), "mask": jnp.asarray(geo.mask, real), "dx": jnp.asarray(geo.dx),
             "g_ls": jnp.asarray(geo.g_ls), "g_avg": jnp.asarray(geo.g_avg), "volume": jnp.asarray(geo.volume),
             "free": jnp.asarray(geo.free, jnp.float32), "cells": jnp.asarray(geo.cells),
-            "cell_grad": jnp.asarray(geo.cell_grad), "cell_volume": jnp.asarray(geo.cell_volume)}
+            "cell_grad": jnp.asarray(geo.cell_grad), "cell_volume": jnp.asarray(geo.cell_volume),
+            "k0": jnp.asarray(geo.k0 if geo.k0 is not None else np.zeros((0, 0)), real),
+            "s0": jnp.asarray(geo.s0 if geo.s0 is not None else np.zeros((0, 0)), real)}
 
 
 class Operators(NamedTuple):
@@ -261,7 +283,7 @@ class Operators(NamedTuple):
     pressure operator and modulus (the energy's g and κ with ``tied_pressure``, else gs and κˢ); mu_e [K] the
     cells' shear moduli (empty without ``element_channels``); kappa_e [K] the cells' bulk moduli (empty without
     ``cell_pressure``) and kappa_pe [K] the cells' pressure moduli in the stress (kappa_e with ``tied_pressure``,
-    else empty); beta [N] the share of the smoothed deviatoric
+    else empty); prior_k, prior_s () the scales of the prior's K₀ and S₀ (0 without a prior); beta [N] the share of the smoothed deviatoric
     stress; mass [N]; alpha ()."""
     g: jax.Array
     gs: jax.Array
@@ -275,6 +297,8 @@ class Operators(NamedTuple):
     mu_e: jax.Array
     kappa_e: jax.Array
     kappa_pe: jax.Array
+    prior_k: jax.Array
+    prior_s: jax.Array
     beta: jax.Array
     mass: jax.Array
     alpha: jax.Array
@@ -284,6 +308,8 @@ def operators(weights, geo: dict, h: float, config: LinearConfig, extra) -> Oper
     """The learned coefficients. ``extra`` holds the global log-scales of density and damping."""
     if config.cell_pressure and not config.element_channels:
         raise ValueError("cell_pressure needs element_channels")
+    if config.prior and geo["k0"].shape[0] == 0:
+        raise ValueError("LinearConfig(prior=True) needs a geometry with a prior (linear_generic.with_prior)")
     node_out, edge_out, scales, cell_out = _coefficients(config).apply(weights, geo)
     share = 0.5 if config.element_channels else 1.0
     share_k = 0.5 if config.cell_pressure else 1.0
@@ -307,7 +333,10 @@ def operators(weights, geo: dict, h: float, config: LinearConfig, extra) -> Oper
     gp, kappa_p = (g, kappa) if config.tied_pressure else (gs, kappa_s)
     beta = jax.nn.sigmoid(scales[7] + node_out[:, 4])
     kappa_pe = kappa_e if config.tied_pressure else jnp.zeros((0,), mu_e.dtype)
-    return Operators(g, gs, mu, kappa, mu_s, kappa_s, k, gp, kappa_p, mu_e, kappa_e, kappa_pe, beta, mass, alpha)
+    prior_k, prior_s = ((jnp.exp(extra["log_k0"]), jnp.exp(extra["log_s0"])) if config.prior
+                        else (jnp.zeros((), mu.dtype), jnp.zeros((), mu.dtype)))
+    return Operators(g, gs, mu, kappa, mu_s, kappa_s, k, gp, kappa_p, mu_e, kappa_e, kappa_pe, prior_k, prior_s,
+                     beta, mass, alpha)
 
 
 def _coefficients(config: LinearConfig) -> Coefficients:
@@ -383,6 +412,8 @@ def stiffness(ops: Operators, geo: dict, h: float):
     """K [3N, 3N]: the nodes' shares and, with element channels, the cells' B_tᵀB_t."""
     k_local = local_blocks(ops, geo, h)
     K = dense_stiffness(k_local, local_dofs(geo), geo["nbr"].shape[0])
+    if geo["k0"].shape[0]:
+        K = K + ops.prior_k * geo["k0"]
     if ops.mu_e.shape[0] == 0:
         return K
 
@@ -434,22 +465,25 @@ def nodal_stress(u, ops: Operators, geo: dict):
         if ops.kappa_pe.shape[0]:
             p = p + cell_to_node((ops.kappa_pe * jnp.einsum("kda,kda->k", uu[geo["cells"]], geo["cell_grad"]))[:, None],
                                  geo)
-        return dev + p * jnp.array([1.0, 1.0, 1.0, 0.0, 0.0, 0.0], dev.dtype)
+        out = dev + p * jnp.array([1.0, 1.0, 1.0, 0.0, 0.0, 0.0], dev.dtype)
+        if geo["s0"].shape[0]:
+            out = out + ops.prior_s * (geo["s0"] @ uu.reshape(-1)).reshape(out.shape)
+        return out
     flat = u.reshape((-1,) + u.shape[-2:])
     return jax.vmap(one)(flat).reshape(u.shape[:-1] + (6,))
 
 
-def rollout(ops: Operators, geo: dict, h: float, forces, dt: float):
-    """Backward-Euler rollouts from rest: forces [C, T, N, 3] → (u, v, σ) each [C, T, N, ·] (frames 1..T).
-    Clamped nodes stay at rest."""
+def rollout(ops: Operators, geo: dict, h: float, forces, dt: float, v0=None):
+    """Backward-Euler rollouts from the rest positions: forces [C, T, N, 3] → (u, v, σ) each [C, T, N, ·]
+    (frames 1..T), starting with velocities v0 [C, N, 3] (None: at rest). Clamped nodes stay at rest."""
     K = stiffness(ops, geo, h)
-    u, v = solve_rollout(K, ops.mass, ops.alpha, np.asarray(geo["free"]) > 0, forces, dt)
+    u, v = solve_rollout(K, ops.mass, ops.alpha, np.asarray(geo["free"]) > 0, forces, dt, v0)
     return u, v, nodal_stress(u, ops, geo)
 
 
-def solve_rollout(K, mass, alpha, free, forces, dt: float):
-    """(u, v) [C, T, N, 3]: backward Euler of M v̇ = f − K u − α M v, u̇ = v from rest under forces [C, T, N, 3]
-    (force k acts during frame k → k+1), by one Cholesky factor of A = (1 + αΔt) M / Δt² + K on the free
+def solve_rollout(K, mass, alpha, free, forces, dt: float, v0=None):
+    """(u, v) [C, T, N, 3]: backward Euler of M v̇ = f − K u − α M v, u̇ = v from u = 0 and v = v0 [C, N, 3] (None:
+    0) under forces [C, T, N, 3] (force k acts during frame k → k+1), by one Cholesky factor of A = (1 + αΔt) M / Δt² + K on the free
     degrees of freedom (``free`` [N] bool, numpy)."""
     n = mass.shape[0]
     idx = np.where(np.repeat(np.asarray(free), 3))[0]
@@ -472,7 +506,8 @@ def solve_rollout(K, mass, alpha, free, forces, dt: float):
         return (u_next, v_next), (u_next, v_next)
 
     zeros = jnp.zeros((forces.shape[0], idx.size), A.dtype)
-    _, (us, vs) = jax.lax.scan(frame, (zeros, zeros), jnp.swapaxes(f, 0, 1))
+    start = zeros if v0 is None else jnp.asarray(v0, A.dtype).reshape(forces.shape[0], -1)[:, idx]
+    _, (us, vs) = jax.lax.scan(frame, (zeros, start), jnp.swapaxes(f, 0, 1))
 
     def full(x):
         x = jnp.swapaxes(x, 0, 1)
@@ -500,34 +535,46 @@ def relative_errors(u, v, sigma, target, measure: str = "snapshot"):
 
 
 def targets(z, f, q0, rows):
-    """(forces [C,T,N,3], (u, v, σ) [C,T,N,·]) of the cases ``rows`` of data states z [C,T+1,N,12], in jax's
-    float type (float64 where enabled)."""
+    """(forces [C,T,N,3], (u, v, σ) [C,T,N,·] and v0 [C,N,3]) of the cases ``rows`` of data states z
+    [C,T+1,N,12], in jax's float type (float64 where enabled). The cases must start at their rest positions with
+    zero stress (v0, the first state's velocity, is the rollouts' start: zero for solver velocities, the
+    one-sided difference for the reference data's gradient convention); ValueError otherwise."""
     dt = np.float64 if jax.config.jax_enable_x64 else np.float32
     z = np.asarray(z[rows], np.float64)
+    q0 = np.asarray(q0, np.float64)
+    scale = max(np.abs(z[:, :, :, :3] - q0).max(), 1e-30)
+    if np.abs(z[:, 0, :, :3] - q0).max() > 1e-6 * scale or np.abs(z[:, 0, :, 6:]).max() > 0:
+        raise ValueError("the cases do not start at rest (first state's u or σ non-zero): "
+                         f"max |u0| {np.abs(z[:, 0, :, :3] - q0).max():.3g}, max |σ0| {np.abs(z[:, 0, :, 6:]).max():.3g}")
     return (np.asarray(f[rows], dt),
-            tuple(x.astype(dt) for x in (z[:, 1:, :, :3] - np.asarray(q0, np.float64), z[:, 1:, :, 3:6],
-                                         z[:, 1:, :, 6:12])))
+            tuple(x.astype(dt) for x in (z[:, 1:, :, :3] - q0, z[:, 1:, :, 3:6], z[:, 1:, :, 6:12],
+                                         z[:, 0, :, 3:6])))
 
 
 def init(config: LinearConfig, geo: Geometry, seed: int = 0) -> dict:
     """Initial parameters: the coefficient networks (zero heads: the least-squares gradient and uniform moduli
     at the config's scales) and the log-scales of density and damping."""
     weights = _coefficients(config).init(jax.random.PRNGKey(seed), geometry_arrays(geo))
-    return {"net": weights, "log_density": jnp.zeros(()), "log_alpha": jnp.zeros(())}
+    out = {"net": weights, "log_density": jnp.zeros(()), "log_alpha": jnp.zeros(())}
+    if config.prior:
+        out.update(log_k0=jnp.zeros(()), log_s0=jnp.zeros(()))
+    return out
 
 
 def loss_fn(params, geo: dict, h: float, config: LinearConfig, forces, target, dt: float,
-            measure: str = "snapshot"):
-    """Mean over cases and snapshots of the relative errors of u, v and σ (`relative_errors`, summed)."""
+            measure: str = "snapshot", weights=(1.0, 1.0, 1.0)):
+    """Mean over cases and snapshots of the relative errors of u, v and σ (`relative_errors`), summed with
+    ``weights``; also the three means."""
     ops = operators(params["net"], geo, h, config, params)
-    u, v, sigma = rollout(ops, geo, h, forces, dt)
+    u, v, sigma = rollout(ops, geo, h, forces, dt, target[3])
     err = relative_errors(u, v, sigma, target, measure)
-    return jnp.mean(jnp.sum(err, axis=-1)), jnp.mean(err, axis=(0, 1))
+    return jnp.mean(err @ jnp.asarray(weights, err.dtype)), jnp.mean(err, axis=(0, 1))
 
 
 def train(data_path, train_rows, val_rows, run_dir, config: LinearConfig = LinearConfig(), steps: int = 300,
           lr: float = 3e-3, seed: int = 0, val_every: int = 10, progress: bool = True,
-          until: int | None = None, batch: int | None = None, measure: str = "snapshot") -> dict:
+          until: int | None = None, batch: int | None = None, measure: str = "snapshot", prior=None,
+          weights=(1.0, 1.0, 1.0)) -> dict:
     """Fit the model to whole rollouts of the cases ``train_rows`` of the data file ``data_path`` (or of several
     files' cases concatenated, `geometry_from_file`; ``batch`` of them per step, drawn by a
     generator seeded with the seed and the step, or all; Adam with a cosine schedule), selecting on ``val_rows``.
@@ -536,7 +583,9 @@ def train(data_path, train_rows, val_rows, run_dir, config: LinearConfig = Linea
 
     Writes ``run_dir``/metrics.jsonl (one line per validation), ckpt.msgpack (parameters, optimiser state and
     step after every validation: a rerun resumes from it and reaches the same result) and best.msgpack (the
-    parameters with the lowest validation loss). ``measure``: the loss's relative errors (`relative_errors`).
+    parameters with the lowest validation loss; the start, step 0, is the first candidate). ``measure``: the
+    loss's relative errors (`relative_errors`). ``prior``: the `fem.implicit.RestLinearization` of a model with
+    ``config.prior`` (`with_prior`). ``weights``: of the u, v and σ errors in the loss (and the selection).
     ``until`` stops after that step as an interruption would (a
     rerun resumes). Returns the best parameters' record."""
     import json
@@ -550,9 +599,13 @@ def train(data_path, train_rows, val_rows, run_dir, config: LinearConfig = Linea
         raise ValueError(f"steps and val_every must be positive, got {steps} and {val_every}")
     if measure not in MEASURES:
         raise ValueError(f"measure must be one of {MEASURES}, got {measure!r}")
+    if len(weights) != 3 or min(weights) < 0 or max(weights) <= 0:
+        raise ValueError(f"weights must be three non-negative numbers (u, v, σ), not all zero; got {weights!r}")
     if batch is not None and not 1 <= batch <= len(train_rows):
         raise ValueError(f"batch must be between 1 and the {len(train_rows)} training cases, got {batch}")
     data, geo = geometry_from_file(data_path)
+    if prior is not None:
+        geo = with_prior(geo, prior)
     ga = geometry_arrays(geo)
     f_tr, t_tr = targets(data.z, data.f, data.q0, np.asarray(train_rows))
     f_va, t_va = targets(data.z, data.f, data.q0, np.asarray(val_rows))
@@ -569,7 +622,7 @@ def train(data_path, train_rows, val_rows, run_dir, config: LinearConfig = Linea
                                          ckpt.read_bytes())
         params, state, start = saved["params"], saved["state"], int(saved["step"])
         best = {"val_loss": float(saved["best"])}
-    fn = lambda p, f, t: loss_fn(p, ga, geo.h, config, f, t, data.dt, measure)
+    fn = lambda p, f, t: loss_fn(p, ga, geo.h, config, f, t, data.dt, measure, tuple(map(float, weights)))
 
     @jax.jit
     def update(p, s, f, t):
@@ -578,6 +631,22 @@ def train(data_path, train_rows, val_rows, run_dir, config: LinearConfig = Linea
         return optax.apply_updates(p, upd), s, loss, parts
 
     evaluate = jax.jit(fn)
+
+    def validate(step, loss, parts):
+        nonlocal best
+        vloss, vparts = evaluate(params, f_va, t_va)
+        record = {"step": step, "train_loss": float(loss), "train": np.asarray(parts).tolist(),
+                  "val_loss": float(vloss), "val": np.asarray(vparts).tolist(),
+                  "density": float(config.density * jnp.exp(params["log_density"])),
+                  "alpha": float(config.alpha * jnp.exp(params["log_alpha"]))}
+        with log.open("a") as fh:
+            fh.write(json.dumps(record) + "\n")
+        if record["val_loss"] < best["val_loss"]:
+            best = record
+            best_path.write_bytes(serialization.to_bytes(params))
+
+    if start == 0 and not log.exists():    # the start itself is a candidate (with a prior, often a good one)
+        validate(0, *evaluate(params, f_tr, t_tr))
     end = steps if until is None else min(steps, until)
     bar = tqdm(range(start, end), desc="linear GENERIC", disable=not progress, initial=start, total=steps)
     for step in bar:
@@ -588,16 +657,7 @@ def train(data_path, train_rows, val_rows, run_dir, config: LinearConfig = Linea
             params, state, loss, parts = update(params, state, f_tr[pick], tuple(t[pick] for t in t_tr))
         bar.set_postfix(loss=f"{float(loss):.4f}")
         if (step + 1) % val_every == 0 or step + 1 == steps:
-            vloss, vparts = evaluate(params, f_va, t_va)
-            record = {"step": step + 1, "train_loss": float(loss), "train": np.asarray(parts).tolist(),
-                      "val_loss": float(vloss), "val": np.asarray(vparts).tolist(),
-                      "density": float(config.density * jnp.exp(params["log_density"])),
-                      "alpha": float(config.alpha * jnp.exp(params["log_alpha"]))}
-            with log.open("a") as fh:
-                fh.write(json.dumps(record) + "\n")
-            if record["val_loss"] < best["val_loss"]:
-                best = record
-                best_path.write_bytes(serialization.to_bytes(params))
+            validate(step + 1, loss, parts)
             tmp = ckpt.with_suffix(".tmp")
             tmp.write_bytes(serialization.to_bytes({"params": params, "state": state, "step": step + 1,
                                                     "best": best["val_loss"]}))
