@@ -112,7 +112,7 @@ def model_runs(name: str, model: str, steps: int, fem_steps: int, newton_fallbac
     params, graph = api.load_pretrained(model)
     info = params.get("info", {})
     scene, loads = loadings(name, steps, density=info.get("fem_density"),
-                            load_radius=float(info.get("fem_load_radius", 0.0)))
+                            load_radius=float(info.get("fem_load_radius") or 0.0))
     if "fem_damping" in info:   # the model was trained on FEM data with this damping
         scene = scene._replace(damping=float(info["fem_damping"]))
     q0 = np.asarray(params["mesh"]["q0"], np.float64)

@@ -133,7 +133,7 @@ def cmd_pack(args) -> int:
             "scene": args.scene, "learned": {"density": best["density"], "alpha": best["alpha"]},
             # the FEM scene the training data came from (the stress tests rebuild it from these)
             "fem_density": meta["material"]["density"], "fem_damping": meta["damping"],
-            "fem_load_radius": meta.get("load_radius"),
+            **({"fem_load_radius": meta["load_radius"]} if meta.get("load_radius") is not None else {}),
             "fem_integrator": "implicit" if str(meta.get("integrator", "")).startswith("implicit") else "explicit",
             "data": "; ".join(commands),
             "training": {**{k: saved.get(k) for k in ("steps", "lr", "seed", "train_ids", "val_ids", "measure",
