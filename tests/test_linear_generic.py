@@ -234,6 +234,22 @@ def test_packed_model_steps_like_the_learned_operators(tmp_path, kind):
     assert np.abs(states[1:, :, 6:] - s).max() < 2e-3 * np.abs(s).max()
 
 
+def assert_same_linearisation(mine, lin, free, tol):
+    """Two `RestLinearization`s agree: K on the free nodes and S to ``tol`` of their largest entry, masses, α."""
+    n = len(free)
+
+    def dense(rows, cols, blocks, r):
+        out = np.zeros((n, n, r, 3))
+        out[rows, cols] = blocks
+        return out
+
+    K0, K = dense(lin.k_rows, lin.k_cols, lin.k_blocks, 3), dense(mine.k_rows, mine.k_cols, mine.k_blocks, 3)
+    assert np.abs(K - K0)[free][:, free].max() < tol * np.abs(K0).max()
+    S0, S = dense(lin.s_rows, lin.s_cols, lin.s_blocks, 6), dense(mine.s_rows, mine.s_cols, mine.s_blocks, 6)
+    assert np.abs(S - S0).max() < tol * np.abs(S0).max()
+    assert np.allclose(mine.mass, lin.mass, rtol=1e-9) and np.isclose(mine.alpha, lin.alpha)
+
+
 def test_model_class_holds_the_fem_rest_linearisation():
     # at nodal / cell shear shares 0.7 / 0.3, smoothing share 0.7 and the material's moduli, the learned operators
     # are the FEM's linearisation about rest (the stabilised nodal tet with blend 0.3): what training can reach
@@ -254,19 +270,7 @@ def test_model_class_holds_the_fem_rest_linearisation():
     params["net"]["params"]["log_scales"] = jnp.zeros(8).at[0].set(np.log(0.7 / 0.5)).at[6].set(
         np.log(0.3 / 0.5)).at[7].set(np.log(0.7 / 0.3))
     mine = LG.to_rest_linearization(params, geo, config)
-    n = len(pts)
-
-    def dense(rows, cols, blocks, r):
-        out = np.zeros((n, n, r, 3))
-        out[rows, cols] = blocks
-        return out
-
-    free = node_type == 0
-    K0, K = dense(lin.k_rows, lin.k_cols, lin.k_blocks, 3), dense(mine.k_rows, mine.k_cols, mine.k_blocks, 3)
-    assert np.abs(K - K0)[free][:, free].max() < 1e-6 * np.abs(K0).max()
-    S0, S = dense(lin.s_rows, lin.s_cols, lin.s_blocks, 6), dense(mine.s_rows, mine.s_cols, mine.s_blocks, 6)
-    assert np.abs(S - S0).max() < 1e-6 * np.abs(S0).max()
-    assert np.allclose(mine.mass, lin.mass, rtol=1e-9) and np.isclose(mine.alpha, lin.alpha)
+    assert_same_linearisation(mine, lin, node_type == 0, 1e-6)
 
 
 def test_demo_guards_the_learned_bunny_only_against_non_finite_states():
@@ -305,19 +309,7 @@ def test_prior_starts_the_model_at_the_fem_rest_linearisation_of_a_hex_bar():
     config = LG.LinearConfig(hidden=8, mu=3.1e-6, kappa=2e-4, density=1e-3, alpha=3.0, element_channels=True,
                              cell_pressure=True, tied_pressure=True, prior=True)
     mine = LG.to_rest_linearization(LG.init(config, geo), geo, config)
-    n = len(pts)
-
-    def dense(rows, cols, blocks, r):
-        out = np.zeros((n, n, r, 3))
-        out[rows, cols] = blocks
-        return out
-
-    free = node_type == 0
-    K0, K = dense(lin.k_rows, lin.k_cols, lin.k_blocks, 3), dense(mine.k_rows, mine.k_cols, mine.k_blocks, 3)
-    assert np.abs(K - K0)[free][:, free].max() < 1e-5 * np.abs(K0).max()
-    S0, S = dense(lin.s_rows, lin.s_cols, lin.s_blocks, 6), dense(mine.s_rows, mine.s_cols, mine.s_blocks, 6)
-    assert np.abs(S - S0).max() < 1e-5 * np.abs(S0).max()
-    assert np.allclose(mine.mass, lin.mass, rtol=1e-9) and np.isclose(mine.alpha, lin.alpha)
+    assert_same_linearisation(mine, lin, node_type == 0, 1e-5)
     with pytest.raises(ValueError, match="prior"):
         LG.operators(LG.init(config, geo)["net"], LG.geometry_arrays(LG.geometry(pts, edges, cells, node_type)),
                      geo.h, config, LG.init(config, geo))

@@ -283,8 +283,8 @@ class Operators(NamedTuple):
     pressure operator and modulus (the energy's g and κ with ``tied_pressure``, else gs and κˢ); mu_e [K] the
     cells' shear moduli (empty without ``element_channels``); kappa_e [K] the cells' bulk moduli (empty without
     ``cell_pressure``) and kappa_pe [K] the cells' pressure moduli in the stress (kappa_e with ``tied_pressure``,
-    else empty); prior_k, prior_s () the scales of the prior's K₀ and S₀ (0 without a prior); beta [N] the share of the smoothed deviatoric
-    stress; mass [N]; alpha ()."""
+    else empty); prior_k, prior_s () the scales of the prior's K₀ and S₀ (0 without a prior); beta [N] the share
+    of the smoothed deviatoric stress; mass [N]; alpha ()."""
     g: jax.Array
     gs: jax.Array
     mu: jax.Array
@@ -463,8 +463,8 @@ def nodal_stress(u, ops: Operators, geo: dict):
         dev = (1.0 - ops.beta)[:, None] * dev + ops.beta[:, None] * smooth(dev, geo)
         p = smooth(p[:, None], geo)
         if ops.kappa_pe.shape[0]:
-            p = p + cell_to_node((ops.kappa_pe * jnp.einsum("kda,kda->k", uu[geo["cells"]], geo["cell_grad"]))[:, None],
-                                 geo)
+            volume_change = jnp.einsum("kda,kda->k", uu[geo["cells"]], geo["cell_grad"])     # tr ∇u_t
+            p = p + cell_to_node((ops.kappa_pe * volume_change)[:, None], geo)
         out = dev + p * jnp.array([1.0, 1.0, 1.0, 0.0, 0.0, 0.0], dev.dtype)
         if geo["s0"].shape[0]:
             out = out + ops.prior_s * (geo["s0"] @ uu.reshape(-1)).reshape(out.shape)
@@ -482,9 +482,9 @@ def rollout(ops: Operators, geo: dict, h: float, forces, dt: float, v0=None):
 
 
 def solve_rollout(K, mass, alpha, free, forces, dt: float, v0=None):
-    """(u, v) [C, T, N, 3]: backward Euler of M v̇ = f − K u − α M v, u̇ = v from u = 0 and v = v0 [C, N, 3] (None:
-    0) under forces [C, T, N, 3] (force k acts during frame k → k+1), by one Cholesky factor of A = (1 + αΔt) M / Δt² + K on the free
-    degrees of freedom (``free`` [N] bool, numpy)."""
+    """(u, v) [C, T, N, 3]: backward Euler of M v̇ = f − K u − α M v, u̇ = v from u = 0 and v = v0 [C, N, 3]
+    (None: 0) under forces [C, T, N, 3] (force k acts during frame k → k+1), by one Cholesky factor of
+    A = (1 + αΔt) M / Δt² + K on the free degrees of freedom (``free`` [N] bool, numpy)."""
     n = mass.shape[0]
     idx = np.where(np.repeat(np.asarray(free), 3))[0]
     m3 = jnp.repeat(mass, 3)[idx]
