@@ -79,9 +79,10 @@ def split_ids(scene: str, data):
 def cmd_train(args) -> int:
     import jax
     jax.config.update("jax_enable_x64", args.float64)
+    from tignn_jax import data as D
     from tignn_jax import linear_generic as LG
 
-    data, _ = LG.geometry_from_file(args.data)
+    data = D.concatenate(*(D.load(p) for p in args.data))    # the cases, for the split (train builds the geometry)
     rows_tr, rows_va, train_ids, val_ids = split_ids(args.scene, data)
     run = Path(args.run)
     run.mkdir(parents=True, exist_ok=True)
