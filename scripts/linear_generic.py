@@ -123,13 +123,13 @@ def cmd_pack(args) -> int:
     model = FS.model_from_operators(like, lin, float(data.dt))
     records = [json.loads(x) for x in (run / "metrics.jsonl").read_text().splitlines()]
     best = min(records, key=lambda r: r["val_loss"])
-    with np.load(args.data[0], allow_pickle=False) as raw:
-        meta = json.loads(str(raw["metadata"]))
-    commands = []
+    metas = []
     for path in args.data:
         with np.load(path, allow_pickle=False) as raw:
-            m = json.loads(str(raw["metadata"]))
-        commands.append(f"{m.get('command', 'tignn generate')} ({path}, seed {m.get('seed')})")
+            metas.append(json.loads(str(raw["metadata"])))
+    meta = metas[0]   # the FEM scene of the first file (the stress tests rebuild it)
+    commands = [f"{m.get('command', 'tignn generate')} ({path}, seed {m.get('seed')})"
+                for m, path in zip(metas, args.data)]
     info = {"kind": "learned linear GENERIC operators (tignn_jax.linear_generic), backward Euler",
             "scene": args.scene, "learned": {"density": best["density"], "alpha": best["alpha"]},
             # the FEM scene the training data came from (the stress tests rebuild it from these)
