@@ -8,8 +8,10 @@ simulation time per frame is forces + step (once touched, the loop dispatches fo
 and awaits them once, `scene.Timings.fused_frames`: the forces time is then inside the step's; the fused loop is
 also compared with the stages awaited one by one, `loop_fusion`). Budgets (issue
 5): simulation p50 ≤ 9 ms (one beam), ≤ 11 ms (bunny), ≤ 18 ms (two beams), p99 ≤ 1.5 × p50, judged on the
-frames the learned step ran in; whole frame p50 ≤ 33 ms (≥ 30 frames per second). The machine's own tail is
-measured in the same run on fixed programs of the same duration (`platform_jitter`).
+frames the learned step ran in; whole frame p50 ≤ 33 ms (≥ 30 frames per second). Each scene's loop runs
+``--rounds`` times (default 3) and the round with the median p99 / p50 is the one judged; every round is
+reported beside it. The machine's own tail is measured in the same run on fixed programs of the same duration
+(`platform_jitter`).
 
 Speed-ups are measured in the same run, as ratios of the step time of each scene's model on its mesh:
   * straightforward: edge list (one row per edge), edge MLP on the concatenated [x_ij, h_j, h_i], scatter-add
@@ -22,11 +24,15 @@ Speed-ups are measured in the same run, as ratios of the step time of each scene
     features linear in q and v multiplied at node level (``model.EdgeInputs``);
   * as stepped: ``api.stepper``, what the loop runs: the shipped step, except that a model whose network has
     every weight zero (the rest-linearised `bunny-linear`) runs its linearised solve alone.
-The three slot variants carry the model's coarse level (``coarse_nodes``) when it has one.
+The three slot variants carry the model's coarse level (``coarse_nodes``) when it has one. A model whose network
+is zero (the learned linear GENERIC `beam` and `bunny`) has no network to write differently: its backward-Euler
+velocity solve is timed four ways instead (`linear_variants`: a dense LU solve per step, a Cholesky factor once
+with two triangular solves per step, conjugate gradients on the sparse K per step, and the shipped product by
+A⁻¹ computed once).
 A scene whose model is not shipped runs with the labelled stand-in dynamics and is reported as not valid.
 Writes benchmarks/results/realtime.{json,md}.
 
-    python benchmarks/realtime.py [--frames 500] [--warmup 20] [--scenes beam,two-beams,bunny]
+    python benchmarks/realtime.py [--frames 500] [--warmup 20] [--rounds 3] [--scenes beam,two-beams,bunny]
 """
 from __future__ import annotations
 
@@ -53,18 +59,29 @@ def percentiles(ms) -> dict:
     return {"p50_ms": float(np.median(ms)), "p99_ms": float(np.percentile(ms, 99)), "mean_ms": float(ms.mean())}
 
 
-def run_scene(name: str, frames: int, warmup: int, devices: tuple = (), model: str | None = None) -> dict:
+def run_scene(name: str, frames: int, warmup: int, devices: tuple = (), model: str | None = None,
+              rounds: int = 1) -> dict:
+    """The scene's loop, ``rounds`` times ``frames`` frames after ``warmup`` (each round compiles afresh in its
+    warm-up). Reported: the round whose simulation p99 / p50 over the learned-step frames is the median of the
+    rounds' (the lower median for an even count), with every round's p50 / p99 under "rounds"."""
     from tignn_jax import scene as sc
     from tignn_jax.commands_demo import build_scene
 
     scene, dynamics = build_scene(name, frames + warmup, model, devices=devices)
     scene = scene._replace(skip_rest=False)   # every frame steps: the budget is for a body in motion
-    _, t = sc.run(scene, frames=frames + warmup, warmup=warmup)
-    summary = t.summary(bodies=len(scene.bodies))
+    played = []
+    for _ in range(rounds):
+        _, t = sc.run(scene, frames=frames + warmup, warmup=warmup)
+        summary = t.summary(bodies=len(scene.bodies))
+        learned = summary.get("simulation_learned", summary["simulation"])
+        played.append((learned["p99_ms"], learned["p50_ms"], t, summary))
+    order = sorted(range(rounds), key=lambda i: played[i][0] / played[i][1])   # by p99 / p50, the rule's quantity
+    _, _, t, summary = played[order[(rounds - 1) // 2]]
     out = {"dynamics": dynamics, "valid": not dynamics.startswith("STAND-IN"), "frames": summary["frames"],
            "nodes": int(sum(len(b.q0) for b in scene.bodies)),
            "image": [scene.camera.width, scene.camera.height], "reallocations": t.reallocations, "guard_trips": t.guard_trips,
            "fused_frames": t.fused_frames, "learned_frames": summary["learned_frames"],
+           "rounds": [{"p50_ms": p50, "p99_ms": p99} for p99, p50, _, _ in played],
            **{k: summary[k] for k in ("forces", "step", "simulation", "render", "frame")}}
     # the budget is judged on the frames the learned model stepped: frames on the (cheaper) rest-linearised
     # fallback after a guard trip would flatter the median
@@ -78,7 +95,7 @@ def run_scene(name: str, frames: int, warmup: int, devices: tuple = (), model: s
     return out
 
 
-def loop_fusion(name: str, frames: int, warmup: int, devices: tuple, rounds: int) -> dict:
+def loop_fusion(name: str, frames: int, warmup: int, devices: tuple, rounds: int, model: str | None = None) -> dict:
     """The scene's loop with its simulation stages fused (``Scene.fuse``: forces, step and guard dispatched
     together and awaited once; with ``devices`` each body's guard and hand-over in its step's program, and a body
     on its fallback stepped by the fallback alone) against the stages
@@ -87,7 +104,7 @@ def loop_fusion(name: str, frames: int, warmup: int, devices: tuple, rounds: int
     from tignn_jax import scene as sc
     from tignn_jax.commands_demo import build_scene
 
-    scene, _ = build_scene(name, frames + warmup, devices=devices)
+    scene, _ = build_scene(name, frames + warmup, model, devices=devices)
     scene = scene._replace(skip_rest=False)
     runs = {"staged": [], "fused": []}
     for _ in range(rounds):
@@ -101,15 +118,20 @@ def loop_fusion(name: str, frames: int, warmup: int, devices: tuple, rounds: int
             "speedup_fused_vs_staged": p50["staged"] / p50["fused"]}
 
 
-def step_variants(name: str, repeats: int) -> dict:
-    """Median step time of the scene's model written four ways (see the module docstring)."""
+def step_variants(name: str, repeats: int, model: str | None = None) -> dict:
+    """Median step time of the scene's model (``model``, default the scene's shipped one) written four ways (see
+    the module docstring); for a model whose network is zero, its backward-Euler solve written four ways
+    (`linear_variants`)."""
     from model_step import EdgeListNetwork, assembled_step, edge_list_features, edge_list_rates
 
     from tignn_jax import api
     from tignn_jax import model as M
     from tignn_jax.commands_demo import DEFAULT_MODELS
 
-    params, graph = api.load_pretrained(DEFAULT_MODELS[name])
+    model = model or DEFAULT_MODELS[name]
+    params, graph = api.load_pretrained(model)
+    if api.network_is_zero(params):
+        return linear_variants(params, model, repeats)
     copies = 2 if name == "two-beams" else 1
     cfg, norm, w = api._config(params), params["norm"], params["weights"]
     mesh = params["mesh"]
@@ -143,10 +165,71 @@ def step_variants(name: str, repeats: int) -> dict:
     base = out["straightforward (edge list)"]
     return {"step_p50_ms": out, "speedup_vs_straightforward": {k: base / v for k, v in out.items()},
             "slots": {"max-degree": list(slots.nbr.shape), "rows": list(rows.nbr.shape), "edges": int(len(s))},
-            "model": DEFAULT_MODELS[name], "hidden": cfg.hidden, "passes": cfg.passes}
+            "model": model, "hidden": cfg.hidden, "passes": cfg.passes}
 
 
-def concurrency(name: str, repeats: int, devices: tuple) -> dict:
+LINEAR_VARIANTS = ("dense LU solve per step (straightforward)", "Cholesky factor once, two triangular solves",
+                   "conjugate gradients per step (sparse K, Jacobi, tol 1e-6)", "A⁻¹ once, one product (shipped)")
+
+
+def linear_variants(params: dict, model: str, repeats: int) -> dict:
+    """One body's step of a model whose network is zero (the learned linear GENERIC `beam` and `bunny`, the
+    rest-linearised FEM): the backward-Euler step (M(1 + αΔt)/Δt² + K) Δv = r solved four ways, everything else
+    the same (`framesolve.prior_step`): a dense LU factorisation and solve every step (what a plain
+    ``jnp.linalg.solve`` does); the Cholesky factor computed once, two triangular solves per step; conjugate
+    gradients on the sparse K per step (Jacobi preconditioner, relative tolerance 1e-6); and the shipped
+    ``api.stepper``, which multiplies by A⁻¹ computed once. Raises RuntimeError if a variant's state differs from
+    the shipped step's by more than 1e-3 of its size (float32)."""
+    from jax.scipy.linalg import cho_solve
+    from jax.scipy.sparse.linalg import cg
+
+    from tignn_jax import api
+    from tignn_jax import framesolve as FS
+
+    mesh = params["mesh"]
+    nt = np.asarray(mesh["node_type"], np.int32)
+    n = len(nt)
+    A = FS.operator(params["norm"], nt)
+    norm = {k: jnp.asarray(v) for k, v in FS.with_inverse(params["norm"], nt).items()}
+    q0, node_type = jnp.asarray(mesh["q0"], jnp.float32), jnp.asarray(nt)
+    free = jnp.asarray(np.repeat(nt == 0, 3), jnp.float32)
+    a32 = jnp.asarray(A, jnp.float32)
+    chol = jnp.asarray(np.linalg.cholesky(A), jnp.float32)
+    diag = jnp.asarray(np.diag(A), jnp.float32)
+    h, alpha = float(np.asarray(norm["dt"]).reshape(-1)[0]), float(np.asarray(norm["fs_alpha"]).reshape(-1)[0])
+    mass = jnp.repeat(jnp.asarray(norm["fs_mass"], jnp.float32), 3) * (1.0 + alpha * h) / h ** 2
+
+    def apply_a(x):   # A x without forming A: K on the free nodes, the identity on the clamped ones
+        kx = FS.apply_k(norm, (x * free).reshape(-1, 3)).reshape(-1)
+        return (kx + mass * x) * free + x * (1.0 - free)
+
+    solves = {
+        LINEAR_VARIANTS[0]: lambda r: jnp.linalg.solve(a32, r),
+        LINEAR_VARIANTS[1]: lambda r: cho_solve((chol, True), r),
+        LINEAR_VARIANTS[2]: lambda r: cg(apply_a, r, tol=1e-6, M=lambda x: x / diag)[0],
+    }
+    fns = {k: jax.jit(lambda z, f, solve=solve: z + FS.prior_step(norm, z, f, jnp.zeros_like(z), node_type, q0,
+                                                                solve_a=solve))
+           for k, solve in solves.items()}
+    fns[LINEAR_VARIANTS[3]] = api.stepper(params)
+    rng = np.random.default_rng(0)
+    z = jnp.asarray(np.concatenate([np.asarray(mesh["q0"]) + 0.01 * rng.normal(size=(n, 3)),
+                                    0.01 * rng.normal(size=(n, 9))], axis=1), jnp.float32)
+    f = jnp.asarray(0.01 * rng.normal(size=(n, 3)), jnp.float32)
+    ref = np.asarray(fns[LINEAR_VARIANTS[3]](z, f))
+    diffs = {}
+    for k, fn in fns.items():
+        diffs[k] = float(np.abs(np.asarray(fn(z, f)) - ref).max() / np.abs(ref - np.asarray(z)).max())
+        if not diffs[k] <= 1e-2:
+            raise RuntimeError(f"{k}: the step differs from the shipped one by {diffs[k]:.2e} of the increment")
+    times = interleaved_ms({k: (lambda fn=fn: fn(z, f)) for k, fn in fns.items()}, repeats)
+    out = {k: float(np.median(v)) for k, v in times.items()}
+    base = out[LINEAR_VARIANTS[0]]
+    return {"kind": "linear", "model": model, "dofs": 3 * n, "step_p50_ms": out, "max_difference": diffs,
+            "speedup_vs_straightforward": {k: base / v for k, v in out.items()}}
+
+
+def concurrency(name: str, repeats: int, devices: tuple, model: str | None = None) -> dict:
     """Step time of the scene's bodies (two copies of its model's mesh), interleaved: the layouts of
     `bodies_one_program.two_bodies` (one body alone; two plain steps in one program; each in its own ``lax.cond``,
     what the loop runs without devices; one graph of both; one after another, ``stepper(params, 2)``'s CPU
@@ -157,17 +240,42 @@ def concurrency(name: str, repeats: int, devices: tuple) -> dict:
     from tignn_jax import api
     from tignn_jax.commands_demo import DEFAULT_MODELS
 
-    params, _ = api.load_pretrained(DEFAULT_MODELS[name])
-    z, f, fns = two_bodies(params)
+    model = model or DEFAULT_MODELS[name]
+    params, _ = api.load_pretrained(model)
+    if api._config(params).frame_solve:   # one body per stepper (its A₀⁻¹ is one body's): no graph of both
+        z, f, fns = _two_solve_bodies(params)
+        base = "two plain steps in one program"
+    else:
+        z, f, fns = two_bodies(params)
+        base = "one graph of both"
     if len(devices) > 1:
         one = api.stepper(params)
         placed = [(jax.device_put(z, d), jax.device_put(f, d)) for d in devices[:2]]
         fns["two bodies on two devices (concurrent)"] = lambda: [one(a, b) for a, b in placed]
     times = interleaved_ms(fns, repeats)
     p50 = {k: float(np.median(v)) for k, v in times.items()}
-    return {"model": DEFAULT_MODELS[name], "devices": len(devices), "step_p50_ms": p50,
+    return {"model": model, "devices": len(devices), "step_p50_ms": p50, "base": base,
             "step_p99_ms": {k: float(np.percentile(v, 99)) for k, v in times.items()},
-            "speedup_vs_batched": {k: p50["one graph of both"] / v for k, v in p50.items()}}
+            "speedup_vs_batched": {k: p50[base] / v for k, v in p50.items()}}
+
+
+def _two_solve_bodies(params):
+    """(z, f, layouts) as `bodies_one_program.two_bodies` for a model that steps one body per call: one body, two
+    plain steps in one program, each in its own ``lax.cond`` (what the loop runs without devices)."""
+    from tignn_jax import api
+
+    rng = np.random.default_rng(0)
+    n = len(params["mesh"]["node_type"])
+    z = jnp.asarray(np.concatenate([np.asarray(params["mesh"]["q0"]), 0.01 * rng.normal(size=(n, 9))], 1),
+                    jnp.float32)
+    f = jnp.asarray(0.01 * rng.normal(size=(n, 3)), jnp.float32)
+    one = api.stepper(params)
+    keep = lambda z_, f_: z_   # noqa: E731 (the branch not taken)
+    plain = jax.jit(lambda za, zb, fa, fb: (one(za, fa), one(zb, fb)))
+    in_cond = jax.jit(lambda za, zb, fa, fb, on: (jax.lax.cond(on, keep, one, za, fa),
+                                                  jax.lax.cond(on, keep, one, zb, fb)))
+    return z, f, {"one body": lambda: one(z, f), "two plain steps in one program": lambda: plain(z, z, f, f),
+                  "two steps, each in a lax.cond": lambda: in_cond(z, z, f, f, False)}
 
 
 # the bunny runs of session 10: traction, port and load-context features, 16 clusters with dense mixing, rest shift
@@ -225,8 +333,10 @@ def untrained_step(name: str, repeats: int, sizes=((16, 3), (24, 3))) -> dict:
 def platform_jitter(target_ms: float, calls: int = 500) -> dict:
     """p50, p99 and their ratio for fixed programs of about ``target_ms`` that do the same work every call, timed
     like the loop's stages: a jitted XLA program (dense 420×420 products and tanh in a loop, XLA's threads on
-    all cores) and an element-wise numpy loop (tanh over 420×420, which numpy runs on one thread). Their
-    p99/p50 is the tail the machine itself gives a program of that duration."""
+    all cores; its data fit in the cores' caches), an element-wise numpy loop (tanh over 420×420, which numpy
+    runs on one thread) and a jitted XLA loop of products of a 3000×3000 float32 matrix (36 MB) with a vector,
+    bound by memory traffic like a linear model's product with A⁻¹ (the beam's is 21 MB, the bunny's 64 MB).
+    Their p99/p50 is the tail the machine itself gives a program of that duration and kind."""
     import time
 
     a = np.random.default_rng(0).normal(size=(420, 420)).astype(np.float32)
@@ -235,6 +345,13 @@ def platform_jitter(target_ms: float, calls: int = 500) -> dict:
         fn = jax.jit(lambda x: jax.lax.fori_loop(0, n, lambda i, y: jnp.tanh(y @ x * 1e-3), x))
         xa = jnp.asarray(a)
         return lambda: fn(xa).block_until_ready()
+
+    big = jnp.asarray(np.random.default_rng(1).normal(size=(3000, 3000)).astype(np.float32) / 3000 ** 0.5)
+
+    def xla_matvec_program(n):   # products with a 36 MB matrix: memory-bound, like a linear model's A⁻¹ product
+        fn = jax.jit(lambda m, y: jax.lax.fori_loop(0, n, lambda i, y: jnp.tanh(m @ y), y))
+        y0 = jnp.ones(3000, jnp.float32)
+        return lambda: fn(big, y0).block_until_ready()
 
     def numpy_program(n):   # element-wise only: no BLAS call, so no thread pool
         def fn():
@@ -245,7 +362,8 @@ def platform_jitter(target_ms: float, calls: int = 500) -> dict:
         return fn
 
     out = {}
-    for name, make in (("XLA, all cores", xla_program), ("numpy element-wise, one thread", numpy_program)):
+    for name, make in (("XLA, all cores", xla_program), ("numpy element-wise, one thread", numpy_program),
+                       ("XLA matrix-vector products over 36 MB, memory-bound", xla_matvec_program)):
         probe = make(4)
         probe()
         t0 = time.perf_counter()
@@ -270,6 +388,9 @@ def main(argv=None) -> int:
     parser.add_argument("--frames", type=int, default=500, help="timed frames per scene (default: %(default)s)")
     parser.add_argument("--warmup", type=int, default=20, help="untimed first frames (default: %(default)s)")
     parser.add_argument("--scenes", default="beam,two-beams,bunny")
+    parser.add_argument("--rounds", type=int, default=3,
+                        help="runs of each scene's loop; the one with the median simulation p99 / p50 is reported, every "
+                             "round's p50 / p99 beside it (default: %(default)s)")
     parser.add_argument("--variant-repeats", type=int, default=60, help="calls per step variant")
     parser.add_argument("--fusion-rounds", type=int, default=2,
                         help="rounds of the fused-against-staged loop comparison per scene (0: skip it)")
@@ -282,8 +403,9 @@ def main(argv=None) -> int:
                              "learned loop's XLA:CPU option, and skips the learned step's variants")
     parser.add_argument("--tag", default="", help="results go to realtime_TAG.{json,md} (default: realtime.*)")
     args = parser.parse_args(argv)
-    if args.frames < 10 or args.warmup < 1:
-        raise SystemExit(f"--frames must be ≥ 10 and --warmup ≥ 1, got {args.frames} and {args.warmup}")
+    if args.frames < 10 or args.warmup < 1 or args.rounds < 1:
+        raise SystemExit(f"--frames must be ≥ 10, --warmup ≥ 1 and --rounds ≥ 1, got {args.frames}, {args.warmup} "
+                         f"and {args.rounds}")
     from tignn_jax import scene as sc
     from tignn_jax.commands_demo import FEM_NEWTON
     fem = args.model == FEM_NEWTON
@@ -298,21 +420,23 @@ def main(argv=None) -> int:
         if name not in BUDGET_MS:
             raise SystemExit(f"unknown scene {name!r}; choose from {sorted(BUDGET_MS)}")
         print(f"scene {name}: {args.frames} frames after {args.warmup} warm-up frames ...", flush=True)
-        scenes[name] = run_scene(name, args.frames, args.warmup, devices, args.model)
+        scenes[name] = run_scene(name, args.frames, args.warmup, devices, args.model, args.rounds)
         if scenes[name]["valid"] and not fem:
-            variants[name] = step_variants(name, args.variant_repeats)
+            variants[name] = step_variants(name, args.variant_repeats, args.model)
             if name == "two-beams":
-                parallel[name] = concurrency(name, args.variant_repeats, devices)
+                parallel[name] = concurrency(name, args.variant_repeats, devices, args.model)
             if args.fusion_rounds > 0:
                 print(f"scene {name}: fused against staged loop, {args.fusion_rounds} rounds ...", flush=True)
-                fusion[name] = loop_fusion(name, args.fusion_frames, args.warmup, devices, args.fusion_rounds)
+                fusion[name] = loop_fusion(name, args.fusion_frames, args.warmup, devices, args.fusion_rounds,
+                                           args.model)
         elif not scenes[name]["valid"]:
             scenes[name]["untrained_model_step"] = untrained_step(name, args.variant_repeats)
     target = float(np.median([s["simulation_learned"]["p50_ms"] for s in scenes.values()])) if scenes else 8.0
     print(f"platform tail: fixed programs of about {target:.1f} ms ...", flush=True)
     jitter = platform_jitter(target, calls=args.frames)
     machine["load_average_1m_at_end"] = describe()["load_average_1m"]
-    result = {"platform_jitter": jitter, "machine": machine, "frames": args.frames, "warmup": args.warmup, "scenes": scenes,
+    result = {"platform_jitter": jitter, "machine": machine, "frames": args.frames, "warmup": args.warmup,
+              "rounds": args.rounds, "scenes": scenes,
               "step_variants": variants, "concurrency": parallel, "loop_fusion": fusion, "budgets_ms": {"simulation_p50": BUDGET_MS, "frame_p50": FRAME_BUDGET_MS}}
     RESULTS.mkdir(parents=True, exist_ok=True)
     result["model"] = args.model
@@ -338,7 +462,8 @@ def format_md(result: dict) -> str:
     lines = ["# Real-time budget: the mixed-reality loop per frame", "",
              f"Machine: {m['cpu']}, {m['cores']} cores, jax {m['jax']} ({m['backend']}); load average "
              f"{m['load_average_1m']} at start, {m['load_average_1m_at_end']} at end ({m['note']}). "
-             f"{result['frames']} timed frames per scene after {result['warmup']} warm-up frames; 640×480; "
+             f"{result['frames']} timed frames per scene and round after {result['warmup']} warm-up frames, "
+             f"{result.get('rounds', 1)} round(s); 640×480; "
              f"XLA_FLAGS `{m.get('xla_flags', '(not recorded)')}` (`scene.real_time_xla_flags`, as `tignn demo`).", "",
              "Simulation = forces + step per frame. The budget is judged on the frames the learned model stepped "
              "(after a guard trip a body spends `fallback_hold` frames on the cheaper rest-linearised fallback; "
@@ -360,6 +485,12 @@ def format_md(result: dict) -> str:
             f"{s['simulation']['p50_ms']:.2f} / {s['simulation']['p99_ms']:.2f} | "
             f"{s['render']['p50_ms']:.2f} | {s['frame']['p50_ms']:.2f} / {s['frame']['p99_ms']:.2f} | "
             f"{b['fps_at_p50']:.1f} | {s.get('guard_trips', '—')} | {verdict} |")
+    if any(len(s.get("rounds", [])) > 1 for s in result["scenes"].values()):
+        lines += ["", "Each scene's loop ran several rounds of the same frames (each compiled afresh); the table shows "
+                  "the round with the median simulation p99 / p50 over the learned-step frames. Every round, simulation "
+                  "p50 / p99 (ms, learned-step frames):", ""] + [
+            f"- {n}: " + "; ".join(f"{r['p50_ms']:.2f} / {r['p99_ms']:.2f} ({r['p99_ms'] / r['p50_ms']:.2f}×)"
+                                  for r in s["rounds"]) for n, s in result["scenes"].items() if s.get("rounds")]
     split = {n: s["simulation_by_class"] for n, s in result["scenes"].items() if len(s.get("simulation_by_class", {})) > 1}
     if split:
         lines += ["", "The learned-step frames by what the bodies did in them (simulation p50 / p99, frames): the "
@@ -381,13 +512,29 @@ def format_md(result: dict) -> str:
                       "'assembled' = the edge features assembled per slot from the factored ones, then the dense first layer): " +
                       ", ".join(f"{k} {v:.2f} ms" for k, v in u["step_p50_ms"].items()) +
                       f" (budget {result['budgets_ms']['simulation_p50'][name]:.0f} ms)."]
-    if result["step_variants"]:
+    linear = {k: v for k, v in result["step_variants"].items() if v.get("kind") == "linear"}
+    if linear:
+        lines += ["", "Step time of each scene's model whose network is zero (a linear GENERIC model stepped by "
+                  "backward Euler), its velocity solve written four ways, one body (median of interleaved calls, "
+                  "same run; `linear_variants`; in brackets the speed-up over the first; every variant's step checked "
+                  "against the shipped one's: the largest difference, relative to the step's largest increment, is "
+                  "in the last column, float32 rounding):", "",
+                  "| scene | model | DOFs | " + " | ".join(LINEAR_VARIANTS) + " | speed-up, shipped vs straightforward "
+                  "| largest difference from the shipped step |",
+                  "|---|---|---|" + "---|" * (len(LINEAR_VARIANTS) + 2)]
+        for name, v in linear.items():
+            t, r = v["step_p50_ms"], v["speedup_vs_straightforward"]
+            lines.append(f"| {name} | {v['model']} | {v['dofs']} | " +
+                         " | ".join(f"{t[k]:.2f} ms ({r[k]:.1f}×)" for k in LINEAR_VARIANTS) +
+                         f" | {r[LINEAR_VARIANTS[-1]]:.1f}× | {max(v['max_difference'].values()):.1e} |")
+    network = {k: v for k, v in result["step_variants"].items() if v.get("kind") != "linear"}
+    if network:
         lines += ["", "Step time of each scene's model written four ways (median of interleaved calls, same run):",
                   "", "| scene | model | slots (max-degree → rows) | straightforward | max-degree slots | "
                   "assembled edge features | shipped | speed-up vs straightforward | vs assembled | "
                   "as stepped by the loop (api.stepper) |",
                   "|---|---|---|---|---|---|---|---|---|---|"]
-        for name, v in result["step_variants"].items():
+        for name, v in network.items():
             t = v["step_p50_ms"]
             lines.append(
                 f"| {name} | {v['model']} {v['hidden']}×{v['passes']} | {v['slots']['max-degree']} → "
@@ -401,7 +548,8 @@ def format_md(result: dict) -> str:
         t, r = c["step_p50_ms"], c["speedup_vs_batched"]
         lines += ["", f"{name}: the two bodies' step ({c['model']}), {c['devices']} CPU devices (median of "
                   "interleaved calls, same run; p99 in brackets): " +
-                  ", ".join(f"{k} {v:.2f} ms ({c['step_p99_ms'][k]:.2f}, {r[k]:.2f}× vs the batched graph)"
+                  ", ".join(f"{k} {v:.2f} ms ({c['step_p99_ms'][k]:.2f}, {r[k]:.2f}× vs "
+                            f"{'the batched graph' if c.get('base', 'one graph of both') == 'one graph of both' else c['base']})"
                             for k, v in t.items()) + "."]
     if result.get("loop_fusion"):
         lines += ["", "The loop's simulation stages fused (`Scene.fuse`: forces, step and guard dispatched together, "

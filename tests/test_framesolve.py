@@ -100,6 +100,30 @@ def test_solve_inverts_forward(bar_data):
     assert float(jnp.abs(back - dz).max()) < 1e-3 * float(jnp.abs(dz).max())
 
 
+def test_operator_is_what_the_inverse_inverts_and_a_factor_solve_steps_alike(bar_data):
+    """``operator`` is the A₀ of the velocity solve (symmetric, identity on the clamped DOFs, A₀ A₀⁻¹ = I), and
+    ``prior_step`` with ``solve_a`` = a Cholesky solve of it (the real-time benchmark's variant) is the default
+    step by the product with A₀⁻¹."""
+    from jax.scipy.linalg import cho_solve
+
+    data, _, norm = _ops(bar_data)
+    A = FS.operator(norm, data.node_type)
+    clamped = np.repeat(data.node_type != 0, 3)
+    np.testing.assert_array_equal(A[clamped][:, clamped], np.eye(int(clamped.sum())))
+    assert np.abs(A[clamped][:, ~clamped]).max() == 0.0
+    np.testing.assert_allclose(A, A.T, rtol=0, atol=1e-6 * np.abs(A).max())
+    ainv = FS.inverse(norm, data.node_type)
+    assert np.abs(A @ ainv.astype(np.float64) - np.eye(len(A))).max() < 1e-4
+    norm = {**norm, "fs_ainv": jnp.asarray(ainv)}
+    nt, x0 = jnp.asarray(data.node_type), jnp.asarray(data.q0, jnp.float32)
+    z, f = (jnp.asarray(a, jnp.float32) for a in (data.z[2, 3], data.f[2, 3]))
+    e = jnp.zeros_like(z)
+    chol = jnp.asarray(np.linalg.cholesky(A), jnp.float32)
+    by_factor = FS.prior_step(norm, z, f, e, nt, x0, solve_a=lambda r: cho_solve((chol, True), r))
+    by_product = FS.prior_step(norm, z, f, e, nt, x0)
+    assert float(jnp.abs(by_factor - by_product).max()) < 1e-3 * float(jnp.abs(by_product).max())
+
+
 def test_residual_is_the_increment_that_reproduces_the_data(bar_data):
     """e* = W Δz − Δt (J₀ z + B f): the prior step with e = e* lands on the data's next state, and the merged
     ``prior_step`` equals ``solve(prior_rate + e)``."""

@@ -105,7 +105,7 @@ def stepper(params: dict, copies: int = 1, one_graph: bool | None = None):
         if z.shape != (n, M.STATE_DIM) or forces.shape != (n, 3):
             raise ValueError(f"stepper for {copies} bodies of {n // copies} nodes expects z [{n}, {M.STATE_DIM}]"
                              f" and forces [{n}, 3], got {z.shape} and {forces.shape}")
-        return advance(z, forces)
+        return advance(z, forces.astype(z.dtype))   # the state's precision (float64 forces under x64 included)
 
     return fn
 

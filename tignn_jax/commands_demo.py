@@ -12,7 +12,9 @@ Scenes:
 - ``bunny``: the Stanford bunny (10 cm tall) standing on the table, base clamped, pushed on its back with about
   the unit point load of the training cases.
 
-Dynamics: the shipped learned model (``--model``, default per scene). If no shipped model is found, a clearly
+Dynamics: the shipped learned model (``--model``, default per scene: ``beam`` for the beams, ``bunny`` for the
+bunny, both learned linear GENERIC models stepped by backward Euler; ``--model beam-abaqus`` runs the non-linear
+explicit TIGNN trained on the Abaqus data, with its guard and fallback). If no shipped model is found, a clearly
 labelled STAND-IN (damped springs between all nodes of each element, not the learned model and not physically
 calibrated) runs instead so the pipeline can still be seen; the summary and file names say so.
 """
@@ -25,7 +27,9 @@ import time
 from pathlib import Path
 
 BUNNY_PRESS_NODE = 917
-DEFAULT_MODELS = {"beam": "beam-abaqus", "two-beams": "beam-abaqus", "bunny": "bunny"}
+# the learned linear GENERIC models (`tignn_jax.linear_generic`): stable without a guard, within every budget;
+# ``--model beam-abaqus`` runs the non-linear explicit TIGNN trained on the Abaqus data instead
+DEFAULT_MODELS = {"beam": "beam", "two-beams": "beam", "bunny": "bunny"}
 # the rest-linearised FEM a learned model's body is handed to when it leaves its training envelope
 # (api.fallback_step); models without one are reset to rest instead
 FALLBACKS = {"beam-abaqus": "beam-linear", "beam-abaqus-small": "beam-linear"}
@@ -47,7 +51,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--out", default="out/demo", help="output folder (default: %(default)s)")
     p.add_argument("--frames", type=int, default=120, help="frames to play (default: %(default)s)")
     p.add_argument("--model", default=None,
-                   help=f"shipped model name or path (default: per scene), or {FEM_NEWTON!r}: the FEM's own "
+                   help=f"shipped model name or path (default: per scene, {DEFAULT_MODELS}), or {FEM_NEWTON!r}: the FEM's own "
                         "backward-Euler step by 2 Newton iterations of 3 CG each (tignn_jax.newton; not learned)")
     p.add_argument("--track", default=None, help="fingertip track, JSON lines (default: a synthetic press)")
     p.add_argument("--stand-in", action="store_true", help="use the stand-in dynamics even if a model exists")

@@ -86,8 +86,9 @@ def check(norm: dict, n_nodes: int):
         raise ValueError(f"the rest linearisation is for {np.shape(norm['fs_mass'])[0]} nodes, the mesh has {n_nodes}")
 
 
-def inverse(norm: dict, node_type) -> np.ndarray:
-    """A₀⁻¹ [3N, 3N] float32 (float64 inversion), identity on the clamped nodes' rows and columns."""
+def operator(norm: dict, node_type) -> np.ndarray:
+    """A₀ = K₀ + (1 + αΔt)/Δt² M [3N, 3N] float64, dense, identity on the clamped nodes' rows and columns: the
+    matrix of the backward-Euler step's velocity solve (``inverse`` inverts it)."""
     n = int(np.shape(norm["fs_mass"])[0])
     check(norm, n)
     h, alpha = float(np.asarray(norm["dt"]).reshape(-1)[0]), float(np.asarray(norm["fs_alpha"]).reshape(-1)[0])
@@ -99,7 +100,12 @@ def inverse(norm: dict, node_type) -> np.ndarray:
     A[~free, :] = 0.0
     A[:, ~free] = 0.0
     A[~free, ~free] = 1.0
-    return np.linalg.inv(A).astype(np.float32)
+    return A
+
+
+def inverse(norm: dict, node_type) -> np.ndarray:
+    """A₀⁻¹ [3N, 3N] float32 (float64 inversion of ``operator``), identity on the clamped nodes' rows and columns."""
+    return np.linalg.inv(operator(norm, node_type)).astype(np.float32)
 
 
 def with_inverse(norm: dict, node_type) -> dict:
@@ -151,15 +157,19 @@ def solve(norm, e, node_type):
     return jnp.concatenate([du, dv, e_s + h * apply_s(norm, dv)], axis=1)
 
 
-def prior_step(norm, z, f, e, node_type, q0):
+def prior_step(norm, z, f, e, node_type, q0, solve_a=None):
     """The state increment [N,12] of a ``linear_prior`` step: W⁻¹ (Δt (J₀ z + B f) + e) for the network's
     forward-Euler increment e [N,12], with one product by K₀ and one by S₀ (the prior's and the solve's merged:
-    Δt K₀ (u + Δt v + e_u) in the right-hand side, Δt S₀ (v + Δv) in the stress)."""
+    Δt K₀ (u + Δt v + e_u) in the right-hand side, Δt S₀ (v + Δv) in the stress). ``solve_a``: A₀⁻¹ applied to
+    a flat [3N] right-hand side; default one product by ``fs_ainv`` (benchmarks pass factor solves instead)."""
     h, alpha, free, m = _constants(norm, node_type, z.dtype)
     u, v = (z[:, :3] - q0.astype(z.dtype)) * free, z[:, 3:6] * free
     e_u, e_v, e_s = e[:, :3] * free, e[:, 3:6] * free, e[:, 6:]
     rhs = (m * e_v + h * (f - alpha * m * v) - h * apply_k(norm, u + h * v + e_u)) * free / h ** 2
-    dv = (norm["fs_ainv"].astype(z.dtype) @ rhs.reshape(-1)).reshape(-1, 3) * free
+    if solve_a is None:
+        dv = (norm["fs_ainv"].astype(z.dtype) @ rhs.reshape(-1)).reshape(-1, 3) * free
+    else:
+        dv = solve_a(rhs.reshape(-1)).reshape(-1, 3) * free
     return jnp.concatenate([h * v + e_u + h * dv, dv, e_s + h * apply_s(norm, v + dv)], axis=1)
 
 
