@@ -124,6 +124,34 @@ def test_operator_is_what_the_inverse_inverts_and_a_factor_solve_steps_alike(bar
     assert float(jnp.abs(by_factor - by_product).max()) < 1e-3 * float(jnp.abs(by_product).max())
 
 
+def test_linear_step_without_the_k_product_is_the_prior_step_with_no_network(bar_data):
+    """``linear_step`` (A₀⁻¹K₀ = I − c A₀⁻¹M: no product by K₀) is ``prior_step`` with e = 0: to float64
+    rounding in float64, and to float32 rounding in float32, along states of the data and from a moving state."""
+    data, _, norm = _ops(bar_data)
+    nt, x0 = jnp.asarray(data.node_type), jnp.asarray(data.q0, jnp.float32)
+    norm32 = {**norm, "fs_ainv": jnp.asarray(FS.inverse(norm, data.node_type))}
+    jax.config.update("jax_enable_x64", True)
+    try:
+        norm64 = {k: jnp.asarray(np.asarray(v, np.float64)) for k, v in norm.items()}
+        norm64["fs_ainv"] = jnp.asarray(np.linalg.inv(FS.operator(norm, data.node_type)))
+        for k in (2, 5):
+            z, f = jnp.asarray(data.z[1, k], jnp.float64), jnp.asarray(data.f[1, k], jnp.float64)
+            x64 = jnp.asarray(data.q0, jnp.float64)
+            ref = FS.prior_step(norm64, z, f, jnp.zeros_like(z), nt, x64)
+            got = FS.linear_step(norm64, z, f, nt, x64)
+            assert got.dtype == jnp.float64
+            np.testing.assert_allclose(np.asarray(got), np.asarray(ref), rtol=0,
+                                       atol=1e-9 * float(jnp.abs(ref).max()))
+    finally:
+        jax.config.update("jax_enable_x64", False)
+    for k in (2, 5):
+        z, f = jnp.asarray(data.z[1, k], jnp.float32), jnp.asarray(data.f[1, k], jnp.float32)
+        ref = FS.prior_step(norm32, z, f, jnp.zeros_like(z), nt, x0)
+        got = FS.linear_step(norm32, z, f, nt, x0)
+        scale = jnp.abs(ref).max(axis=0) + 1e-30
+        assert float(jnp.max(jnp.abs(got - ref) / scale)) < 1e-3
+
+
 def test_residual_is_the_increment_that_reproduces_the_data(bar_data):
     """e* = W Δz − Δt (J₀ z + B f): the prior step with e = e* lands on the data's next state, and the merged
     ``prior_step`` equals ``solve(prior_rate + e)``."""

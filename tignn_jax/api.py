@@ -126,7 +126,7 @@ def force_check(params: dict, forces, tolerance: float = 1.0) -> dict:
     """Flag forces outside the training range: the largest nodal force magnitude of ``forces`` [..., N, 3]
     against the training split's (``norm["f_max"]``). Returns {"out_of_distribution": bool, "max_force_ratio":
     float, "bound": float}; out of distribution when the ratio exceeds ``tolerance``. The learned simulator
-    has not seen such loads: its response is an extrapolation (see benchmarks/results/stability.md)."""
+    has not seen such loads: its response is an extrapolation (see benchmarks/results/stability_networks.md)."""
     if "f_max" not in params["norm"]:
         raise ValueError("this model file has no training force bound (norm['f_max']); re-save it with "
                          "data.normalization of its training split")
@@ -343,7 +343,7 @@ def guarded_stepper(params: dict, copies: int = 1, policy: str = "reset", tolera
       state's where those are non-finite too). The body keeps its shape, bounded.
     * ``policy="reset"`` (default): the rest state (q = q0, v = 0, σ = 0), the demo's reaction.
 
-    Measured (``stability.md``, the shipped beams, 1000 steps under five loadings): with "reset" 16–66 steps
+    Measured (``stability_networks.md``, the explicit beam networks, 1000 steps under five loadings): with "reset" 16–66 steps
     are flagged; with "clip" the model pushes the clipped state out again at nearly every step once it has
     left (956–981 of 1000 steps flagged) and the body stays at the envelope's edge, 2–6× the FEM's displacement
     away, so "clip" keeps a picture bounded but not plausible.
@@ -449,7 +449,7 @@ def fallback_stepper(params: dict, fallback: dict, copies: int = 1, hold: int = 
     elements, where the FEM's force is undefined) the rest-linearised step is taken instead. The consistency check
     still compares with the rest-linearised step.
 
-    Measured (``stability.md``, ``beam-abaqus`` with ``beam-linear``, 1000 steps under five loadings): finite
+    Measured (``stability_networks.md``, ``beam-abaqus`` with ``beam-linear``, 1000 steps under five loadings): finite
     everywhere, with the u error against the FEM at step 100 far below the "reset" policy's. The fallback's
     steps are the rest linearisation's, so away from rest (large rotations, loads beyond the training range)
     they carry its error; a flagged step is no longer the learned model's prediction."""
@@ -548,9 +548,9 @@ def _custom_handover(step, linear):
 
 def _linear_step(norm, node_type, x0):
     """``fn(z, f) -> z_next``: the rest-linearised backward-Euler step of a ``frame_solve`` normalisation (with
-    its A₀⁻¹), without a network."""
+    its A₀⁻¹), without a network: `framesolve.linear_step`, which needs no product by K₀."""
     def fn(z, f):
-        return z + FS.prior_step(norm, z, f, jnp.zeros_like(z), node_type, x0)
+        return z + FS.linear_step(norm, z, f, node_type, x0)
 
     return fn
 

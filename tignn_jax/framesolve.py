@@ -173,6 +173,21 @@ def prior_step(norm, z, f, e, node_type, q0, solve_a=None):
     return jnp.concatenate([h * v + e_u + h * dv, dv, e_s + h * apply_s(norm, v + dv)], axis=1)
 
 
+def linear_step(norm, z, f, node_type, q0):
+    """The state increment [N,12] of ``prior_step`` with no network (e = 0), without the product by K₀: on the
+    free DOFs A₀ = K₀ + c M with c = (1 + αΔt)/Δt², so A₀⁻¹ K₀ w = w − c A₀⁻¹ M w, and the K₀ term of the
+    right-hand side, −Δt K₀ w / Δt² with w = u + Δt v, becomes (c/Δt) M w inside the product by A₀⁻¹ and −w/Δt
+    outside it. The same step in exact arithmetic, with one sparse product (S₀) where ``prior_step`` has two; in
+    float32 it differs by rounding (tested). What ``api.stepper`` runs for a model whose network is zero."""
+    h, alpha, free, m = _constants(norm, node_type, z.dtype)
+    c = (1.0 + alpha * h) / h ** 2
+    u, v = (z[:, :3] - q0.astype(z.dtype)) * free, z[:, 3:6] * free
+    w = u + h * v
+    rhs = (h * (f - alpha * m * v) / h ** 2 + (c / h) * m * w) * free
+    dv = ((norm["fs_ainv"].astype(z.dtype) @ rhs.reshape(-1)).reshape(-1, 3) - w / h) * free
+    return jnp.concatenate([h * v + h * dv, dv, h * apply_s(norm, v + dv)], axis=1)
+
+
 def prior_rate(norm, z, f, node_type, q0):
     """Δt (J₀ z + B f) [N,12]: the rest linearisation's forward-Euler increment at z under f (u̇ = v,
     M v̇ = f − K₀ u − α M v, σ̇ = S₀ v; zero in the clamped nodes' q and v rows). ``prior_step`` is

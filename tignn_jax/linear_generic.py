@@ -27,7 +27,7 @@ scalars. The mesh's discrete gradient and averaging operators are geometry, fixe
 learned scales this class is exactly the FEM's rest linearisation of the stabilised nodal tet (tested): training
 can reach it and move past it. K is PSD by construction and α, ρ > 0, so the backward-Euler step never creates
 energy whatever the state and step size, the property the explicit networks of this project lacked
-(`benchmarks/results/stability.md`).
+(`benchmarks/results/stability_networks.md`).
 
 A backward-Euler step of this system is the ``frame_solve`` + ``linear_prior`` step of `tignn_jax.framesolve`
 with J₀ = these operators, so a trained model is packed in that format (`to_rest_linearization`) and runs
