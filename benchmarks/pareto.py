@@ -53,6 +53,9 @@ ROOT = Path(__file__).resolve().parents[1]
 RESULTS = ROOT / "benchmarks" / "results"
 RUNS = ROOT / "runs" / "pareto"
 SHIPPED = "beam-abaqus"
+# the demo's beam since session 41: the learned linear GENERIC model (`tignn_jax.linear_generic`), trained on our
+# FEM's reference and fingertip cases, not on these Abaqus data
+SHIPPED_LINEAR = "beam"
 BUDGET_MS = (9.0, 11.0)   # the real-time step budget of issue 5 (one beam 9 ms; bunny 11 ms)
 WIDTHS = (16, 24, 32, 64, 128)
 PASSES = (2, 3, 5, 10)
@@ -342,9 +345,10 @@ def summary(pred, data, rows) -> dict:
     return out
 
 
-def learned_step_fns(data, sizes, shipped_params):
+def learned_step_fns(data, sizes, shipped_params, linear_params=None):
     """{name: jitted (z, f) → z_next} for untrained models of each size, the shipped model (float32, as
-    ``api.stepper``) and the shipped model in bfloat16; and example arguments."""
+    ``api.stepper``), the shipped model in bfloat16 and the shipped linear GENERIC model (``linear_params``,
+    as ``api.stepper``); and example arguments."""
     from tignn_jax import api
     from tignn_jax import data as D
     from tignn_jax import model as M
@@ -365,6 +369,8 @@ def learned_step_fns(data, sizes, shipped_params):
     w16 = cast_weights(shipped_params["weights"], jnp.bfloat16)
     sn, stopo = shipped_params["norm"], shipped_params["topo"]
     fns[SHIPPED + " bf16"] = jax.jit(lambda z, f: step_mixed(w16, cfg, sn, z, f, nt, stopo, jnp.bfloat16))
+    if linear_params is not None:
+        fns[SHIPPED_LINEAR] = api.stepper(linear_params)
     return fns, (z, f)
 
 
@@ -509,7 +515,7 @@ def _build_linear_frame(divisions, n_solves: int):
     def frame(z, f_prev, f):
         for j in range(1, n_solves + 1):
             load = f_prev + (f - f_prev) * (j / n_solves) if scene.load_interp == "linear" else f
-            z = z + FS.prior_step(norm, z, load, jnp.zeros_like(z), node_type, x0)
+            z = z + FS.linear_step(norm, z, load, node_type, x0)   # prior_step with no network, no K₀ product
         return z
 
     return frame, scene, w
@@ -696,7 +702,9 @@ def main(argv=None) -> int:
 
     # errors (cached)
     shipped, _ = api.load_pretrained(SHIPPED)
-    learned = {SHIPPED: (shipped, None), SHIPPED + " bf16": (shipped, jnp.bfloat16)}
+    shipped_linear, _ = api.load_pretrained(SHIPPED_LINEAR)
+    learned = {SHIPPED: (shipped, None), SHIPPED + " bf16": (shipped, jnp.bfloat16),
+               SHIPPED_LINEAR: (shipped_linear, None)}
     for (h, p), integrator in LEARNED:
         key = point_key(h, p, integrator)
         path = run_dir(h, p, integrator) / "best" / "model.npz"
@@ -707,7 +715,7 @@ def main(argv=None) -> int:
         if stale(cache, name, weights):   # a model at hand: its rollouts are cheap (--times-only too)
             print(f"errors: {name}", flush=True)
             cache[name] = {**learned_errors(params, data, rows, dtype), "weights_sha256": weights}
-            if name not in (SHIPPED, SHIPPED + " bf16"):
+            if name not in (SHIPPED, SHIPPED + " bf16", SHIPPED_LINEAR):
                 cache[name]["train_info"] = params.get("info", {})
             cache_path.write_text(json.dumps(cache, indent=1))
     # the FEM variants' errors are deterministic and need no training: computed where missing, --times-only too
@@ -729,7 +737,7 @@ def main(argv=None) -> int:
     load_start = os.getloadavg()
     print("timing the learned steps", flush=True)
     sizes = [(h, p) for h in widths for p in passes]
-    fns, fargs = learned_step_fns(data, sizes, shipped)
+    fns, fargs = learned_step_fns(data, sizes, shipped, shipped_linear)
     step_times = time_configs(fns, fargs, repeats)
     load_learned = os.getloadavg()
     fem_times = {}
@@ -755,7 +763,7 @@ def main(argv=None) -> int:
               "budget_ms": BUDGET_MS, "points": points, "front": [points[i]["name"] for i in front],
               "front_uvs": [points[i]["name"] for i in front_all],
               "grid_step_ms": {k: v for k, v in step_times.items() if "x" in k and " " not in k
-                               and not k.startswith(SHIPPED)},
+                               and not k.startswith(SHIPPED) and k != SHIPPED_LINEAR},
               "step_times": step_times, "fem_times": fem_times, "errors": cache, "train_plan": plan,
               "repeats": repeats, "quick": args.quick, "xla_flags": os.environ.get("XLA_FLAGS", "")}
     out = RUNS / "quick" if args.quick else RESULTS
@@ -781,6 +789,9 @@ def build_points(cache, step_times, fem_times, variants, shipped, solvers=()) ->
                            "hidden": cfg["hidden"], "passes": cfg["passes"], "params": n_shipped,
                            "epochs": shipped.get("info", {}).get("train_config", {}).get("epochs"),
                            "ms": step_times[name]["p50_ms"], **xla_fields(step_times[name]), **cache[name]})
+    if SHIPPED_LINEAR in cache and SHIPPED_LINEAR in step_times:
+        points.append({"name": SHIPPED_LINEAR, "kind": "shipped-linear", "ms": step_times[SHIPPED_LINEAR]["p50_ms"],
+                       **xla_fields(step_times[SHIPPED_LINEAR]), **cache[SHIPPED_LINEAR]})
     for (h, p), integrator in LEARNED:
         key = point_key(h, p, integrator)
         if key in cache and key in step_times:
@@ -819,7 +830,9 @@ def plot(path, points, front, result) -> None:
 
     fig, axes = plt.subplots(1, 2, figsize=(15, 6.2))
     style = {"learned": ("o", "C0", "learned, equal budget"), "shipped": ("*", "C3", "shipped default (float32)"),
-             "shipped-bf16": ("D", "C1", "shipped, bfloat16"), "fem": ("s", "C7", "FEM (per 0.05 s frame)"),
+             "shipped-bf16": ("D", "C1", "shipped, bfloat16"),
+             "shipped-linear": ("*", "C2", "shipped learned linear GENERIC (the demo's beam)"),
+             "fem": ("s", "C7", "FEM (per 0.05 s frame)"),
              "fem-linear": ("P", "C4", "FEM rest-linearised, backward Euler"),
              "fem-implicit": ("X", "C5", "FEM non-linear backward Euler"),
              "fem-newton": ("v", "C6", "FEM backward Euler, fixed Newton-CG (tignn_jax.newton)")}
@@ -829,7 +842,7 @@ def plot(path, points, front, result) -> None:
         seen = set()
         for p in shown:
             m, c, label = style[p["kind"]]
-            ax.scatter(p["ms"], p[key], marker=m, color=c, s=160 if p["kind"] == "shipped" else 50, zorder=3,
+            ax.scatter(p["ms"], p[key], marker=m, color=c, s=160 if p["kind"].startswith("shipped") else 50, zorder=3,
                        edgecolor="k", linewidth=0.5, label=None if p["kind"] in seen else label)
             seen.add(p["kind"])
         idx = front if key == "u" else pareto_front([p["ms"] for p in points], [p[key] for p in points])
@@ -965,6 +978,9 @@ def report(result, widths, passes) -> str:
             note = f"{p['hidden']}×{p['passes']}, {p['params']} params, its own {p.get('epochs') or '?'}-epoch budget"
         elif p["kind"] == "shipped-bf16":
             note = "shipped weights + activations bfloat16, state/integrator float32"
+        elif p["kind"] == "shipped-linear":
+            note = ("learned linear GENERIC (`tignn_jax.linear_generic`), backward Euler; trained on our FEM's "
+                    "reference and fingertip cases, not on these data; the demo's beam")
         elif p["kind"] == "learned":
             note = f"{p['epochs']} epochs (best val epoch {p['best_epoch']})"
             if p.get("integrator", "euler") != "euler":
@@ -1002,6 +1018,12 @@ def report(result, widths, passes) -> str:
         lines.append(f"The shipped default ({SHIPPED}, {shipped['ms']:.2f} ms, u {shipped['u']:.4f}) {verdict}; "
                      f"its step is {within} the {BUDGET_MS[0]:g} ms budget of one beam.")
         lines.append("")
+    linear = next((p for p in pts if p["kind"] == "shipped-linear"), None)
+    if linear is not None:
+        within = "within" if linear["ms"] <= BUDGET_MS[0] else "above"
+        lines += [f"The demo's beam ({SHIPPED_LINEAR}, learned linear GENERIC, {linear['ms']:.2f} ms, u "
+                  f"{linear['u']:.4f}, v {linear['v']:.4f}, σ {linear['sigma']:.4f}) {shipped_verdict(linear)}; "
+                  f"its step is {within} the {BUDGET_MS[0]:g} ms budget of one beam.", ""]
     lines += ["## Step time of the size grid (ms, median; untrained weights time the same as trained ones)", "",
               "| hidden \\ passes | " + " | ".join(map(str, passes)) + " |", "|---" * (len(passes) + 1) + "|"]
     grid = result["grid_step_ms"]
