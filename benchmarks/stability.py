@@ -1,7 +1,8 @@
 """Numerical stress tests: long rollouts of the shipped models far beyond their 20-step training horizon, and
 the FEM near its stability limit.
 
-Learned simulator (beam: ``beam-abaqus``; bunny: ``bunny`` when shipped), ``--steps`` (default 1000 = 50× the
+Learned simulator (the demo's models, ``commands_demo.DEFAULT_MODELS``: ``beam`` and ``bunny``, both learned
+linear GENERIC models; the non-linear networks' runs are in ``stability_networks.md``), ``--steps`` (default 1000 = 50× the
 training horizon) steps of Δt = 0.05 under five loadings:
   * release: a reference load case ramped for 20 steps, then zero (free vibration and decay);
   * constant: that case's final load held;
