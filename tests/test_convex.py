@@ -20,6 +20,9 @@ FREE = CONVEX._replace(free_energy=True)
 DYN = FREE._replace(dynamic_l=True)
 
 
+pytestmark = pytest.mark.slow   # a research branch's checks: `pytest -m slow` (not in the default run)
+
+
 @pytest.fixture(scope="module")
 def bar():
     data = D.synthetic_beam(nx=4, ny=2, nz=2, cases=3, frames=4)

@@ -152,6 +152,44 @@ def test_linear_step_without_the_k_product_is_the_prior_step_with_no_network(bar
         assert float(jnp.max(jnp.abs(got - ref) / scale)) < 1e-3
 
 
+def test_energy_balance_of_the_linear_step_is_its_dissipation(bar_data):
+    """Along a float64 rollout of ``linear_step`` under a load that is ramped, held and released, the dissipation
+    D = W − ΔE of ``energy_balance`` is the backward-Euler step's αΔt|v₁|²_M + ½|Δv|²_M + ½|Δu|²_K (to rounding),
+    so it is ≥ 0 and the entropy S (its running sum) never decreases; with no load and no motion E stays 0."""
+    data, _, norm = _ops(bar_data)
+    nt = jnp.asarray(data.node_type)
+    free = np.asarray(data.node_type) == 0
+    jax.config.update("jax_enable_x64", True)
+    try:
+        norm64 = {k: jnp.asarray(np.asarray(v, np.float64)) for k, v in norm.items()}
+        norm64["fs_ainv"] = jnp.asarray(np.linalg.inv(FS.operator(norm, data.node_type)))
+        x64 = jnp.asarray(data.q0, jnp.float64)
+        f = np.zeros((30,) + data.f.shape[2:])
+        f[:10] = np.asarray(data.f[0, -1]) * np.minimum(np.arange(1, 11) / 5.0, 1.0)[:, None, None]  # then 0
+        zs = [jnp.concatenate([x64, jnp.zeros((len(x64), 9), jnp.float64)], axis=1)]
+        for fk in f:
+            zs.append(zs[-1] + FS.linear_step(norm64, zs[-1], jnp.asarray(fk), nt, x64))
+        z = np.asarray(jnp.stack(zs))
+    finally:
+        jax.config.update("jax_enable_x64", False)
+    bal = FS.energy_balance(norm, z, f, data.node_type, data.q0)
+    h, alpha = float(np.asarray(norm["dt"]).reshape(-1)[0]), float(np.asarray(norm["fs_alpha"]).reshape(-1)[0])
+    m = np.asarray(norm["fs_mass"], np.float64)[:, None] * free[:, None]
+    u, v = (z[..., :3] - np.asarray(data.q0)) * free[:, None], z[..., 3:6] * free[:, None]
+    A = FS.operator(norm, data.node_type)
+    K = A - np.diag((1 + alpha * h) / h ** 2 * np.repeat(np.asarray(norm["fs_mass"], np.float64), 3))
+    K[~np.repeat(free, 3)] = 0.0
+    K[:, ~np.repeat(free, 3)] = 0.0
+    du, dv = np.diff(u, axis=0).reshape(len(f), -1), np.diff(v, axis=0)
+    expected = (alpha * h * np.sum(m * v[1:] ** 2, axis=(1, 2)) + 0.5 * np.sum(m * dv ** 2, axis=(1, 2))
+                + 0.5 * np.einsum("ti,ij,tj->t", du, K, du))
+    assert bal["E"].shape == (31,) and bal["D"].shape == (30,) and bal["E"][0] == 0.0
+    assert bal["E"].max() > 0 and np.all(expected > 0)
+    np.testing.assert_allclose(bal["D"], expected, rtol=1e-6, atol=1e-9 * np.abs(bal["W"]).max())
+    assert np.all(np.diff(bal["S"]) >= 0)
+    assert bal["E"][-1] < bal["E"][10]   # released: the energy decays
+
+
 def test_residual_is_the_increment_that_reproduces_the_data(bar_data):
     """e* = W Δz − Δt (J₀ z + B f): the prior step with e = e* lands on the data's next state, and the merged
     ``prior_step`` equals ``solve(prior_rate + e)``."""

@@ -11,6 +11,8 @@ from fem.meshes import mesh_edges
 from tignn_jax import framesolve as FS
 from tignn_jax import newton
 
+pytestmark = pytest.mark.slow   # a research branch's checks: `pytest -m slow` (not in the default run)
+
 H = 0.05
 
 

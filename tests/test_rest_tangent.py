@@ -10,6 +10,8 @@ import fem
 from fem import implicit
 from fem.meshes import mesh_edges
 
+pytestmark = pytest.mark.slow   # a research branch's checks: `pytest -m slow` (not in the default run)
+
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
 import rest_tangent as rt  # noqa: E402
 

@@ -188,6 +188,30 @@ def linear_step(norm, z, f, node_type, q0):
     return jnp.concatenate([h * v + h * dv, dv, h * apply_s(norm, v + dv)], axis=1)
 
 
+def energy_balance(norm: dict, z, f, node_type, q0) -> dict:
+    """The rest-linearised system's energy and dissipation along a rollout z [T+1,N,12] under f [T,N,3]
+    (float64 numpy): E_k = ½ v_kᵀ M v_k + ½ u_kᵀ K₀ u_k over the free nodes (u = q − q0), the external work
+    W_k = f_k · (u_{k+1} − u_k), and the dissipation D_k = W_k − (E_{k+1} − E_k), the entropy production of the
+    step at unit temperature. For `linear_step`, the backward-Euler step of M v̇ = f − K₀u − αMv with u̇ = v,
+    D_k = αΔt |v_{k+1}|²_M + ½|v_{k+1} − v_k|²_M + ½|u_{k+1} − u_k|²_K ≥ 0 in exact arithmetic (the physical
+    damping and the scheme's own dissipation). Returns {"E" [T+1], "W" [T], "D" [T], "S" [T+1] = cumulative D}."""
+    free = np.asarray(node_type) == 0
+    m = np.asarray(norm["fs_mass"], np.float64)[free]
+    rows, cols = np.asarray(norm["fs_k_rows"], np.int64), np.asarray(norm["fs_k_cols"], np.int64)
+    kb = np.asarray(norm["fs_k"], np.float64)
+    z = np.asarray(z, np.float64)
+    u = (z[..., :3] - np.asarray(q0, np.float64)) * free[:, None]
+    v = z[..., 3:6] * free[:, None]
+    ku = np.zeros_like(u)
+    for t in range(len(u)):   # K₀ u per snapshot: block-sparse product
+        np.add.at(ku[t], rows, np.einsum("bij,bj->bi", kb, u[t][cols]))
+    ku *= free[:, None]
+    e = 0.5 * np.sum(m[None, :, None] * v[:, free] ** 2, axis=(1, 2)) + 0.5 * np.einsum("tni,tni->t", u, ku)
+    w = np.einsum("tni,tni->t", np.asarray(f, np.float64) * free[:, None], np.diff(u, axis=0))
+    d = w - np.diff(e)
+    return {"E": e, "W": w, "D": d, "S": np.concatenate([[0.0], np.cumsum(d)])}
+
+
 def prior_rate(norm, z, f, node_type, q0):
     """Δt (J₀ z + B f) [N,12]: the rest linearisation's forward-Euler increment at z under f (u̇ = v,
     M v̇ = f − K₀ u − α M v, σ̇ = S₀ v; zero in the clamped nodes' q and v rows). ``prior_step`` is
