@@ -349,12 +349,19 @@ def main(argv=None) -> int:
                     "scene run separately)")
     ap.add_argument("--newton-fallback", action="store_true", help="also hand flagged bodies to the FEM's non-linear "
                     "backward-Euler step by Newton–CG iterations (`tignn_jax.newton`) instead of the rest-linearised one")
+    ap.add_argument("--report-only", action="store_true", help="rewrite the .md and .png from the .json of an "
+                    "earlier run (no rollouts)")
     args = ap.parse_args(argv)
     if args.tag and not args.tag.replace("-", "").replace("_", "").isalnum():
         raise SystemExit(f"--tag must be letters, digits, - and _, got {args.tag!r}")
     stem = f"stability_{args.tag}" if args.tag else "stability"
     if args.steps < args.fem_steps or args.fem_steps < 20:
         raise SystemExit(f"need --steps ≥ --fem-steps ≥ 20, got {args.steps} and {args.fem_steps}")
+    if args.report_only:
+        result = json.loads((RESULTS / f"{stem}.json").read_text())
+        plot(result, RESULTS / f"{stem}.png")
+        write_report(result, stem, result.get("fem_steps", args.fem_steps))
+        return 0
     machine = describe()
     chosen = {k: [v] for k, v in DEFAULT_MODELS.items()}
     for item in [m for m in args.models.split(",") if m]:
@@ -372,14 +379,28 @@ def main(argv=None) -> int:
                 print(f"{label}: skipped ({err})")
     if not models:
         raise SystemExit("no model ran (see the skipped lines above)")
-    result = {"machine": machine, "steps": args.steps, "models": models, "fem_limit": fem_limit()}
+    result = {"machine": machine, "steps": args.steps, "fem_steps": args.fem_steps, "models": models,
+              "fem_limit": fem_limit()}
     RESULTS.mkdir(parents=True, exist_ok=True)
     (RESULTS / f"{stem}.json").write_text(json.dumps(result))
     plot(result, RESULTS / f"{stem}.png")
+    write_report(result, stem, args.fem_steps)
+    return 0
+
+
+def _worst_dissipation(run: dict) -> float:
+    """The most negative step dissipation of a run over its largest |E| (from the E and S series)."""
+    e, d = np.abs(np.asarray(run["series"]["E"])), np.diff(np.asarray(run["series"]["S"]))
+    return float(d.min() / max(e.max(), 1e-300)) if d.size else float("nan")
+
+
+def write_report(result: dict, stem: str, fem_steps: int) -> None:
+    """benchmarks/results/{stem}.md from a run's result."""
+    machine, models, steps = result["machine"], result["models"], result["steps"]
     lines = ["# Numerical stress tests", "",
              f"Machine: {machine['cpu']}, {machine['cores']} cores, jax {machine['jax']}; load average "
-             f"{machine['load_average_1m']} at start. {args.steps}-step rollouts (Δt = 0.05; the training horizon "
-             f"is 20); FEM reference over the first {args.fem_steps} steps.", "",
+             f"{machine['load_average_1m']} at start. {steps}-step rollouts (Δt = 0.05; the training horizon "
+             f"is 20); FEM reference over the first {fem_steps} steps.", "",
              "| scene | loading | NaN/Inf | max u model / FEM | max v model / FEM | u error at FEM horizon | "
              "first step u error > 10 % | S non-decreasing (steps) | entropy production ≥ 0 (min) | force guard | "
              "first step state flagged / non-finite | leaves the envelope by (hops from the load) |",
@@ -402,7 +423,11 @@ def main(argv=None) -> int:
             "system's energy ½vᵀMv + ½uᵀK₀u and the running sum of each step's dissipation D = W − ΔE "
             "(`framesolve.energy_balance`; W the external work): the backward-Euler step makes D ≥ 0 in exact "
             "arithmetic. The noise runs add noise to the state between steps, which changes E outside any step: "
-            "there D < 0 where the noise added energy, so their entropy columns measure the noise, not the step."]
+            "there D < 0 where the noise added energy, so their entropy columns measure the noise, not the step. "
+            "In float32 states a step at rest or in a held equilibrium has D ≈ 0 and rounding makes it either sign: "
+            "the most negative D of each run against the run's largest E (the rounding scale): " + "; ".join(
+                f"{name} {s_}: {_worst_dissipation(run):.1e}" for name, r in models.items()
+                if r.get("energy") == "linear" for s_, run in r["runs"].items()) + "."]
     lines += ["", "The same loads through `api.guarded_stepper` (a step whose state leaves 1.5× the training "
               "envelope, or is non-finite, is replaced: `clip` clips it into the envelope, `reset` puts the body "
               "back at rest; a safeguard, not physics) and `api.fallback_stepper` (`fallback`: such a body is "
@@ -431,7 +456,6 @@ def main(argv=None) -> int:
                      f"{'; '.join(row['reported'])[:160] or 'nothing to report'} |")
     (RESULTS / f"{stem}.md").write_text("\n".join(lines) + "\n")
     print("\n".join(lines))
-    return 0
 
 
 if __name__ == "__main__":
