@@ -417,17 +417,18 @@ def write_report(result: dict, stem: str, fem_steps: int) -> None:
                 f"({run['entropy_production_min_mean'][0]:.2g}) | "
                 f"{'FLAGGED' if g['out_of_distribution'] else 'ok'} ({g['max_force_ratio']:.2f}× train max) | "
                 f"{run['first_step_state_flagged']} / {run['first_step_non_finite']} | {_leaves_text(run)} |")
-    if any(r["runs"] and r.get("energy") == "linear" for r in models.values()):
+    linear = {name: r for name, r in models.items() if r.get("energy") == "linear"}
+    if linear:
         lines += ["", "E and S of the models whose network is zero (" + ", ".join(
-            f"`{r['model']}`" for r in models.values() if r.get("energy") == "linear") + ") are the rest-linearised "
+            f"`{r['model']}`" for r in linear.values()) + ") are the rest-linearised "
             "system's energy ½vᵀMv + ½uᵀK₀u and the running sum of each step's dissipation D = W − ΔE "
             "(`framesolve.energy_balance`; W the external work): the backward-Euler step makes D ≥ 0 in exact "
             "arithmetic. The noise runs add noise to the state between steps, which changes E outside any step: "
             "there D < 0 where the noise added energy, so their entropy columns measure the noise, not the step. "
             "In float32 states a step at rest or in a held equilibrium has D ≈ 0 and rounding makes it either sign: "
             "the most negative D of each run against the run's largest E (the rounding scale): " + "; ".join(
-                f"{name} {s_}: {_worst_dissipation(run):.1e}" for name, r in models.items()
-                if r.get("energy") == "linear" for s_, run in r["runs"].items()) + "."]
+                f"{name} {s_}: {_worst_dissipation(run):.1e}" for name, r in linear.items()
+                for s_, run in r["runs"].items()) + "."]
     lines += ["", "The same loads through `api.guarded_stepper` (a step whose state leaves 1.5× the training "
               "envelope, or is non-finite, is replaced: `clip` clips it into the envelope, `reset` puts the body "
               "back at rest; a safeguard, not physics) and `api.fallback_stepper` (`fallback`: such a body is "

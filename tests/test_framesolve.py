@@ -155,7 +155,7 @@ def test_linear_step_without_the_k_product_is_the_prior_step_with_no_network(bar
 def test_energy_balance_of_the_linear_step_is_its_dissipation(bar_data):
     """Along a float64 rollout of ``linear_step`` under a load that is ramped, held and released, the dissipation
     D = W − ΔE of ``energy_balance`` is the backward-Euler step's αΔt|v₁|²_M + ½|Δv|²_M + ½|Δu|²_K (to rounding),
-    so it is ≥ 0 and the entropy S (its running sum) never decreases; with no load and no motion E stays 0."""
+    so it is ≥ 0 and the entropy S (its running sum) never decreases; from rest E starts at 0 and, released, decays."""
     data, _, norm = _ops(bar_data)
     nt = jnp.asarray(data.node_type)
     free = np.asarray(data.node_type) == 0

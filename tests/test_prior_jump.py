@@ -17,8 +17,9 @@ def linear():
 
 
 def test_a_rollout_of_the_prior_itself_has_no_jump(linear):
-    # States made by the prior's own step (`api.stepper`, which `jump_ratios` runs) are its fixed answer: every ratio is ~0 (float32 rounding of the q and
-    # σ increments against their positions and stresses: below 1e-2, where the reference data give 3 to 2000).
+    # States made by the prior's own step (`api.stepper`, which `jump_ratios` runs) are its fixed answer: every
+    # ratio is ~0 (float32 rounding of the q and σ increments against their positions and stresses: below 1e-2,
+    # where the reference data give 3 to 2000).
     from tignn_jax import api
 
     params, graph = linear

@@ -196,7 +196,7 @@ def energy_balance(norm: dict, z, f, node_type, q0) -> dict:
     D_k = αΔt |v_{k+1}|²_M + ½|v_{k+1} − v_k|²_M + ½|u_{k+1} − u_k|²_K ≥ 0 in exact arithmetic (the physical
     damping and the scheme's own dissipation). Returns {"E" [T+1], "W" [T], "D" [T], "S" [T+1] = cumulative D}."""
     free = np.asarray(node_type) == 0
-    m = np.asarray(norm["fs_mass"], np.float64)[free]
+    m = np.asarray(norm["fs_mass"], np.float64)
     rows, cols = np.asarray(norm["fs_k_rows"], np.int64), np.asarray(norm["fs_k_cols"], np.int64)
     kb = np.asarray(norm["fs_k"], np.float64)
     z = np.asarray(z, np.float64)
@@ -206,7 +206,7 @@ def energy_balance(norm: dict, z, f, node_type, q0) -> dict:
     for t in range(len(u)):   # K₀ u per snapshot: block-sparse product
         np.add.at(ku[t], rows, np.einsum("bij,bj->bi", kb, u[t][cols]))
     ku *= free[:, None]
-    e = 0.5 * np.sum(m[None, :, None] * v[:, free] ** 2, axis=(1, 2)) + 0.5 * np.einsum("tni,tni->t", u, ku)
+    e = 0.5 * np.einsum("n,tni->t", m, v ** 2) + 0.5 * np.einsum("tni,tni->t", u, ku)   # u, v are 0 where clamped
     w = np.einsum("tni,tni->t", np.asarray(f, np.float64) * free[:, None], np.diff(u, axis=0))
     d = w - np.diff(e)
     return {"E": e, "W": w, "D": d, "S": np.concatenate([[0.0], np.cumsum(d)])}
