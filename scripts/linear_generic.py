@@ -55,14 +55,26 @@ def fem_prior(run: Path, scene: str, data_path, compute: bool):
                                                 for k in implicit.RestLinearization._fields))
     if not compute:
         raise FileNotFoundError(f"{path} is missing: the run was trained without --prior, or elsewhere")
-    with np.load(data_path, allow_pickle=False) as raw:
-        meta = json.loads(str(raw["metadata"]))
+    meta = metadata(data_path)
     density = meta["material"]["density"]
     sc = (scenes.beam_scene(density=density, damping=meta["damping"]) if scene == "beam"
           else scenes.bunny_scene(density=density)._replace(damping=meta["damping"]))
     lin = implicit.rest_linearization(scenes.setup_scene(sc), sc.material)
     np.savez(path, **lin._asdict())
     return lin
+
+
+def metadata(path) -> dict:
+    """The generation record of a data file (``tignn generate`` writes one). The Abaqus reference data carry
+    none: for them, the FEM scene identified against them (`fem.scenes.beam_scene`'s defaults: density and
+    mass damping fitted on the train cases, README's FEM-vs-Abaqus row)."""
+    with np.load(path, allow_pickle=False) as raw:
+        if "metadata" in raw.files:
+            return json.loads(str(raw["metadata"]))
+    from fem import scenes
+
+    return {"material": {"density": scenes.BEAM_DENSITY}, "damping": scenes.BEAM_DAMPING,
+            "command": "the Abaqus reference data (the FEM scene for the prior: the one identified against them)"}
 
 
 def split_ids(scene: str, data):
@@ -125,10 +137,9 @@ def cmd_pack(args) -> int:
     best = min(records, key=lambda r: r["val_loss"])
     metas = []
     for path in args.data:
-        with np.load(path, allow_pickle=False) as raw:
-            metas.append(json.loads(str(raw["metadata"])))
+        metas.append(metadata(path))
     meta = metas[0]   # the FEM scene of the first file (the stress tests rebuild it)
-    commands = [f"{m.get('command', 'tignn generate')} ({path}, seed {m.get('seed')})"
+    commands = [f"{m.get('command', 'tignn generate')} ({path}" + (f", seed {m['seed']})" if "seed" in m else ")")
                 for m, path in zip(metas, args.data)]
     info = {"kind": "learned linear GENERIC operators (tignn_jax.linear_generic), backward Euler",
             "scene": args.scene, "learned": {"density": best["density"], "alpha": best["alpha"]},

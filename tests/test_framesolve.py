@@ -469,3 +469,27 @@ def test_consistency_bound_flags_a_step_that_departs_from_the_linear_one(bar_dat
         api.fallback_stepper(net, linear, consistency=-bound)
     with pytest.raises(ValueError, match="forces"):
         api.consistency_bound(net, linear, z, f[:, :-1])
+
+
+def test_s_rows_layout_matches_block_list():
+    """S₀ row by row (`s_rows_layout`, what `with_inverse` adds) applies the same map as the block list, with
+    repeated node pairs and rows without blocks, and `with_inverse` keeps it out of a saved model."""
+    rng = np.random.default_rng(3)
+    n = 9
+    rows = np.array([0, 0, 0, 2, 2, 5, 5, 5, 5, 8])
+    cols = np.array([0, 3, 3, 1, 2, 5, 0, 7, 8, 8])             # (0, 3) twice; nodes 1, 3, 4, 6, 7 have no row
+    blocks = rng.normal(size=(len(rows), 6, 3)).astype(np.float32)
+    norm = {"fs_s_rows": rows.astype(np.float32), "fs_s_cols": cols.astype(np.float32), "fs_s": blocks}
+    ell_cols, ell = FS.s_rows_layout(norm, n)
+    assert ell_cols.shape == (n, 4) and ell.shape == (n, 4, 6, 3)
+    x = jnp.asarray(rng.normal(size=(n, 3)), jnp.float32)
+    dense = np.zeros((n, 6, n, 3))
+    np.add.at(dense, (rows, slice(None), cols, slice(None)), blocks.astype(np.float64))
+    expected = dense.reshape(6 * n, 3 * n) @ np.asarray(x, np.float64).reshape(-1)
+    by_list = np.asarray(FS.apply_s(norm, x)).reshape(-1)
+    by_rows = np.asarray(FS.apply_s({**norm, "fs_s_ell_cols": ell_cols, "fs_s_ell": ell}, x)).reshape(-1)
+    np.testing.assert_allclose(by_list, expected, rtol=1e-5, atol=1e-5)
+    np.testing.assert_allclose(by_rows, expected, rtol=1e-5, atol=1e-5)
+    assert set(FS.DERIVED) >= {"fs_s_ell_cols", "fs_s_ell"}
+    with pytest.raises(ValueError, match="fs_s_rows reach node 8"):
+        FS.s_rows_layout(norm, 8)

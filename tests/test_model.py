@@ -286,7 +286,7 @@ def _shipped(name):
     return api.load_pretrained(name)
 
 
-@pytest.mark.parametrize("name", ["beam-abaqus", "beam", "beam-gnn"])
+@pytest.mark.parametrize("name", ["beam-abaqus", "beam", "beam-fem", "beam-gnn"])
 def test_shipped_beam_model_loads_with_its_mesh(name):
     # The shipped models are small and bring the rest-state graph of the beam mesh (the FEM's beam uses the
     # reference mesh and numbering).

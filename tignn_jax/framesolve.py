@@ -36,7 +36,7 @@ import jax.numpy as jnp
 import numpy as np
 
 KEYS = ("fs_k_rows", "fs_k_cols", "fs_k", "fs_s_rows", "fs_s_cols", "fs_s", "fs_mass", "fs_alpha")
-DERIVED = ("fs_ainv",)   # recomputed by with_inverse, not saved with a model
+DERIVED = ("fs_ainv", "fs_s_ell_cols", "fs_s_ell")   # recomputed by with_inverse, not saved with a model
 
 
 def problem_from_file(path: str | Path):
@@ -108,9 +108,37 @@ def inverse(norm: dict, node_type) -> np.ndarray:
     return np.linalg.inv(operator(norm, node_type)).astype(np.float32)
 
 
+def s_rows_layout(norm: dict, n_nodes: int) -> tuple[np.ndarray, np.ndarray]:
+    """S₀'s node blocks row by row (an ELLPACK layout): (cols [N, D] int32, blocks [N, D, 6, 3] float32), D the
+    most blocks in a row, the padding blocks zero (their column the row's own node). ``apply_s`` with them is
+    one gather and one batched contraction, no scatter: 1.8–2× faster than the block list's segment sum on
+    this CPU for the beam's 15 312 and 40 960 blocks (``benchmarks/realtime.py``, s_layouts)."""
+    rows = np.asarray(norm["fs_s_rows"]).astype(np.int64)
+    cols = np.asarray(norm["fs_s_cols"]).astype(np.int64)
+    blocks = np.asarray(norm["fs_s"], np.float32)
+    if rows.size and (rows.min() < 0 or rows.max() >= n_nodes):
+        raise ValueError(f"fs_s_rows reach node {rows.max()} of a mesh of {n_nodes} nodes")
+    count = np.bincount(rows, minlength=n_nodes)
+    width = max(int(count.max(initial=0)), 1)
+    order = np.lexsort((cols, rows))
+    rows, cols, blocks = rows[order], cols[order], blocks[order]
+    slot = np.arange(len(rows)) - np.concatenate([[0], np.cumsum(count)[:-1]])[rows]
+    out_cols = np.tile(np.arange(n_nodes, dtype=np.int32)[:, None], (1, width))
+    out_blocks = np.zeros((n_nodes, width) + blocks.shape[1:], np.float32)
+    np.add.at(out_blocks, (rows, slot), blocks)
+    out_cols[rows, slot] = cols
+    return out_cols, out_blocks
+
+
 def with_inverse(norm: dict, node_type) -> dict:
-    """``norm`` with ``fs_ainv`` added (once per model; the step only multiplies by it)."""
-    return norm if "fs_ainv" in norm else {**norm, "fs_ainv": inverse(norm, node_type)}
+    """``norm`` with what a model derives from its operators once (`DERIVED`): ``fs_ainv`` (the step only
+    multiplies by it) and S₀ row by row (`s_rows_layout`). Built after any change of ``fs_s`` or ``fs_k``."""
+    out = dict(norm)
+    if "fs_ainv" not in out:
+        out["fs_ainv"] = inverse(norm, node_type)
+    if "fs_s_ell" not in out and "fs_s" in out:
+        out["fs_s_ell_cols"], out["fs_s_ell"] = s_rows_layout(norm, len(np.asarray(node_type)))
+    return out
 
 
 def _apply(norm, prefix, x, out_dim):
@@ -126,7 +154,10 @@ def apply_k(norm, x):
 
 
 def apply_s(norm, x):
-    """S₀ x: [N,3] → [N,6]."""
+    """S₀ x: [N,3] → [N,6] (row by row where ``norm`` has `s_rows_layout`'s arrays, else from the block list)."""
+    if "fs_s_ell" in norm:
+        cols = norm["fs_s_ell_cols"].astype(jnp.int32)
+        return jnp.einsum("ndij,ndj->ni", norm["fs_s_ell"].astype(x.dtype), x[cols])
     return _apply(norm, "s", x, 6)
 
 
