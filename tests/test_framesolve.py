@@ -472,24 +472,30 @@ def test_consistency_bound_flags_a_step_that_departs_from_the_linear_one(bar_dat
 
 
 def test_s_rows_layout_matches_block_list():
-    """S₀ row by row (`s_rows_layout`, what `with_inverse` adds) applies the same map as the block list, with
-    repeated node pairs and rows without blocks, and `with_inverse` keeps it out of a saved model."""
+    """S₀ row by row in groups of rows (`s_rows_layout`, what `with_inverse` adds) applies the same map as the
+    block list, with repeated node pairs, rows without blocks and rows of very different lengths (several
+    groups), and its arrays are among those a saved model leaves out."""
     rng = np.random.default_rng(3)
-    n = 9
-    rows = np.array([0, 0, 0, 2, 2, 5, 5, 5, 5, 8])
-    cols = np.array([0, 3, 3, 1, 2, 5, 0, 7, 8, 8])             # (0, 3) twice; nodes 1, 3, 4, 6, 7 have no row
+    n = 40
+    counts = np.concatenate([np.zeros(5, int), rng.integers(1, 4, 25), rng.integers(20, 30, 10)])
+    rows = np.repeat(np.arange(n), counts)
+    cols = rng.integers(0, n, len(rows))
+    cols[:2] = cols[0]                                      # a repeated (row, col) pair
     blocks = rng.normal(size=(len(rows), 6, 3)).astype(np.float32)
     norm = {"fs_s_rows": rows.astype(np.float32), "fs_s_cols": cols.astype(np.float32), "fs_s": blocks}
-    ell_cols, ell = FS.s_rows_layout(norm, n)
-    assert ell_cols.shape == (n, 4) and ell.shape == (n, 4, 6, 3)
     x = jnp.asarray(rng.normal(size=(n, 3)), jnp.float32)
     dense = np.zeros((n, 6, n, 3))
     np.add.at(dense, (rows, slice(None), cols, slice(None)), blocks.astype(np.float64))
     expected = dense.reshape(6 * n, 3 * n) @ np.asarray(x, np.float64).reshape(-1)
-    by_list = np.asarray(FS.apply_s(norm, x)).reshape(-1)
-    by_rows = np.asarray(FS.apply_s({**norm, "fs_s_ell_cols": ell_cols, "fs_s_ell": ell}, x)).reshape(-1)
-    np.testing.assert_allclose(by_list, expected, rtol=1e-5, atol=1e-5)
-    np.testing.assert_allclose(by_rows, expected, rtol=1e-5, atol=1e-5)
-    assert set(FS.DERIVED) >= {"fs_s_ell_cols", "fs_s_ell"}
-    with pytest.raises(ValueError, match="fs_s_rows reach node 8"):
-        FS.s_rows_layout(norm, 8)
+    np.testing.assert_allclose(np.asarray(FS.apply_s(norm, x)).reshape(-1), expected, rtol=1e-5, atol=1e-5)
+    for groups in (1, 2, 4):
+        layout = FS.s_rows_layout(norm, n, max_groups=groups, group_slots=0)
+        found = sum(k.endswith("_cols") for k in layout)
+        assert found == groups       # without a cost per group, every split that saves padding is taken
+        slots = sum(v.shape[0] * v.shape[1] for k, v in layout.items() if k.endswith("_cols"))
+        assert slots >= len(rows) and (groups == 1 or slots < n * counts.max())
+        by_rows = np.asarray(FS.apply_s({**norm, **layout}, x)).reshape(-1)
+        np.testing.assert_allclose(by_rows, expected, rtol=1e-5, atol=1e-5)
+        assert set(layout) <= set(FS.DERIVED)
+    with pytest.raises(ValueError, match="fs_s_rows reach node 39"):
+        FS.s_rows_layout(norm, 39)

@@ -36,7 +36,9 @@ import jax.numpy as jnp
 import numpy as np
 
 KEYS = ("fs_k_rows", "fs_k_cols", "fs_k", "fs_s_rows", "fs_s_cols", "fs_s", "fs_mass", "fs_alpha")
-DERIVED = ("fs_ainv", "fs_s_ell_cols", "fs_s_ell")   # recomputed by with_inverse, not saved with a model
+MAX_ROW_GROUPS = 4   # s_rows_layout's groups of rows, at most
+DERIVED = ("fs_ainv", "fs_s_ell_order") + tuple(f"fs_s_ell{g}{x}" for g in range(MAX_ROW_GROUPS)
+                                                for x in ("", "_cols"))   # recomputed by with_inverse, not saved
 
 
 def problem_from_file(path: str | Path):
@@ -108,26 +110,62 @@ def inverse(norm: dict, node_type) -> np.ndarray:
     return np.linalg.inv(operator(norm, node_type)).astype(np.float32)
 
 
-def s_rows_layout(norm: dict, n_nodes: int) -> tuple[np.ndarray, np.ndarray]:
-    """S₀'s node blocks row by row (an ELLPACK layout): (cols [N, D] int32, blocks [N, D, 6, 3] float32), D the
-    most blocks in a row, the padding blocks zero (their column the row's own node). ``apply_s`` with them is
-    one gather and one batched contraction, no scatter: 1.8–2× faster than the block list's segment sum on
-    this CPU for the beam's 15 312 and 40 960 blocks (``benchmarks/realtime.py``, s_layouts)."""
+def s_rows_layout(norm: dict, n_nodes: int, max_groups: int = MAX_ROW_GROUPS, group_slots: int = 2048) -> dict:
+    """S₀'s node blocks row by row (an ELLPACK layout in groups of rows): the nodes sorted by their count of
+    blocks and split into at most ``max_groups`` groups, each padded to its own widest row, the split chosen to
+    minimise the padded slots (plus ``group_slots`` per group, for its extra program). Returns the arrays
+    ``fs_s_ell{g}_cols`` [n_g, D_g] int32 and ``fs_s_ell{g}`` [n_g, D_g, 6, 3] float32 of each group (padding
+    blocks zero, their column the row's own node) and ``fs_s_ell_order`` [N] int32, each node's row in the groups'
+    concatenated output. ``apply_s`` with them is a gather and a batched contraction per group and one gather
+    back, no scatter. On this CPU (a probe of S alone, 200 interleaved calls): the beam's 40 960 blocks 0.92 ms by
+    the block list's segment sum, 0.55 ms as one group, 0.45 ms in four; the bunny's 61 816 blocks (rows of 1–144
+    blocks) 1.38 ms, 1.61 ms as one group (padded to 144), 0.85 ms in four. The whole step: ``benchmarks/
+    realtime.py``, linear_variants."""
     rows = np.asarray(norm["fs_s_rows"]).astype(np.int64)
     cols = np.asarray(norm["fs_s_cols"]).astype(np.int64)
     blocks = np.asarray(norm["fs_s"], np.float32)
     if rows.size and (rows.min() < 0 or rows.max() >= n_nodes):
         raise ValueError(f"fs_s_rows reach node {rows.max()} of a mesh of {n_nodes} nodes")
+    if max_groups < 1:
+        raise ValueError(f"max_groups must be at least 1, got {max_groups}")
     count = np.bincount(rows, minlength=n_nodes)
-    width = max(int(count.max(initial=0)), 1)
+    nodes = np.argsort(count, kind="stable")            # rows by their count of blocks
+    sorted_count = np.maximum(count[nodes], 1)
+    # best[g][k]: fewest slots for the first k sorted rows in g groups (a group's width is its last row's count)
+    best = np.full((max_groups + 1, n_nodes + 1), np.inf)
+    cut = np.zeros((max_groups + 1, n_nodes + 1), np.int64)
+    best[0, 0] = 0.0
+    ends = np.unique(np.concatenate([np.searchsorted(sorted_count, sorted_count, side="right"), [n_nodes]]))
+    for g in range(1, max_groups + 1):
+        for k in ends:
+            starts = np.concatenate([[0], ends[ends < k]])
+            cost = best[g - 1, starts] + (k - starts) * sorted_count[k - 1] + group_slots
+            best[g, k], cut[g, k] = cost.min(), starts[np.argmin(cost)]
+    g = int(np.argmin(best[1:, n_nodes])) + 1
+    bounds, k = [n_nodes], n_nodes
+    while g > 0:
+        k = int(cut[g, k])
+        bounds.append(k)
+        g -= 1
+    bounds = bounds[::-1]
     order = np.lexsort((cols, rows))
     rows, cols, blocks = rows[order], cols[order], blocks[order]
     slot = np.arange(len(rows)) - np.concatenate([[0], np.cumsum(count)[:-1]])[rows]
-    out_cols = np.tile(np.arange(n_nodes, dtype=np.int32)[:, None], (1, width))
-    out_blocks = np.zeros((n_nodes, width) + blocks.shape[1:], np.float32)
-    np.add.at(out_blocks, (rows, slot), blocks)
-    out_cols[rows, slot] = cols
-    return out_cols, out_blocks
+    out, position = {}, np.empty(n_nodes, np.int64)
+    for gi, (a, b) in enumerate(zip(bounds[:-1], bounds[1:])):
+        members = nodes[a:b]
+        position[members] = np.arange(a, b)
+        local = np.full(n_nodes, -1)
+        local[members] = np.arange(b - a)
+        width = int(sorted_count[b - 1])
+        g_cols = np.tile(members.astype(np.int32)[:, None], (1, width))
+        g_blocks = np.zeros((b - a, width) + blocks.shape[1:], np.float32)
+        sel = local[rows] >= 0
+        g_cols[local[rows[sel]], slot[sel]] = cols[sel]
+        np.add.at(g_blocks, (local[rows[sel]], slot[sel]), blocks[sel])
+        out[f"fs_s_ell{gi}_cols"], out[f"fs_s_ell{gi}"] = g_cols, g_blocks
+    out["fs_s_ell_order"] = position.astype(np.int32)
+    return out
 
 
 def with_inverse(norm: dict, node_type) -> dict:
@@ -136,8 +174,8 @@ def with_inverse(norm: dict, node_type) -> dict:
     out = dict(norm)
     if "fs_ainv" not in out:
         out["fs_ainv"] = inverse(norm, node_type)
-    if "fs_s_ell" not in out and "fs_s" in out:
-        out["fs_s_ell_cols"], out["fs_s_ell"] = s_rows_layout(norm, len(np.asarray(node_type)))
+    if "fs_s_ell_order" not in out and "fs_s" in out:
+        out.update(s_rows_layout(norm, len(np.asarray(node_type))))
     return out
 
 
@@ -155,9 +193,11 @@ def apply_k(norm, x):
 
 def apply_s(norm, x):
     """S₀ x: [N,3] → [N,6] (row by row where ``norm`` has `s_rows_layout`'s arrays, else from the block list)."""
-    if "fs_s_ell" in norm:
-        cols = norm["fs_s_ell_cols"].astype(jnp.int32)
-        return jnp.einsum("ndij,ndj->ni", norm["fs_s_ell"].astype(x.dtype), x[cols])
+    if "fs_s_ell_order" in norm:
+        parts = [jnp.einsum("ndij,ndj->ni", norm[f"fs_s_ell{g}"].astype(x.dtype),
+                            x[norm[f"fs_s_ell{g}_cols"].astype(jnp.int32)])
+                 for g in range(MAX_ROW_GROUPS) if f"fs_s_ell{g}" in norm]
+        return jnp.concatenate(parts)[norm["fs_s_ell_order"].astype(jnp.int32)]
     return _apply(norm, "s", x, 6)
 
 
