@@ -349,6 +349,8 @@ def main(argv=None) -> int:
                     "scene run separately)")
     ap.add_argument("--newton-fallback", action="store_true", help="also hand flagged bodies to the FEM's non-linear "
                     "backward-Euler step by Newton–CG iterations (`tignn_jax.newton`) instead of the rest-linearised one")
+    ap.add_argument("--keep-others", action="store_true",
+                    help="keep the scenes not run now from the existing results (each keeps its machine record)")
     ap.add_argument("--report-only", action="store_true", help="rewrite the .md and .png from the .json of an "
                     "earlier run (no rollouts)")
     args = ap.parse_args(argv)
@@ -362,6 +364,14 @@ def main(argv=None) -> int:
         plot(result, RESULTS / f"{stem}.png")
         write_report(result, stem, result.get("fem_steps", args.fem_steps))
         return 0
+    kept_from = None
+    if args.keep_others and (RESULTS / f"{stem}.json").exists():   # checked before the long runs
+        kept_from = json.loads((RESULTS / f"{stem}.json").read_text())
+        # results written before fem_steps was recorded used the default, 100 (their report says so)
+        ran = (kept_from["steps"], kept_from.get("fem_steps") or 100)
+        if ran != (args.steps, args.fem_steps):
+            raise SystemExit(f"--keep-others: the kept results ran {ran[0]} / {ran[1]} steps, "
+                             f"this run {args.steps} / {args.fem_steps}")
     machine = describe()
     chosen = {k: [v] for k, v in DEFAULT_MODELS.items()}
     for item in [m for m in args.models.split(",") if m]:
@@ -379,6 +389,12 @@ def main(argv=None) -> int:
                 print(f"{label}: skipped ({err})")
     if not models:
         raise SystemExit("no model ran (see the skipped lines above)")
+    for r in models.values():
+        r["machine"] = machine
+    if kept_from is not None:
+        kept = {k: {**r, "machine": r.get("machine", kept_from["machine"]), "earlier_run": True}
+                for k, r in kept_from["models"].items() if k not in models}
+        models = {**kept, **models}
     result = {"machine": machine, "steps": args.steps, "fem_steps": args.fem_steps, "models": models,
               "fem_limit": fem_limit()}
     RESULTS.mkdir(parents=True, exist_ok=True)
@@ -400,7 +416,10 @@ def write_report(result: dict, stem: str, fem_steps: int) -> None:
     lines = ["# Numerical stress tests", "",
              f"Machine: {machine['cpu']}, {machine['cores']} cores, jax {machine['jax']}; load average "
              f"{machine['load_average_1m']} at start. {steps}-step rollouts (Δt = 0.05; the training horizon "
-             f"is 20); FEM reference over the first {fem_steps} steps.", "",
+             f"is 20); FEM reference over the first {fem_steps} steps." + "".join(
+                 f" The {name} rows come from an earlier run (load average {r['machine']['load_average_1m']} at "
+                 f"its start, jax {r['machine']['jax']})." for name, r in models.items() if r.get("earlier_run")),
+             "",
              "| scene | loading | NaN/Inf | max u model / FEM | max v model / FEM | u error at FEM horizon | "
              "first step u error > 10 % | S non-decreasing (steps) | entropy production ≥ 0 (min) | force guard | "
              "first step state flagged / non-finite | leaves the envelope by (hops from the load) |",
