@@ -362,13 +362,12 @@ def main(argv=None) -> int:
     if args.report_only:
         result = json.loads((RESULTS / f"{stem}.json").read_text())
         plot(result, RESULTS / f"{stem}.png")
-        write_report(result, stem, result.get("fem_steps", args.fem_steps))
+        write_report(result, stem, recorded_fem_steps(result))
         return 0
     kept_from = None
     if args.keep_others and (RESULTS / f"{stem}.json").exists():   # checked before the long runs
         kept_from = json.loads((RESULTS / f"{stem}.json").read_text())
-        # results written before fem_steps was recorded used the default, 100 (their report says so)
-        ran = (kept_from["steps"], kept_from.get("fem_steps") or 100)
+        ran = (kept_from["steps"], recorded_fem_steps(kept_from))
         if ran != (args.steps, args.fem_steps):
             raise SystemExit(f"--keep-others: the kept results ran {ran[0]} / {ran[1]} steps, "
                              f"this run {args.steps} / {args.fem_steps}")
@@ -402,6 +401,12 @@ def main(argv=None) -> int:
     plot(result, RESULTS / f"{stem}.png")
     write_report(result, stem, args.fem_steps)
     return 0
+
+
+def recorded_fem_steps(result: dict) -> int:
+    """The FEM reference steps of a stored result; results written before they were recorded used the default,
+    100 (their reports say so)."""
+    return int(result.get("fem_steps") or 100)
 
 
 def _worst_dissipation(run: dict) -> float:
