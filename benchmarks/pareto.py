@@ -672,18 +672,24 @@ def main(argv=None) -> int:
     ap.add_argument("--train-heun", action="store_true",
                     help="train the Heun-integrator sizes first (the subset's epochs; resumable)")
     ap.add_argument("--report-only", action="store_true",
-                    help="rewrite pareto.md and pareto.png from benchmarks/results/pareto.json (no timing)")
+                    help="rewrite pareto.md and pareto.png from the stored pareto.json (benchmarks/results/, "
+                         "or runs/pareto/quick/ with --quick; no timing)")
     args = ap.parse_args(argv)
     from tignn_jax import api
     from tignn_jax import data as D
 
+    stem = "pareto_quick" if args.quick else "pareto"
+    out = RUNS / "quick" if args.quick else RESULTS
+    widths, passes = ((16, 24), (2, 3)) if args.quick else (WIDTHS, PASSES)
     if args.report_only:
-        result = json.loads((RESULTS / "pareto.json").read_text())
+        if not (out / f"{stem}.json").exists():
+            ap.error(f"--report-only: no stored result at {out / f'{stem}.json'} (run without it first)")
+        result = json.loads((out / f"{stem}.json").read_text())
         points = result["points"]
         front = [i for i, p in enumerate(points) if p["name"] in result["front"]]
-        plot(RESULTS / "pareto.png", points, np.asarray(front), result)
-        md = report(result, WIDTHS, PASSES)
-        (RESULTS / "pareto.md").write_text(md)
+        plot(out / f"{stem}.png", points, np.asarray(front), result)
+        md = report(result, widths, passes)
+        (out / f"{stem}.md").write_text(md)
         print(md)
         return 0
 
@@ -691,9 +697,7 @@ def main(argv=None) -> int:
     if args.train_only:
         train_subset(data, TRAINED, args.train_minutes)
         return 0
-    stem = "pareto_quick" if args.quick else "pareto"
     rows = D.split_rows(data, "test")
-    widths, passes = ((16, 24), (2, 3)) if args.quick else (WIDTHS, PASSES)
     variants = FEM_VARIANTS[7:9] if args.quick else FEM_VARIANTS
     linear = LINEAR_VARIANTS[-1:] if args.quick else LINEAR_VARIANTS
     implicit_variants = () if args.quick else IMPLICIT_VARIANTS
@@ -785,7 +789,6 @@ def main(argv=None) -> int:
                                and not k.startswith(SHIPPED) and k != SHIPPED_LINEAR},
               "step_times": step_times, "fem_times": fem_times, "errors": cache, "train_plan": plan,
               "repeats": repeats, "quick": args.quick, "xla_flags": os.environ.get("XLA_FLAGS", "")}
-    out = RUNS / "quick" if args.quick else RESULTS
     out.mkdir(parents=True, exist_ok=True)
     (out / f"{stem}.json").write_text(json.dumps(result, indent=1))
     plot(out / f"{stem}.png", points, front, result)

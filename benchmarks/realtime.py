@@ -217,7 +217,7 @@ def linear_variants(params: dict, model: str, repeats: int) -> dict:
     fns = {k: jax.jit(lambda z, f, solve=solve: z + FS.prior_step(norm, z, f, jnp.zeros_like(z), node_type, q0,
                                                                 solve_a=solve))
            for k, solve in solves.items()}
-    listed = {k: v for k, v in norm.items() if not k.startswith("fs_s_ell")}   # S₀ by segment sum
+    listed = {k: v for k, v in norm.items() if k not in FS.S_ROW_KEYS}   # S₀ by segment sum
     fns[LINEAR_VARIANTS[4]] = jax.jit(lambda z, f: z + FS.linear_step(listed, z, f, node_type, q0))
     fns[LINEAR_VARIANTS[5]] = api.stepper(params)
     rng = np.random.default_rng(0)

@@ -187,3 +187,20 @@ def test_labels_of_crowded_points_are_moved_apart_and_lone_ones_stay_beside_thei
     assert offsets[3] == (4, 3.0)
     ys = sorted(xy[i, 1] + offsets[i][1] for i in range(3))
     assert all(b - a >= 9.0 - 1e-9 for a, b in zip(ys, ys[1:]))
+
+
+def test_report_only_quick_reads_and_writes_the_quick_result(tmp_path, monkeypatch, capsys):
+    """--report-only --quick regenerates the quick result where the quick run writes it, and says which file
+    is missing when there is none (it used to read the full result whatever --quick said)."""
+    monkeypatch.setattr(pareto, "RUNS", tmp_path)
+    with pytest.raises(SystemExit):
+        pareto.main(["--quick", "--report-only"])
+    assert "pareto_quick.json" in capsys.readouterr().err
+    full = Path(__file__).resolve().parents[1] / "benchmarks" / "results" / "pareto.json"
+    if not full.exists():
+        pytest.skip("no committed pareto.json")
+    (tmp_path / "quick").mkdir()
+    (tmp_path / "quick" / "pareto_quick.json").write_text(full.read_text())
+    assert pareto.main(["--quick", "--report-only"]) == 0
+    assert (tmp_path / "quick" / "pareto_quick.md").read_text().startswith("#")
+    assert (tmp_path / "quick" / "pareto_quick.png").stat().st_size > 0

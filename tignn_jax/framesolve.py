@@ -37,8 +37,9 @@ import numpy as np
 
 KEYS = ("fs_k_rows", "fs_k_cols", "fs_k", "fs_s_rows", "fs_s_cols", "fs_s", "fs_mass", "fs_alpha")
 MAX_ROW_GROUPS = 4   # s_rows_layout's groups of rows, at most
-DERIVED = ("fs_ainv", "fs_s_ell_order") + tuple(f"fs_s_ell{g}{x}" for g in range(MAX_ROW_GROUPS)
-                                                for x in ("", "_cols"))   # recomputed by with_inverse, not saved
+S_ROW_KEYS = ("fs_s_ell_order",) + tuple(f"fs_s_ell{g}{x}" for g in range(MAX_ROW_GROUPS)
+                                         for x in ("", "_cols"))   # s_rows_layout's arrays
+DERIVED = ("fs_ainv",) + S_ROW_KEYS   # recomputed by with_inverse, not saved
 
 
 def problem_from_file(path: str | Path):
