@@ -10,7 +10,7 @@ later passes and the decoder are renumbered; the encoder, the other passes and t
 the result is a model of ``passes - 1`` passes that `tignn train --init-from` accepts. Its function differs from
 the parent's (the decoder now reads the latent one update earlier): it is a starting point, not a compressed
 model. Session 45 tried it on `beam-abaqus` (lab notes, session 45): one core per run, 36 + 8 epochs; the 64×2
-step is 1.34× faster than the 64×3, and it meets the published q, v and u errors but not σ (0.107 against 0.0951).
+step is 1.34× faster than the 64×3, and it meets the published q, v and u errors but not σ (test 0.108 against 0.0951).
 """
 from __future__ import annotations
 
