@@ -32,7 +32,7 @@ BUNNY_PRESS_NODE = 917
 DEFAULT_MODELS = {"beam": "beam", "two-beams": "beam", "bunny": "bunny"}
 # the rest-linearised FEM a learned model's body is handed to when it leaves its training envelope
 # (api.fallback_step); models without one are reset to rest instead
-FALLBACKS = {"beam-abaqus": "beam-linear", "beam-abaqus-small": "beam-linear"}
+FALLBACKS = {"beam-abaqus": "beam-linear", "beam-abaqus-64x2": "beam-linear", "beam-abaqus-small": "beam-linear"}
 # ``--model fem-newton``: the FEM's own backward-Euler frame step (`tignn_jax.newton.fem_stepper`, 2 Newton
 # iterations of 3 CG each), not learned, on the mesh of the scene's rest-linearised model
 FEM_NEWTON = "fem-newton"
