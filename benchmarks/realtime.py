@@ -26,10 +26,11 @@ Speed-ups are measured in the same run, as ratios of the step time of each scene
     every weight zero (the rest-linearised `bunny-linear`) runs its linearised solve alone.
 The three slot variants carry the model's coarse level (``coarse_nodes``) when it has one. A model whose network
 is zero (the learned linear GENERIC `beam` and `bunny`) has no network to write differently: its backward-Euler
-velocity solve is timed six ways instead (`linear_variants`: a dense LU solve per step, a Cholesky factor once
+velocity solve is timed seven ways instead (`linear_variants`: a dense LU solve per step, a Cholesky factor once
 with two triangular solves per step, conjugate gradients on the sparse K per step, a product by A⁻¹ computed
-once, that product without the one by K (`framesolve.linear_step`) with S as a block list, and the shipped
-step: the same with S row by row, `framesolve.s_rows_layout`).
+once, that product without the one by K (`framesolve.linear_step`) with S as a block list, the same with S row by
+row (`framesolve.s_rows_layout`), and the shipped step: the same with A⁻¹ as its upper-triangular blocks,
+`framesolve.ainv_blocks`).
 A scene whose model is not shipped runs with the labelled stand-in dynamics and is reported as not valid.
 Writes benchmarks/results/realtime.{json,md}.
 
@@ -121,7 +122,7 @@ def loop_fusion(name: str, frames: int, warmup: int, devices: tuple, rounds: int
 
 def step_variants(name: str, repeats: int, model: str | None = None) -> dict:
     """Median step time of the scene's model (``model``, default the scene's shipped one) written four ways (see
-    the module docstring); for a model whose network is zero, its backward-Euler step written six ways
+    the module docstring); for a model whose network is zero, its backward-Euler step written seven ways
     (`linear_variants`)."""
     from model_step import EdgeListNetwork, assembled_step, edge_list_features, edge_list_rates
 
@@ -172,18 +173,22 @@ def step_variants(name: str, repeats: int, model: str | None = None) -> dict:
 LINEAR_VARIANTS = ("dense LU solve per step (straightforward)", "Cholesky factor once, two triangular solves",
                    "conjugate gradients per step (sparse K, Jacobi, tol 1e-6)", "A⁻¹ once, one product, K product",
                    "A⁻¹ once, one product, K eliminated, S as a block list",
-                   "A⁻¹ once, one product, K eliminated, S row by row (shipped)")
+                   "A⁻¹ once, one product, K eliminated, S row by row",
+                   "shipped: K eliminated, S row by row, A⁻¹ as symmetric blocks where ≥ 32 MB (the bunny's)")
 
 
 def linear_variants(params: dict, model: str, repeats: int) -> dict:
     """One body's step of a model whose network is zero (the learned linear GENERIC `beam` and `bunny`, the
-    rest-linearised FEM): the backward-Euler step (M(1 + αΔt)/Δt² + K) Δv = r solved six ways, everything else
+    rest-linearised FEM): the backward-Euler step (M(1 + αΔt)/Δt² + K) Δv = r solved seven ways, everything else
     the same (`framesolve.prior_step`, with a product by K for the right-hand side): a dense LU factorisation
     and solve every step (what a plain ``jnp.linalg.solve`` does); the Cholesky factor computed once, two
     triangular solves per step; conjugate gradients on the sparse K per step (Jacobi preconditioner, relative
     tolerance 1e-6); one product by A⁻¹ computed once; and the shipped ``api.stepper``, which also multiplies by
     A⁻¹ but needs no product by K (`framesolve.linear_step`: A⁻¹K = I − c A⁻¹M) and applies S row by row
-    (`framesolve.s_rows_layout`), and the same step with S as its block list (gather, product, segment sum). Raises RuntimeError if a
+    (`framesolve.s_rows_layout`), the same step with S as its block list (gather, product, segment sum), and the
+    same with A⁻¹ as one dense matrix instead of its upper-triangular blocks (`framesolve.ainv_blocks`, each
+    off-diagonal block used for both of its products while it is in cache: what the shipped step multiplies by
+    since session 46). Raises RuntimeError if a
     variant's state differs from the shipped step's by more than 1e-2 of its largest increment (float32)."""
     from jax.scipy.linalg import cho_solve
     from jax.scipy.sparse.linalg import cg
@@ -212,19 +217,21 @@ def linear_variants(params: dict, model: str, repeats: int) -> dict:
         LINEAR_VARIANTS[0]: lambda r: jnp.linalg.solve(a32, r),
         LINEAR_VARIANTS[1]: lambda r: cho_solve((chol, True), r),
         LINEAR_VARIANTS[2]: lambda r: cg(apply_a, r, tol=1e-6, M=lambda x: x / diag)[0],
-        LINEAR_VARIANTS[3]: None,   # prior_step's own product by fs_ainv
+        LINEAR_VARIANTS[3]: lambda r: norm["fs_ainv"] @ r,   # one dense product
     }
     fns = {k: jax.jit(lambda z, f, solve=solve: z + FS.prior_step(norm, z, f, jnp.zeros_like(z), node_type, q0,
                                                                 solve_a=solve))
            for k, solve in solves.items()}
-    listed = {k: v for k, v in norm.items() if k not in FS.S_ROW_KEYS}   # S₀ by segment sum
+    dense = {k: v for k, v in norm.items() if k not in FS.AINV_BLOCK_KEYS}   # one dense product by A⁻¹
+    listed = {k: v for k, v in dense.items() if k not in FS.S_ROW_KEYS}     # and S₀ by segment sum
     fns[LINEAR_VARIANTS[4]] = jax.jit(lambda z, f: z + FS.linear_step(listed, z, f, node_type, q0))
-    fns[LINEAR_VARIANTS[5]] = api.stepper(params)
+    fns[LINEAR_VARIANTS[5]] = jax.jit(lambda z, f: z + FS.linear_step(dense, z, f, node_type, q0))
+    fns[LINEAR_VARIANTS[6]] = api.stepper(params)
     rng = np.random.default_rng(0)
     z = jnp.asarray(np.concatenate([np.asarray(mesh["q0"]) + 0.01 * rng.normal(size=(n, 3)),
                                     0.01 * rng.normal(size=(n, 9))], axis=1), jnp.float32)
     f = jnp.asarray(0.01 * rng.normal(size=(n, 3)), jnp.float32)
-    ref = np.asarray(fns[LINEAR_VARIANTS[5]](z, f))
+    ref = np.asarray(fns[LINEAR_VARIANTS[6]](z, f))
     diffs = {}
     for k, fn in fns.items():
         diffs[k] = float(np.abs(np.asarray(fn(z, f)) - ref).max() / np.abs(ref - np.asarray(z)).max())
@@ -523,7 +530,7 @@ def format_md(result: dict) -> str:
     linear = {k: v for k, v in result["step_variants"].items() if v.get("kind") == "linear"}
     if linear:
         lines += ["", "Step time of each scene's model whose network is zero (a linear GENERIC model stepped by "
-                  "backward Euler), its step written six ways, one body (median of interleaved calls, "
+                  "backward Euler), its step written seven ways, one body (median of interleaved calls, "
                   "same run; `linear_variants`; in brackets the speed-up over the first; every variant's step checked "
                   "against the shipped one's: the largest difference, relative to the step's largest increment, is "
                   "in the last column, float32 rounding):", "",

@@ -499,3 +499,57 @@ def test_s_rows_layout_matches_block_list():
         assert set(layout) <= set(FS.DERIVED)
     with pytest.raises(ValueError, match="fs_s_rows reach node 39"):
         FS.s_rows_layout(norm, 39)
+
+
+def test_ainv_blocks_multiply_like_the_dense_inverse():
+    """`ainv_blocks` + `apply_ainv`: the upper-triangular blocks of a symmetric A⁻¹ give its product (each
+    off-diagonal block used for itself and its transpose), split at node boundaries, for 1, 2, 4 and 7 blocks and
+    a mesh whose node count does not divide evenly; a non-symmetric matrix keeps the dense product; bad input
+    is named."""
+    rng = np.random.default_rng(0)
+    n_nodes = 13
+    b = rng.normal(size=(3 * n_nodes, 3 * n_nodes))
+    a = (b @ b.T + np.eye(3 * n_nodes)).astype(np.float32)
+    r = jnp.asarray(rng.normal(size=3 * n_nodes), jnp.float32)
+    dense = np.asarray(jnp.asarray(a) @ r)
+    for k in (1, 2, 4, 7):
+        blocks = FS.ainv_blocks(a, n_nodes, k=k)
+        assert len(blocks) == k * (k + 1) // 2
+        sizes = [blocks[f"fs_ainv_sb{i}_{i}"].shape[0] for i in range(k)]
+        assert sum(sizes) == 3 * n_nodes and all(s % 3 == 0 for s in sizes)   # node boundaries
+        got = np.asarray(FS.apply_ainv({**blocks, "fs_ainv": jnp.asarray(a)}, r))
+        np.testing.assert_allclose(got, dense, rtol=1e-5, atol=1e-5 * np.abs(dense).max())
+    skew = a.copy()
+    skew[0, 1] += 1.0
+    assert FS.ainv_blocks(skew, n_nodes) == {}
+    np.testing.assert_array_equal(np.asarray(FS.apply_ainv({"fs_ainv": jnp.asarray(a)}, r)), dense)
+    with pytest.raises(ValueError, match=r"shape \(39, 39\) does not match a mesh of 12 nodes"):
+        FS.ainv_blocks(a, 12)
+    with pytest.raises(ValueError, match="at least 1, got 0"):
+        FS.ainv_blocks(a, n_nodes, k=0)
+    assert set(FS.AINV_BLOCK_KEYS) <= set(FS.DERIVED)   # rebuilt when a model is loaded, never saved
+
+
+def test_linear_step_with_the_blocks_matches_the_dense_product():
+    """The learned linear `bunny` (A₀⁻¹ of 64 MB) is loaded with the blocks, `beam` (20.6 MB, below
+    `AINV_BLOCK_MIN_BYTES`) with the dense product only; built with the blocks, its step equals the dense one to float32 rounding, from a moving state
+    under a load."""
+    from tignn_jax import api
+
+    bunny, _ = api.load_pretrained("bunny")   # 64 MB: the demo's bunny steps with the blocks
+    assert all(k in bunny["norm"] for k in FS.AINV_BLOCK_KEYS)
+    params, graph = api.load_pretrained("beam")
+    assert not any(k in params["norm"] for k in FS.AINV_BLOCK_KEYS)
+    nt = jnp.asarray(params["mesh"]["node_type"], jnp.int32)
+    x0 = jnp.asarray(params["mesh"]["q0"], jnp.float32)
+    blocked = FS.with_inverse(params["norm"], np.asarray(nt), block_bytes=0)
+    assert all(k in blocked for k in FS.AINV_BLOCK_KEYS)
+    rng = np.random.default_rng(1)
+    n = len(x0)
+    z = jnp.asarray(np.concatenate([np.asarray(x0) + 0.05 * rng.normal(size=(n, 3)), rng.normal(size=(n, 9))],
+                                   axis=1), jnp.float32)
+    f = jnp.asarray(rng.normal(size=(n, 3)), jnp.float32)
+    got = np.asarray(FS.linear_step({k: jnp.asarray(v) for k, v in blocked.items()}, z, f, nt, x0))
+    ref = np.asarray(FS.linear_step(params["norm"], z, f, nt, x0))
+    scale = np.abs(ref).max(axis=0) + 1e-30
+    assert float(np.max(np.abs(got - ref) / scale)) < 1e-4

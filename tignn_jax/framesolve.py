@@ -24,7 +24,8 @@ untrained model is the linearised backward-Euler frame map of the FEM and the ne
 linearisation misses (the stress's second-order volumetric terms of a nearly incompressible material, large
 rotations). Both need the operators in ``norm`` (`norm_entries`); A₀⁻¹ is dense ([3N, 3N], 64 MB for the
 bunny's 1330 nodes; one product per step) and is recomputed from K₀ when a model is built (`with_inverse`),
-never stored.
+never stored; for a large one (the bunny's, not the beam's) the step multiplies by its upper-triangular blocks
+(`ainv_blocks`, `apply_ainv`: 40 MB read per step for the bunny instead of 64).
 """
 from __future__ import annotations
 
@@ -39,7 +40,13 @@ KEYS = ("fs_k_rows", "fs_k_cols", "fs_k", "fs_s_rows", "fs_s_cols", "fs_s", "fs_
 MAX_ROW_GROUPS = 4   # s_rows_layout's groups of rows, at most
 S_ROW_KEYS = ("fs_s_ell_order",) + tuple(f"fs_s_ell{g}{x}" for g in range(MAX_ROW_GROUPS)
                                          for x in ("", "_cols"))   # s_rows_layout's arrays
-DERIVED = ("fs_ainv",) + S_ROW_KEYS   # recomputed by with_inverse, not saved
+AINV_BLOCKS = 4   # ainv_blocks' split of the DOFs: A₀⁻¹ kept as the upper-triangular blocks of a 4 × 4 split
+# ... for an A₀⁻¹ of at least this many bytes (float32): session 46 measured the blocks ahead in the bunny's loop
+# (64 MB: p50 3.45 against 3.65-3.94 ms, p99/p50 1.31 against 1.52-1.55) and behind in the beam's (20.6 MB: p50 1.64
+# against 1.41 ms) and in every tight loop of the step alone (beam 1.94 against 1.44 ms, bunny 4.10 against 3.61)
+AINV_BLOCK_MIN_BYTES = 32 * 2 ** 20
+AINV_BLOCK_KEYS = tuple(f"fs_ainv_sb{i}_{j}" for i in range(AINV_BLOCKS) for j in range(i, AINV_BLOCKS))
+DERIVED = ("fs_ainv",) + S_ROW_KEYS + AINV_BLOCK_KEYS   # recomputed by with_inverse, not saved
 
 
 def problem_from_file(path: str | Path):
@@ -169,12 +176,58 @@ def s_rows_layout(norm: dict, n_nodes: int, max_groups: int = MAX_ROW_GROUPS, gr
     return out
 
 
-def with_inverse(norm: dict, node_type) -> dict:
+def ainv_blocks(ainv, n_nodes: int, k: int = AINV_BLOCKS, tol: float = 1e-5) -> dict:
+    """A symmetric A₀⁻¹ [3N, 3N] as the upper-triangular blocks of a ``k`` × ``k`` split of the DOFs at node
+    boundaries: ``fs_ainv_sb{i}_{j}`` for i ≤ j (block (j, i) is the transpose of (i, j)). `apply_ainv` uses each
+    off-diagonal block for both of its products, one right after the other, so the step reads (k + 1)/(2k) of the
+    dense matrix's bytes from memory (the second use finds the block in cache): for the bunny's 64 MB, 40 MB.
+    On this 2-core CPU (session 46, the bunny's demo loop, alternating rounds of 500 frames in one process) the
+    simulation p50 / p99 went from 3.74–3.94 / 5.61–5.84 ms with the dense product to 3.49–3.59 / 4.22–4.43 with
+    k = 4 (p99/p50 1.48–1.50× → 1.18–1.24×); k = 8 gave 1.28–1.31×, k = 2 1.35–1.45×. Returns {} (the step keeps
+    the dense product) where ``ainv`` is not symmetric to ``tol`` of its largest entry, or is too small to split."""
+    a = np.asarray(ainv, np.float32)
+    n = a.shape[0]
+    if a.shape != (3 * n_nodes, 3 * n_nodes):
+        raise ValueError(f"A⁻¹ of shape {a.shape} does not match a mesh of {n_nodes} nodes")
+    if k < 1:
+        raise ValueError(f"the number of blocks must be at least 1, got {k}")
+    scale = float(np.abs(a).max()) if a.size else 0.0
+    if n_nodes < k or not np.isfinite(scale) or float(np.abs(a - a.T).max()) > tol * scale:
+        return {}
+    edges = 3 * np.round(np.linspace(0, n_nodes, k + 1)).astype(int)
+    return {f"fs_ainv_sb{i}_{j}": a[edges[i]:edges[i + 1], edges[j]:edges[j + 1]].copy()
+            for i in range(k) for j in range(i, k)}
+
+
+def apply_ainv(norm, r):
+    """A₀⁻¹ r for a flat [3N] right-hand side: by `ainv_blocks`' upper-triangular blocks where ``norm`` has
+    them, else one dense product by ``fs_ainv``."""
+    if "fs_ainv_sb0_0" not in norm:
+        return norm["fs_ainv"].astype(r.dtype) @ r
+    k = sum(1 for i in range(len(AINV_BLOCK_KEYS)) if f"fs_ainv_sb{i}_{i}" in norm)
+    sizes = [norm[f"fs_ainv_sb{i}_{i}"].shape[0] for i in range(k)]
+    edges = np.concatenate([[0], np.cumsum(sizes)])
+    xs = [r[edges[i]:edges[i + 1]] for i in range(k)]
+    ys = [None] * k
+    for i in range(k):
+        for j in range(i, k):
+            b = norm[f"fs_ainv_sb{i}_{j}"].astype(r.dtype)
+            ys[i] = b @ xs[j] if ys[i] is None else ys[i] + b @ xs[j]
+            if i != j:   # the transposed block's product right after, while the block is in cache
+                ys[j] = xs[i] @ b if ys[j] is None else ys[j] + xs[i] @ b
+    return jnp.concatenate(ys)
+
+
+def with_inverse(norm: dict, node_type, block_bytes: int = AINV_BLOCK_MIN_BYTES) -> dict:
     """``norm`` with what a model derives from its operators once (`DERIVED`): ``fs_ainv`` (the step only
-    multiplies by it) and S₀ row by row (`s_rows_layout`). Built after any change of ``fs_s`` or ``fs_k``."""
+    multiplies by it), for an A₀⁻¹ of at least ``block_bytes`` (float32) its upper-triangular blocks
+    (`ainv_blocks`, what `apply_ainv` then multiplies by), and S₀ row by row (`s_rows_layout`). Built after any
+    change of ``fs_s`` or ``fs_k``."""
     out = dict(norm)
     if "fs_ainv" not in out:
         out["fs_ainv"] = inverse(norm, node_type)
+    if "fs_ainv_sb0_0" not in out and 4 * np.asarray(out["fs_ainv"]).size >= block_bytes:
+        out.update(ainv_blocks(out["fs_ainv"], len(np.asarray(node_type))))
     if "fs_s_ell_order" not in out and "fs_s" in out:
         out.update(s_rows_layout(norm, len(np.asarray(node_type))))
     return out
@@ -224,7 +277,7 @@ def solve(norm, e, node_type):
     h, _, free, m = _constants(norm, node_type, e.dtype)
     e_u, e_v, e_s = e[:, :3] * free, e[:, 3:6] * free, e[:, 6:]
     rhs = (m * e_v - h * apply_k(norm, e_u)) * free / h ** 2
-    dv = (norm["fs_ainv"].astype(e.dtype) @ rhs.reshape(-1)).reshape(-1, 3) * free
+    dv = apply_ainv(norm, rhs.reshape(-1)).reshape(-1, 3) * free
     du = e_u + h * dv
     return jnp.concatenate([du, dv, e_s + h * apply_s(norm, dv)], axis=1)
 
@@ -233,13 +286,13 @@ def prior_step(norm, z, f, e, node_type, q0, solve_a=None):
     """The state increment [N,12] of a ``linear_prior`` step: W⁻¹ (Δt (J₀ z + B f) + e) for the network's
     forward-Euler increment e [N,12], with one product by K₀ and one by S₀ (the prior's and the solve's merged:
     Δt K₀ (u + Δt v + e_u) in the right-hand side, Δt S₀ (v + Δv) in the stress). ``solve_a``: A₀⁻¹ applied to
-    a flat [3N] right-hand side; default one product by ``fs_ainv`` (benchmarks pass factor solves instead)."""
+    a flat [3N] right-hand side; default `apply_ainv` (benchmarks pass factor solves instead)."""
     h, alpha, free, m = _constants(norm, node_type, z.dtype)
     u, v = (z[:, :3] - q0.astype(z.dtype)) * free, z[:, 3:6] * free
     e_u, e_v, e_s = e[:, :3] * free, e[:, 3:6] * free, e[:, 6:]
     rhs = (m * e_v + h * (f - alpha * m * v) - h * apply_k(norm, u + h * v + e_u)) * free / h ** 2
     if solve_a is None:
-        dv = (norm["fs_ainv"].astype(z.dtype) @ rhs.reshape(-1)).reshape(-1, 3) * free
+        dv = apply_ainv(norm, rhs.reshape(-1)).reshape(-1, 3) * free
     else:
         dv = solve_a(rhs.reshape(-1)).reshape(-1, 3) * free
     return jnp.concatenate([h * v + e_u + h * dv, dv, e_s + h * apply_s(norm, v + dv)], axis=1)
@@ -256,7 +309,7 @@ def linear_step(norm, z, f, node_type, q0):
     u, v = (z[:, :3] - q0.astype(z.dtype)) * free, z[:, 3:6] * free
     w = u + h * v
     rhs = (h * (f - alpha * m * v) / h ** 2 + (c / h) * m * w) * free
-    dv = ((norm["fs_ainv"].astype(z.dtype) @ rhs.reshape(-1)).reshape(-1, 3) - w / h) * free
+    dv = (apply_ainv(norm, rhs.reshape(-1)).reshape(-1, 3) - w / h) * free
     return jnp.concatenate([h * v + h * dv, dv, h * apply_s(norm, v + dv)], axis=1)
 
 
