@@ -204,7 +204,9 @@ def apply_ainv(norm, r):
     them, else one dense product by ``fs_ainv``."""
     if "fs_ainv_sb0_0" not in norm:
         return norm["fs_ainv"].astype(r.dtype) @ r
-    k = sum(1 for i in range(len(AINV_BLOCK_KEYS)) if f"fs_ainv_sb{i}_{i}" in norm)
+    k = 0
+    while f"fs_ainv_sb{k}_{k}" in norm:   # the split's size, from its diagonal blocks
+        k += 1
     sizes = [norm[f"fs_ainv_sb{i}_{i}"].shape[0] for i in range(k)]
     edges = np.concatenate([[0], np.cumsum(sizes)])
     xs = [r[edges[i]:edges[i + 1]] for i in range(k)]
