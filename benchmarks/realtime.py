@@ -190,10 +190,10 @@ def linear_variants(params: dict, model: str, repeats: int) -> dict:
     triangular solves per step; conjugate gradients on the sparse K per step (Jacobi preconditioner, relative
     tolerance 1e-6); one product by A⁻¹ computed once; and the shipped ``api.stepper``, which also multiplies by
     A⁻¹ but needs no product by K (`framesolve.linear_step`: A⁻¹K = I − c A⁻¹M) and applies S row by row
-    (`framesolve.s_rows_layout`), the same step with S as its block list (gather, product, segment sum), and the
-    same with A⁻¹ as one dense matrix instead of its upper-triangular blocks (`framesolve.ainv_blocks`, each
-    off-diagonal block used for both of its products while it is in cache: what the shipped step multiplies by
-    since session 46). Raises RuntimeError if a
+    (`framesolve.s_rows_layout`), and the same step with S as its block list (gather, product, segment sum);
+    the shipped step multiplies by A⁻¹'s upper-triangular blocks where A⁻¹ has at least
+    `framesolve.AINV_BLOCK_MIN_BYTES` (`framesolve.ainv_blocks`: the bunny's, not the beam's), so its dense-product
+    twin is timed beside it. Raises RuntimeError if a
     variant's state differs from the shipped step's by more than 1e-2 of its largest increment (float32)."""
     from jax.scipy.linalg import cho_solve
     from jax.scipy.sparse.linalg import cg
@@ -439,7 +439,8 @@ def main(argv=None) -> int:
     machine["xla_flags"] = os.environ.get("XLA_FLAGS", "") + (
         " (fem-newton: the learned loop's YNNPACK option left unset)" if fem else "" if flagged else " (set by the user)")
     scenes, variants, parallel, fusion = {}, {}, {}, {}
-    for name in [s for s in args.scenes.split(",") if s]:
+    requested = [s for s in args.scenes.split(",") if s]
+    for name in requested:
         if name not in BUDGET_MS:
             raise SystemExit(f"unknown scene {name!r}; choose from {sorted(BUDGET_MS)}")
         print(f"scene {name}: {args.frames} frames after {args.warmup} warm-up frames ...", flush=True)
@@ -455,7 +456,7 @@ def main(argv=None) -> int:
         elif not scenes[name]["valid"]:
             scenes[name]["untrained_model_step"] = untrained_step(name, args.variant_repeats)
     if args.accurate and args.model is None:
-        for name in [s for s in args.scenes.split(",") if s in ACCURATE_MODELS]:
+        for name in [s for s in requested if s in ACCURATE_MODELS]:
             model = ACCURATE_MODELS[name]
             print(f"scene {name} with {model}: {args.frames} frames after {args.warmup} warm-up frames ...", flush=True)
             scenes[f"{name} ({model})"] = run_scene(name, args.frames, args.warmup, devices, model, args.rounds)

@@ -124,7 +124,8 @@ def main(argv=None) -> int:
     ap.add_argument("--budget", type=float, required=True, help="wall-clock seconds for everything, calibration in")
     ap.add_argument("--out", required=True, help="folder for runs/, lanes.json and lanes.tar.gz")
     ap.add_argument("--python", default=sys.executable)
-    ap.add_argument("--overhead", type=float, default=1.25, help="epoch-time factor for validation and saving")
+    ap.add_argument("--overhead", type=float, default=1.25,
+                    help="safety factor on the measured cost of an epoch and its validation (checkpoints, jitter)")
     ap.add_argument("--startup", type=float, default=40.0, help="seconds allowed per phase for start and compile")
     ap.add_argument("--max-epochs", type=int, default=None, help="cap on a calibrated phase's epochs")
     ap.add_argument("--pack-every", type=float, default=60.0)
@@ -155,7 +156,7 @@ def main(argv=None) -> int:
 
     threading.Thread(target=packer, daemon=True).start()
 
-    # calibration: two epochs of every phase configuration, all at once, no validation
+    # calibration: two epochs of every phase configuration without a fixed epoch count, all at once
     cal = {}
     for lane in plan["lanes"]:
         for i, ph in enumerate(lane["phases"]):
@@ -168,9 +169,10 @@ def main(argv=None) -> int:
                              extra=("epochs=2", "eval_every=1", "ckpt_every=1000"))
             run_dir.parent.mkdir(parents=True, exist_ok=True)
             log = open(out / "calibration" / f"{lane['name']}-p{i}.log", "w")
-            cal[(lane["name"], i)] = (subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT), run_dir)
-    for key, (proc, run_dir) in cal.items():
+            cal[(lane["name"], i)] = (subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT), run_dir, log)
+    for key, (proc, run_dir, log) in cal.items():
         proc.wait()
+        log.close()
         train_s, eval_s = epoch_costs(run_dir)
         record["calibration"][f"{key[0]}-p{key[1]}"] = {"rc": proc.returncode, "epoch_s": train_s, "eval_s": eval_s}
     save_record()

@@ -93,8 +93,7 @@ def test_cli_trains_rolls_out_and_evaluates(toy, tmp_path):
     from tignn_jax import cli
 
     path = tmp_path / "toy.npz"
-    np.savez(path, q0=toy.q0, edges=toy.edges, node_type=toy.node_type, z=toy.z, f=toy.f, dt=toy.dt,
-             sim_id=toy.sim_id, **{f"split_{k}": v for k, v in toy.splits.items()})
+    D.save(toy, path)
     run = tmp_path / "run"
     assert cli.main(["train", "--data", str(path), "--config", "tiny", "--set", "epochs=1", "--run-dir", str(run),
                      "--no-progress"]) == 0

@@ -66,8 +66,7 @@ def test_plan_defaults_and_epoch_arithmetic(tmp_path):
 def test_two_phase_lane_runs_end_to_end(tmp_path):
     data = D.synthetic_beam(nx=4, ny=2, nz=2, cases=5, frames=4)
     path = tmp_path / "toy.npz"
-    np.savez(path, q0=data.q0, edges=data.edges, node_type=data.node_type, z=data.z, f=data.f, dt=data.dt,
-             sim_id=data.sim_id, **{f"split_{k}": v for k, v in data.splits.items()})
+    D.save(data, path)
     cfg = T.CONFIGS["tiny"]
     norm = D.normalization(data, D.split_rows(data, "train"))
     topo = M.topology(data.edges[0], data.edges[1], len(data.q0), data.q0)

@@ -186,7 +186,6 @@ def ainv_blocks(ainv, n_nodes: int, k: int = AINV_BLOCKS, tol: float = 1e-5) -> 
     k = 4 (p99/p50 1.48–1.50× → 1.18–1.24×); k = 8 gave 1.28–1.31×, k = 2 1.35–1.45×. Returns {} (the step keeps
     the dense product) where ``ainv`` is not symmetric to ``tol`` of its largest entry, or is too small to split."""
     a = np.asarray(ainv, np.float32)
-    n = a.shape[0]
     if a.shape != (3 * n_nodes, 3 * n_nodes):
         raise ValueError(f"A⁻¹ of shape {a.shape} does not match a mesh of {n_nodes} nodes")
     if k < 1:
