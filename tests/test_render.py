@@ -292,6 +292,16 @@ def test_bodies_on_their_own_devices_step_as_in_one_program():
         np.testing.assert_allclose(np.asarray(fused[1]), b.z + 10.0, rtol=1e-6)
         assert tf.guard_trips == ts.guard_trips == 2, (tf.guard_trips, ts.guard_trips)
         assert tf.fused_frames == 5, tf.fused_frames
+        # the next-frame hand-over: the trip frames (0, 3) keep the state, the next ones catch up (+1 +2)
+        later = handed._replace(handover="next-frame")
+        fused, tf = sc.run(later)
+        staged, ts = sc.run(later._replace(fuse=False))
+        for a, c in zip(fused, staged):
+            np.testing.assert_allclose(np.asarray(a), np.asarray(c), rtol=1e-6, atol=1e-6)
+        np.testing.assert_allclose(np.asarray(fused[1]), b.z + 10.0, rtol=1e-6)
+        assert tf.guard_trips == ts.guard_trips == 2, (tf.guard_trips, ts.guard_trips)
+        short, _ = sc.run(later, frames=4)
+        np.testing.assert_allclose(np.asarray(short[1]), b.z + 5.0, rtol=1e-6)
         try:
             sc.run(two._replace(devices=devices, step=lambda zs, fs: zs))
         except ValueError as err:
@@ -524,6 +534,74 @@ def test_guard_hands_flagged_bodies_to_their_fallback_for_the_hold():
         sc.run(scene._replace(fallback=(None, None)))
     with pytest.raises(ValueError, match="fallback_hold"):
         sc.run(scene._replace(fallback_hold=-1))
+
+
+def _resting_fallback_scene(bodies=1, frames=6):
+    # Bodies whose learned step always goes bad, each with a fallback that leaves q where it is (so the forces
+    # depend on the fingertip track alone), adds each frame's forces to v and 1 (restarted) or 2 to σ11; held
+    # for 2 frames after each trip. A second body sits 10 cm beside the first, out of the fingertip's reach.
+    scene, _ = _demo_scene(frames=frames)
+    body = scene.bodies[0]
+    finite = lambda z: ~jnp.all(jnp.isfinite(z))
+    bad = body._replace(step_fn=lambda z, f: z * jnp.nan, guard=finite)
+    beside = np.asarray(ar.model_matrix([-0.04, 0.0, 0.08], np.eye(3), 0.02))
+    fb = jax.jit(lambda z, f, restart: z.at[:, 3:6].add(f).at[:, 6].add(jnp.where(restart, 1.0, 2.0)))
+    return scene._replace(bodies=(bad, bad._replace(model=beside))[:bodies], skip_rest=False,
+                          fallback=(fb,) * bodies, fallback_hold=2)
+
+
+def test_next_frame_handover_shows_the_previous_state_then_catches_up():
+    # handover="next-frame": the trip frame shows the body's previous state and the next frame runs the fallback
+    # twice (restarted, under the trip frame's forces, then under its own). Trips at frames 0 and 3 as with
+    # "same-frame"; once caught up the states are the same (here the forces do not depend on the state), the
+    # fingertip's forces of every frame in v.
+    scene = _resting_fallback_scene()
+    z0 = scene.bodies[0].z
+    same, ts = sc.run(scene, frames=6)
+    later, tn = sc.run(scene._replace(handover="next-frame"), frames=6)
+    np.testing.assert_allclose(np.asarray(later[0]), np.asarray(same[0]), rtol=1e-6, atol=1e-6)
+    np.testing.assert_allclose(np.asarray(later[0])[:, 6], z0[:, 6] + 10.0)   # 6 fallback steps, 2 restarted
+    assert np.abs(np.asarray(later[0])[:, 3:6]).max() > 1e-3                   # the press reached v
+    assert ts.guard_trips == tn.guard_trips == 2
+    assert tn.handed.sum() == ts.handed.sum() == 1                             # frame 3 (frame 0 is warm-up)
+    # after frame 3, the second trip: "same-frame" restarted the fallback there (+1), "next-frame" shows frame 2's
+    part_same, _ = sc.run(scene, frames=4)
+    part_later, _ = sc.run(scene._replace(handover="next-frame"), frames=4)
+    np.testing.assert_allclose(np.asarray(part_same[0])[:, 6], z0[:, 6] + 6.0)
+    np.testing.assert_allclose(np.asarray(part_later[0])[:, 6], z0[:, 6] + 5.0)
+    # a hold of 0 still leaves the catch-up frame to the fallback; a body without one is reset at once
+    zero, tz = sc.run(scene._replace(handover="next-frame", fallback_hold=0), frames=6)
+    np.testing.assert_allclose(np.asarray(zero[0])[:, 6], z0[:, 6] + 9.0)       # trips 0, 2, 4: 3 catch-ups
+    assert tz.guard_trips == 3
+    reset, _ = sc.run(scene._replace(handover="next-frame", fallback=()), frames=3)
+    np.testing.assert_array_equal(np.asarray(reset[0]), z0)
+    with pytest.raises(ValueError, match="handover"):
+        sc.run(scene._replace(handover="later"))
+
+
+def test_next_frame_handover_in_one_program_per_frame_matches_the_stages():
+    # Two bodies without devices: each body's frame is a lax.switch over its learned frame, its fallback and its
+    # catch-up inside one program; the states and trips equal those of the stages run one by one, and the bad
+    # body's learned step runs only at its trips (counted by a callback in it).
+    scene = _resting_fallback_scene(bodies=2)
+    calls = []
+
+    def bad_step(z, f):
+        jax.debug.callback(lambda: calls.append(1))
+        return z * jnp.nan
+
+    good, bad = scene.bodies
+    good = good._replace(step_fn=_demo_scene()[0].bodies[0].step_fn)
+    two = scene._replace(bodies=(good, bad._replace(step_fn=bad_step)), handover="next-frame")
+    fused, tf = sc.run(two)
+    fused_calls, calls[:] = len(calls), []
+    staged, ts = sc.run(two._replace(fuse=False))
+    for a, c in zip(fused, staged):
+        np.testing.assert_allclose(np.asarray(a), np.asarray(c), rtol=1e-6, atol=1e-6)
+    np.testing.assert_allclose(np.asarray(fused[1])[:, 6], bad.z[:, 6] + 10.0)
+    assert np.abs(np.asarray(fused[0])[:, :3] - good.q0).max() > 1e-3          # the pressed body moved
+    assert tf.guard_trips == ts.guard_trips == 2 and tf.fused_frames == 5
+    assert fused_calls == 1 + 2, fused_calls   # the warm-up's learned call, then frames 0 and 3
 
 
 def test_timings_split_the_learned_frames_by_what_the_bodies_did():

@@ -176,7 +176,8 @@ def build_scene(name: str, frames: int, model: str | None = None, stand_in: bool
     fallback = getattr(step_fn, "fallback", None)
     scene = sc.Scene(bodies=bodies, camera=cam, background=sc.table_background(cam), track=track,
                      contact_radius=0.006, contact_stiffness=5e7,
-                     fallback=(fallback,) * len(bodies) if fallback is not None else ())
+                     fallback=(fallback,) * len(bodies) if fallback is not None else (),
+                     handover="next-frame")   # a trip frame runs one learned step, not that and a fallback step
     if len(devices) > 1 and len(bodies) > 1:
         scene = scene._replace(devices=tuple(devices))
         dynamics += f" (bodies on {min(len(devices), len(bodies))} cores)"

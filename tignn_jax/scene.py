@@ -110,6 +110,14 @@ class Scene(NamedTuple):
     FEM, starting from σ = S₀u where ``restart``) that steps a flagged body from its previous state instead, and
     keeps stepping it for ``fallback_hold`` more frames (the body's learned step and guard then ignored), after
     which the learned step resumes (empty: every flagged body is reset);
+    handover: when a flagged body's fallback takes over. "same-frame": in the frame of the trip (that frame
+    runs the body's learned step and then its fallback step); "next-frame": the frame of the trip shows the
+    body's previous state again, and the next frame runs the fallback twice, from that state under the trip
+    frame's forces (restarted) and then under its own, so the body has taken as many steps as with
+    "same-frame" from then on and every frame runs at most one learned step or two fallback steps (the trip
+    frame's forces are those "same-frame" would use; the next frame's are computed from the previous state
+    instead of the state one fallback step on). The hold lasts ``max(fallback_hold, 1)`` frames then. A body
+    without a fallback is reset in the frame of its trip either way;
     devices: where the bodies step, body k on ``devices[k % len(devices)]`` (e.g. the CPU devices of a process
     that made one per core, see ``cpu_devices``): each body's ``step_fn`` is then jitted on its own and the
     bodies' steps are dispatched together, so they run concurrently, one core each (XLA runs one program's
@@ -139,6 +147,7 @@ class Scene(NamedTuple):
     fallback: tuple = ()
     fallback_hold: int = 30
     fuse: bool = True
+    handover: str = "same-frame"
 
 
 class Timings(NamedTuple):
@@ -248,6 +257,9 @@ def _run(scene, frames, write, warmup, gc_pause):
     fallback = tuple(scene.fallback) + (None,) * (len(zs) - len(scene.fallback))
     left = np.zeros(len(zs), np.int64)   # frames each body still spends on its fallback
     has_fallback = np.array([fb is not None for fb in fallback])
+    defer = scene.handover == "next-frame"
+    hold = max(scene.fallback_hold, 1) if defer else scene.fallback_hold
+    pending = [None] * len(zs)   # next-frame hand-over: the trip frame's forces, per body, until it catches up
     for fb, z, f in zip(fallback, zs, forces_fn(zs, track[0])):   # compiled now, not at the first hand-over
         if fb is not None:
             jax.block_until_ready(fb(z, f, jnp.asarray(True)))
@@ -257,14 +269,17 @@ def _run(scene, frames, write, warmup, gc_pause):
     resolves = False   # does sim_fn also hand flagged bodies over and step those on their fallback?
     per_body = scene.fuse and scene.guard is None and scene.step is None   # each body's whole frame: learned
     if per_body and scene.devices:                                         # step, guard, hand-over or fallback
-        sim_fn, resolves = _fused_concurrent(forces_fn, _concurrent_frame(scene, fallback, initial)), True
+        sim_fn, resolves = _fused_concurrent(forces_fn, _concurrent_frame(scene, fallback, initial, defer)), True
     elif per_body and len(scene.bodies) > 1:   # (one body: its held frames skip the step anyway, below, and
-        sim_fn, resolves = _fused_frames(forces_fn, scene, fallback, initial), True   # lax.cond cost it 2 %)
+        sim_fn, resolves = _fused_frames(forces_fn, scene, fallback, initial, defer), True   # lax.cond cost it 2 %)
     elif scene.fuse and not scene.devices:
         sim_fn = _fused_simulation(forces_fn, step_fn, guard)
-    if sim_fn is not None:   # compiled now, not at the first touched frame (both programs of each body)
-        for on_all in ((False, True) if resolves else (False,)):
-            jax.block_until_ready(sim_fn(zs, track[0], np.full(len(zs), on_all)))
+    if sim_fn is not None:   # compiled now, not at the first touched frame (every program of each body)
+        none = [None] * len(zs)
+        calls = [(False, none)] + ([(True, none)] + ([(True, list(forces_fn(zs, track[0])))] if defer else [])
+                                   if resolves else [])
+        for on_all, waiting in calls:
+            jax.block_until_ready(sim_fn(zs, track[0], np.full(len(zs), on_all), waiting))
     fused_frames = 0
     learned_bodies, handed = [], []   # per timed frame: how many bodies the learned step moved; was a body handed over
     for i in range(frames):
@@ -274,7 +289,7 @@ def _run(scene, frames, write, warmup, gc_pause):
         fused = sim_fn is not None and touched and (resolves or not on.all())
         if fused:   # forces, step and guard in one program (the forces stage is then counted in the step's)
             prev = zs
-            zs, forces, flags = sim_fn(zs, tips, on)
+            zs, forces, flags = sim_fn(zs, tips, on, pending)
             flags = np.asarray(flags)   # awaits the program
             t1 = t0
             fused_frames += i >= warmup
@@ -290,10 +305,15 @@ def _run(scene, frames, write, warmup, gc_pause):
             flags = np.broadcast_to(np.asarray(flags, bool).reshape(-1), (len(zs),)) & ~on
             guard_trips += int(flags.sum())
             if (flags.any() or on.any()) and not (fused and resolves):
-                zs = tuple(_held(fb, p, f) if busy else _hand_over(fb, p, f, z0, z, bool(bad), _py_cond)
-                           for fb, p, f, z0, z, bad, busy in zip(fallback, prev, forces, initial, zs, flags, on))
+                zs = tuple((_held(fb, p, f) if fp is None else _catch_up(fb, p, fp, f)) if busy
+                           else p if bad and defer and fb is not None
+                           else _hand_over(fb, p, f, z0, z, bool(bad), _py_cond)
+                           for fb, p, f, z0, z, bad, busy, fp
+                           in zip(fallback, prev, forces, initial, zs, flags, on, pending))
                 zs = jax.block_until_ready(zs)
-            left = np.where(flags & has_fallback, scene.fallback_hold, np.maximum(left - 1, 0))
+            pending = [None if busy else f if bad and defer and has else None
+                       for f, bad, busy, has in zip(forces, flags, on, has_fallback)]
+            left = np.where(flags & has_fallback, hold, np.maximum(left - 1, 0))
         t2 = time.perf_counter()
         image, overflow = jax.block_until_ready(render_fn(zs, tips))
         if bool(overflow) and capacity < max_capacity:  # rare: a body came much nearer the camera
@@ -332,6 +352,12 @@ def _held(fb, prev, f):
     return fb(prev, f, jnp.asarray(False))
 
 
+def _catch_up(fb, prev, f_trip, f):
+    """A body in the frame after its next-frame hand-over (``Scene.handover``): its fallback from the state it
+    showed at the trip, restarted, under the trip frame's forces ``f_trip``, then one more step under ``f``."""
+    return fb(fb(prev, f_trip, jnp.asarray(True)), f, jnp.asarray(False))
+
+
 def _py_cond(pred, true_fn, false_fn):
     return true_fn() if pred else false_fn()
 
@@ -346,68 +372,91 @@ def _scene_guard(scene: Scene):
 
 
 def _fused_concurrent(forces_fn, frame_fn):
-    """``(zs, tips, on) -> (zs_next, forces, flags)`` for a scene with ``devices``: the forces on ``devices[0]``,
-    then every body's frame as one program on its own device (`_concurrent_frame`), all dispatched before
-    anything is awaited; returns once the states are back on ``devices[0]``."""
-    def fn(zs, tips, on):
+    """``(zs, tips, on, pending) -> (zs_next, forces, flags)`` for a scene with ``devices``: the forces on
+    ``devices[0]``, then every body's frame as one program on its own device (`_concurrent_frame`), all
+    dispatched before anything is awaited; returns once the states are back on ``devices[0]``."""
+    def fn(zs, tips, on, pending):
         forces = forces_fn(zs, tips)
-        nxt, flags = frame_fn(zs, forces, on)
+        nxt, flags = frame_fn(zs, forces, on, pending)
         return jax.block_until_ready(nxt), forces, jnp.stack(flags)
 
     return fn
 
 
-def _body_frames(b: Body, fb, z0):
-    """(learned, held): body ``b``'s simulation frame as ``(z, forces) -> (z_next, flag)``. ``learned`` runs
-    its step and its ``Body.guard`` and, where the guard flags the new state, hands the body over as the loop
-    would after it (`_hand_over`: its fallback from the previous state with the stress restarted, or its initial
-    state ``z0`` without one); ``held`` (None without a fallback) runs only the fallback, for a body on it: its
-    learned step, whose result would be discarded, is not computed."""
-    def learned(z, f):
+def _body_frames(b: Body, fb, z0, defer: bool = False):
+    """(learned, held, catch_up): body ``b``'s simulation frame as ``(z, forces, trip_forces) -> (z_next,
+    flag)``. ``learned`` runs its step and its ``Body.guard`` and, where the guard flags the new state, hands the
+    body over as the loop would after it (`_hand_over`: its fallback from the previous state with the stress
+    restarted, or its initial state ``z0`` without one; with ``defer``, a next-frame hand-over, a body with a
+    fallback keeps its previous state instead); ``held`` (None without a fallback) runs only the fallback, for
+    a body on it: its learned step, whose result would be discarded, is not computed; ``catch_up`` (None
+    without a fallback) is a held body's frame after a next-frame hand-over (`_catch_up`, from ``trip_forces``)."""
+    def learned(z, f, f_trip):
         nxt = b.step_fn(z, f)
         if b.guard is None:
             return nxt, jnp.asarray(False)
         bad = jnp.asarray(b.guard(nxt), bool).reshape(())
+        if defer and fb is not None:
+            return jnp.where(bad, z, nxt), bad
         return _hand_over(fb, z, f, z0, nxt, bad, jax.lax.cond), bad
-    held = None if fb is None else (lambda z, f: (_held(fb, z, f), jnp.asarray(False)))
-    return learned, held
+    if fb is None:
+        return learned, None, None
+    held = lambda z, f, f_trip: (_held(fb, z, f), jnp.asarray(False))                 # noqa: E731
+    catch_up = lambda z, f, f_trip: (_catch_up(fb, z, f_trip, f), jnp.asarray(False))  # noqa: E731
+    return learned, held, catch_up
 
 
-def _concurrent_frame(scene: Scene, fallback: tuple, initial: tuple):
-    """``frame_fn(zs, forces, on) -> (zs, flags)``: body k's whole simulation frame (`_body_frames`: its learned
-    frame, or its fallback alone where ``on[k]``) as one program on ``scene.devices[k % D]``, every body's
+def _concurrent_frame(scene: Scene, fallback: tuple, initial: tuple, defer: bool = False):
+    """``frame_fn(zs, forces, on, pending) -> (zs, flags)``: body k's whole simulation frame (`_body_frames`:
+    its learned frame, or where ``on[k]`` its fallback alone, caught up from the trip frame's forces
+    ``pending[k]`` where those are not None) as one program on ``scene.devices[k % D]``, every body's
     dispatched before any is awaited."""
     home, places = scene.devices[0], _places(scene)
     progs = []
     for b, fb, z0, d in zip(scene.bodies, fallback, initial, places):
-        learned, held = _body_frames(b, fb, jax.device_put(z0, d))
-        progs.append((jax.jit(learned), None if held is None else jax.jit(held)))
+        progs.append(tuple(None if fn is None else jax.jit(fn)
+                           for fn in _body_frames(b, fb, jax.device_put(z0, d), defer)))
 
-    def frame_fn(zs, forces, on):
-        out = [(held if on_k and held is not None else learned)(jax.device_put(z, d), jax.device_put(f, d))
-               for (learned, held), z, f, d, on_k in zip(progs, zs, forces, places, on)]
+    def pick(prog, on_k, waiting):
+        learned, held, catch_up = prog
+        if not on_k or held is None:
+            return learned
+        return held if waiting is None else catch_up
+
+    def frame_fn(zs, forces, on, pending):
+        out = [pick(prog, on_k, fp)(jax.device_put(z, d), jax.device_put(f, d),
+                                    None if fp is None else jax.device_put(fp, d))
+               for prog, z, f, d, on_k, fp in zip(progs, zs, forces, places, on, pending)]
         return tuple(jax.device_put(z, home) for z, _ in out), tuple(jax.device_put(g, home) for _, g in out)
 
     return frame_fn
 
 
-def _fused_frames(forces_fn, scene: Scene, fallback: tuple, initial: tuple):
-    """``(zs, tips, on) -> (zs_next, forces, flags)`` for a scene without devices whose bodies step on their
-    own (no ``Scene.step``, no ``Scene.guard``): the forces and every body's whole frame (`_body_frames`; a
-    body on its fallback, ``on[k]``, runs only the fallback, chosen by ``lax.cond`` inside the program) as one
+def _fused_frames(forces_fn, scene: Scene, fallback: tuple, initial: tuple, defer: bool = False):
+    """``(zs, tips, on, pending) -> (zs_next, forces, flags)`` for a scene without devices whose bodies step
+    on their own (no ``Scene.step``, no ``Scene.guard``): the forces and every body's whole frame
+    (`_body_frames`; a body on its fallback, ``on[k]``, runs only the fallback, caught up from the trip frame's
+    forces ``pending[k]`` where those are not None, chosen by ``lax.switch`` inside the program) as one
     program, one dispatch and one wait per frame, with no second dispatch for a hand-over. A body without a
-    fallback (never on one) gets the cond too: it keeps XLA:CPU from compiling the bodies' steps together."""
-    keep = lambda z, f: (z, jnp.asarray(False))   # noqa: E731 (never taken: such a body is never held)
-    frames = [_body_frames(b, fb, z0) for b, fb, z0 in zip(scene.bodies, fallback, initial)]
+    fallback (never on one) gets the switch too: it keeps XLA:CPU from compiling the bodies' steps together."""
+    keep = lambda z, f, f_trip: (z, jnp.asarray(False))   # noqa: E731 (never taken: such a body is never held)
+    frames = [_body_frames(b, fb, z0, defer) for b, fb, z0 in zip(scene.bodies, fallback, initial)]
+    idle = [jnp.zeros((len(b.q0), 3), jnp.float32) for b in scene.bodies]
 
     @jax.jit
-    def fn(zs, tips, on):
+    def fn(zs, tips, branch, trip_forces):
         forces = forces_fn(zs, tips)
-        out = [jax.lax.cond(on[k], keep if held is None else held, learned, z, f)
-               for k, ((learned, held), z, f) in enumerate(zip(frames, zs, forces))]
+        out = [jax.lax.switch(branch[k], [learned, keep if held is None else held,
+                                          keep if catch_up is None else catch_up], z, f, fp)
+               for k, ((learned, held, catch_up), z, f, fp) in enumerate(zip(frames, zs, forces, trip_forces))]
         return tuple(z for z, _ in out), forces, jnp.stack([g for _, g in out])
 
-    return lambda zs, tips, on: fn(zs, tips, jnp.asarray(on))
+    def call(zs, tips, on, pending):
+        branch = np.where(np.asarray(on, bool), np.where([fp is not None for fp in pending], 2, 1), 0)
+        return fn(zs, tips, jnp.asarray(branch, jnp.int32),
+                  tuple(z if fp is None else fp for z, fp in zip(idle, pending)))
+
+    return call
 
 
 def _fused_simulation(forces_fn, step_fn, guard):
@@ -423,7 +472,7 @@ def _fused_simulation(forces_fn, step_fn, guard):
         nxt = step_fn(zs, forces)
         return nxt, forces, jnp.asarray(False) if guard is None else guard(nxt)
 
-    return lambda zs, tips, on: fn(zs, tips)
+    return lambda zs, tips, on, pending: fn(zs, tips)
 
 
 def build(scene: Scene):
@@ -685,6 +734,8 @@ def validate(scene: Scene) -> None:
                          f"{scene.fallback!r}")
     if not isinstance(scene.fallback_hold, (int, np.integer)) or scene.fallback_hold < 0:
         raise ValueError(f"fallback_hold must be a non-negative integer, got {scene.fallback_hold!r}")
+    if scene.handover not in ("same-frame", "next-frame"):
+        raise ValueError(f"handover must be 'same-frame' or 'next-frame', got {scene.handover!r}")
     for k, b in enumerate(scene.bodies):
         n = len(b.q0)
         if np.asarray(b.z).shape != (n, 12):
