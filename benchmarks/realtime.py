@@ -538,6 +538,8 @@ def format_md(result: dict) -> str:
                               ("frame", b["frame_p50_ok"])) if not c]
         learned = s.get("simulation_learned", s["simulation"])
         verdict = "meets" if ok else ("STAND-IN, not valid" if not s["valid"] else "misses: " + ", ".join(why))
+        if s["valid"] and not b["p99_ok"] and s.get("step_alone") and s.get("judged_round") is not None:
+            verdict += f" (its step alone, same round: {s['step_alone'][s['judged_round']]['p99_over_p50']:.2f}×)"
         lines.append(
             f"| {name} | {s['dynamics']} | {s['nodes']} | {forces_cell(s)} | {s['step']['p50_ms']:.2f} | "
             f"{learned['p50_ms']:.2f} / {learned['p99_ms']:.2f} ({b['simulation_p50_ms']:.0f}; "
