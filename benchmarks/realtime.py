@@ -11,7 +11,10 @@ also compared with the stages awaited one by one, `loop_fusion`). Budgets (issue
 frames the learned step ran in; whole frame p50 ≤ 33 ms (≥ 30 frames per second). Each scene's loop runs
 ``--rounds`` times (default 3) and the round with the median p99 / p50 is the one judged; every round is
 reported beside it. The machine's own tail is measured in the same run on fixed programs of the same duration
-(`platform_jitter`). Without ``--model`` the beam scenes run a second time with the shipped network that meets
+(`platform_jitter`) and, after each round, on that round's own step programs called back to back with the same
+input (`step_alone`): a loop cannot have a smaller tail than the program it runs. For the scenes whose bodies
+have a fallback, a guard trip's hand-over in the same frame and in the next (``Scene.handover``) are compared in
+alternating rounds (`handover_modes`). Without ``--model`` the beam scenes run a second time with the shipped network that meets
 every accuracy target of the model issue (``ACCURATE_MODELS``: `beam-abaqus-64x2`), as rows "scene (model)":
 the demo's default beam (the learned linear `beam`) is the stable one, not the most accurate.
 
@@ -147,6 +150,36 @@ def loop_fusion(name: str, frames: int, warmup: int, devices: tuple, rounds: int
     return {"frames": frames, "rounds": rounds, "runs": runs, "p50_ms": p50,
             "p99_ms": {k: float(np.median([r["p99_ms"] for r in v])) for k, v in runs.items()},
             "speedup_fused_vs_staged": p50["staged"] / p50["fused"]}
+
+
+def handover_modes(name: str, frames: int, warmup: int, devices: tuple, rounds: int, model: str) -> dict:
+    """The scene's loop with a guard trip's hand-over in the frame of the trip (``Scene.handover="same-frame"``:
+    that frame runs the learned step and the fallback step) against the next frame (``"next-frame"``, the demo's:
+    the trip frame shows the previous state, the next runs the fallback twice), alternating for ``rounds`` rounds
+    in the same process. Per mode, the median over the rounds of the simulation p50 / p99 over the learned-step
+    frames and of the hand-over frames'."""
+    from tignn_jax import scene as sc
+    from tignn_jax.commands_demo import build_scene
+
+    scene, _ = build_scene(name, frames + warmup, model, devices=devices)
+    scene = scene._replace(skip_rest=False)
+    runs = {"same-frame": [], "next-frame": []}
+    for _ in range(rounds):
+        for mode in runs:
+            _, t = sc.run(scene._replace(handover=mode), frames=frames + warmup, warmup=warmup)
+            summary = t.summary(bodies=len(scene.bodies))
+            runs[mode].append({"learned": summary.get("simulation_learned", summary["simulation"]),
+                               "hand-over": summary.get("simulation_by_class", {}).get("hand-over"),
+                               "guard_trips": t.guard_trips})
+
+    def median(mode, part, key):
+        values = [r[part][key] for r in runs[mode] if r[part] is not None]
+        return float(np.median(values)) if values else None
+
+    out = {"frames": frames, "rounds": rounds, "runs": runs}
+    for part in ("learned", "hand-over"):
+        out[part] = {mode: {k: median(mode, part, k) for k in ("p50_ms", "p99_ms")} for mode in runs}
+    return out
 
 
 def step_variants(name: str, repeats: int, model: str | None = None) -> dict:
@@ -442,6 +475,9 @@ def main(argv=None) -> int:
     parser.add_argument("--fusion-rounds", type=int, default=2,
                         help="rounds of the fused-against-staged loop comparison per scene (0: skip it)")
     parser.add_argument("--fusion-frames", type=int, default=200, help="timed frames per run of that comparison")
+    parser.add_argument("--handover-rounds", type=int, default=2,
+                        help="rounds of the same-frame against next-frame hand-over comparison, for the scenes "
+                             "with a fallback (the ACCURATE_MODELS rows; 0: skip it)")
     parser.add_argument("--cores", type=int, default=None,
                         help="CPU devices for scenes of several bodies, one body per core (default: all cores)")
     parser.add_argument("--model", default=None,
@@ -465,7 +501,7 @@ def main(argv=None) -> int:
     machine["cpu_devices"] = len(devices)
     machine["xla_flags"] = os.environ.get("XLA_FLAGS", "") + (
         " (fem-newton: the learned loop's YNNPACK option left unset)" if fem else "" if flagged else " (set by the user)")
-    scenes, variants, parallel, fusion = {}, {}, {}, {}
+    scenes, variants, parallel, fusion, handovers = {}, {}, {}, {}, {}
     requested = [s for s in args.scenes.split(",") if s]
     for name in requested:
         if name not in BUDGET_MS:
@@ -487,13 +523,17 @@ def main(argv=None) -> int:
             model = ACCURATE_MODELS[name]
             print(f"scene {name} with {model}: {args.frames} frames after {args.warmup} warm-up frames ...", flush=True)
             scenes[f"{name} ({model})"] = run_scene(name, args.frames, args.warmup, devices, model, args.rounds)
+            if args.handover_rounds > 0 and scenes[f"{name} ({model})"]["guard_trips"]:
+                print(f"scene {name} with {model}: hand-over modes, {args.handover_rounds} rounds ...", flush=True)
+                handovers[f"{name} ({model})"] = handover_modes(name, args.frames, args.warmup, devices,
+                                                                args.handover_rounds, model)
     target = float(np.median([s["simulation_learned"]["p50_ms"] for s in scenes.values()])) if scenes else 8.0
     print(f"platform tail: fixed programs of about {target:.1f} ms ...", flush=True)
     jitter = platform_jitter(target, calls=args.frames)
     machine["load_average_1m_at_end"] = describe()["load_average_1m"]
     result = {"platform_jitter": jitter, "machine": machine, "frames": args.frames, "warmup": args.warmup,
               "rounds": args.rounds, "scenes": scenes,
-              "step_variants": variants, "concurrency": parallel, "loop_fusion": fusion, "budgets_ms": {"simulation_p50": BUDGET_MS, "frame_p50": FRAME_BUDGET_MS}}
+              "step_variants": variants, "concurrency": parallel, "loop_fusion": fusion, "handover_modes": handovers, "budgets_ms": {"simulation_p50": BUDGET_MS, "frame_p50": FRAME_BUDGET_MS}}
     RESULTS.mkdir(parents=True, exist_ok=True)
     result["model"] = args.model
     stem = f"realtime_{args.tag}" if args.tag else "realtime"
@@ -633,6 +673,23 @@ def format_md(result: dict) -> str:
             lines.append(f"| {name} | {f['frames']} × {f['rounds']} | {f['p50_ms']['staged']:.2f} / "
                          f"{f['p99_ms']['staged']:.2f} ms | {f['p50_ms']['fused']:.2f} / {f['p99_ms']['fused']:.2f} ms "
                          f"| {f['speedup_fused_vs_staged']:.2f}× |")
+    if result.get("handover_modes"):
+        lines += ["", "A guard trip's hand-over in the frame of the trip (`Scene.handover=\"same-frame\"`: that frame "
+                  "runs the learned step and then the fallback step) against the next frame (`\"next-frame\"`, the "
+                  "demo's: the trip frame shows the previous state, the next frame runs the fallback twice), "
+                  "alternating rounds in the same process (simulation p50 / p99, ms, median over the rounds):", "",
+                  "| scene | frames × rounds | guard trips per round | learned-step frames, same-frame | "
+                  "learned-step frames, next-frame | hand-over frames, same-frame | hand-over frames, next-frame | "
+                  "hand-over p50, same / next |", "|---|---|---|---|---|---|---|---|"]
+        for name, h in result["handover_modes"].items():
+            cell = lambda d: "—" if d["p50_ms"] is None else f"{d['p50_ms']:.2f} / {d['p99_ms']:.2f}"  # noqa: E731
+            ho = h["hand-over"]
+            ratio = (f"{ho['same-frame']['p50_ms'] / ho['next-frame']['p50_ms']:.2f}×"
+                     if ho["same-frame"]["p50_ms"] and ho["next-frame"]["p50_ms"] else "—")
+            trips = ", ".join(str(r["guard_trips"]) for r in h["runs"]["next-frame"])
+            lines.append(f"| {name} | {h['frames']} × {h['rounds']} | {trips} | {cell(h['learned']['same-frame'])} | "
+                         f"{cell(h['learned']['next-frame'])} | {cell(ho['same-frame'])} | {cell(ho['next-frame'])} | "
+                         f"{ratio} |")
     return "\n".join(lines) + "\n"
 
 
