@@ -1,9 +1,14 @@
-"""Describe the machine a benchmark ran on (written next to every result), and time variants alike."""
+"""Describe the machine a benchmark ran on (written next to every result), time variants alike, and write a
+result's .json and .md."""
 from __future__ import annotations
 
+import json
 import os
 import platform
 import time
+from pathlib import Path
+
+RESULTS_DIR = Path(__file__).resolve().parent / "results"
 
 
 def describe() -> dict:
@@ -39,3 +44,12 @@ def interleaved_ms(fns: dict, repeats: int) -> dict:
             jax.block_until_ready(fn())
             times[k].append(1e3 * (time.perf_counter() - t0))
     return times
+
+
+def write_results(stem: str, result: dict, md: str, folder: Path = RESULTS_DIR, indent: int = 1) -> None:
+    """Write ``result`` to ``folder/stem.json`` (``json.dumps`` with ``indent``) and ``md`` to ``folder/stem.md``,
+    creating ``folder`` if need be, and print ``md``."""
+    folder.mkdir(parents=True, exist_ok=True)
+    (folder / f"{stem}.json").write_text(json.dumps(result, indent=indent))
+    (folder / f"{stem}.md").write_text(md)
+    print(md)

@@ -34,7 +34,7 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _machine import describe  # noqa: E402
+from _machine import describe, write_results  # noqa: E402
 
 RESULTS = Path(__file__).resolve().parent / "results"
 _YNN_OFF = "--xla_cpu_experimental_ynn_fusion_type="
@@ -264,11 +264,7 @@ def main(argv=None) -> int:
     if args.loop_rounds:
         result["loop"] = loop_modes(args.loop_rounds)
     result["load_average_end"] = round(os.getloadavg()[0], 2)
-    RESULTS.mkdir(parents=True, exist_ok=True)
-    (RESULTS / "ainv_product.json").write_text(json.dumps(result, indent=1))
-    md = format_md(result)
-    (RESULTS / "ainv_product.md").write_text(md)
-    print(md)
+    write_results("ainv_product", result, format_md(result), RESULTS)
     return 0
 
 

@@ -17,7 +17,6 @@ Writes benchmarks/results/bunny_newton.{json,md}.
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 from pathlib import Path
 
@@ -26,7 +25,7 @@ import jax.numpy as jnp
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _machine import describe  # noqa: E402
+from _machine import describe, write_results  # noqa: E402
 from pareto import time_configs, xla_fields  # noqa: E402
 
 RESULTS = Path(__file__).resolve().parent / "results"
@@ -80,11 +79,7 @@ def main(argv=None) -> int:
         points[name].update(ms=times[name]["p50_ms"], **xla_fields(times[name]))
     result = {"machine": describe(), "data": args.data, "split": args.split,
               "sims": data.sim_id[rows].tolist(), "points": points}
-    RESULTS.mkdir(parents=True, exist_ok=True)
-    (RESULTS / "bunny_newton.json").write_text(json.dumps(result, indent=1))
-    md = report(result)
-    (RESULTS / "bunny_newton.md").write_text(md)
-    print(md)
+    write_results("bunny_newton", result, report(result), RESULTS)
     return 0
 
 

@@ -38,7 +38,7 @@ import jax.numpy as jnp
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _machine import describe, interleaved_ms  # noqa: E402
+from _machine import describe, interleaved_ms, write_results  # noqa: E402
 
 RESULTS = Path(__file__).resolve().parent / "results"
 
@@ -302,11 +302,7 @@ def main(argv=None) -> int:
     for r in rows:
         with_saving(r)
     machine["load_average_1m_at_end"] = describe()["load_average_1m"]
-    RESULTS.mkdir(parents=True, exist_ok=True)
-    (RESULTS / "skips.json").write_text(json.dumps({"machine": machine, "skips": rows}, indent=1))
-    text = format_md(machine, rows)
-    (RESULTS / "skips.md").write_text(text)
-    print(text)
+    write_results("skips", {"machine": machine, "skips": rows}, format_md(machine, rows), RESULTS)
     return 0
 
 

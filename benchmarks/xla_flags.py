@@ -22,7 +22,7 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _machine import describe  # noqa: E402
+from _machine import describe, write_results  # noqa: E402
 
 RESULTS = Path(__file__).resolve().parent / "results"
 _YNN_OFF = "--xla_cpu_experimental_ynn_fusion_type="
@@ -102,9 +102,6 @@ def main(argv=None) -> int:
     for r in rows.values():
         r["speedup_vs_default"] = rows["default"]["p50_ms"] / r["p50_ms"]
     machine["load_average_1m_at_end"] = describe()["load_average_1m"]
-    RESULTS.mkdir(parents=True, exist_ok=True)
-    (RESULTS / "xla_flags.json").write_text(json.dumps({"machine": machine, "model": args.model, "rows": rows},
-                                                       indent=1))
     lines = [f"# XLA:CPU options for the real-time loop ({args.model} step, api.stepper)", "",
              f"Machine: {machine['cpu']}, {machine['cores']} cores, jax {machine['jax']}; load average "
              f"{machine['load_average_1m']} at start, {machine['load_average_1m_at_end']} at end. Each option in its "
@@ -117,9 +114,8 @@ def main(argv=None) -> int:
         lines.append(f"| {name} | `{r['flags'] or '(none)'}` | {', '.join(f'{x:.2f}' for x in r['p50_ms_per_round'])} "
                      f"| {r['p50_ms']:.2f} | {r['p99_ms']:.2f} | {r['speedup_vs_default']:.2f}× | "
                      f"{r['largest_difference_relative']:.1e} |")
-    text = "\n".join(lines) + "\n"
-    (RESULTS / "xla_flags.md").write_text(text)
-    print(text)
+    write_results("xla_flags", {"machine": machine, "model": args.model, "rows": rows}, "\n".join(lines) + "\n",
+                  RESULTS)
     return 0
 
 
