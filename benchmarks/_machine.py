@@ -46,10 +46,13 @@ def interleaved_ms(fns: dict, repeats: int) -> dict:
     return times
 
 
-def write_results(stem: str, result: dict, md: str, folder: Path = RESULTS_DIR, indent: int = 1) -> None:
+def write_results(stem: str, result: dict, md: str, folder: Path = RESULTS_DIR, indent: int = 1,
+                  echo: bool = True) -> None:
     """Write ``result`` to ``folder/stem.json`` (``json.dumps`` with ``indent``) and ``md`` to ``folder/stem.md``,
-    creating ``folder`` if need be, and print ``md``."""
+    creating ``folder`` if need be, and print ``md`` unless ``echo`` is False (for a script that prints its own
+    summary, or nothing)."""
     folder.mkdir(parents=True, exist_ok=True)
     (folder / f"{stem}.json").write_text(json.dumps(result, indent=indent))
     (folder / f"{stem}.md").write_text(md)
-    print(md)
+    if echo:
+        print(md)

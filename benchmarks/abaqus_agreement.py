@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _machine import describe  # noqa: E402
+from _machine import describe, write_results  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 REFERENCE = ROOT.parent / "shared" / "data" / "abaqus_beam.npz"
@@ -62,13 +62,11 @@ def main(argv=None):
         if len(idx):
             table[split] = {k: float(np.mean(v[idx])) for k, v in e.items()}
     out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
     ident = json.loads(Path(args.identification).read_text()) if args.identification else None
     payload = {"machine": describe(), "fem": {k: meta.get(k) for k in ("material", "damping", "n_sub", "load_interp",
                                                                        "wall_time_s")},
                "mean_relative_l2": table, "cases": (np.asarray(done) + 1).tolist(),
                "per_case_u": e["u"].mean(1).tolist(), "identification": ident}
-    (out / f"{args.name}.json").write_text(json.dumps(payload, indent=1))
     targets = {"u": 0.05, "v": 0.05, "sigma_free": 0.10}
     lines = ["# FEM against the Abaqus beam data", "",
              "Mean over frames 1–20 of the relative L2 error over nodes (σ: free nodes; 'all' includes the clamped face).",
@@ -83,7 +81,7 @@ def main(argv=None):
         lines += ["Identification history (train cases only; loss = mean relative L2 error of u):", "",
                   "| iter | loss | density | damping α | Prony time scale s |", "|---|---|---|---|---|"]
         lines += [f"| {h['iter']} | {h['loss']:.4f} | {h['density']:.4g} | {h['damping']:.4g} | {h['tau_scale']:.4g} |" for h in ident]
-    (out / f"{args.name}.md").write_text("\n".join(lines) + "\n")
+    write_results(args.name, payload, "\n".join(lines) + "\n", out, echo=False)
     _plot(out / f"{args.name}.png", ours, ref_sub, e, done)
     print("\n".join(lines))
 

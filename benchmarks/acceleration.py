@@ -15,14 +15,13 @@ Writes benchmarks/results/acceleration.{json,md}.
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 from pathlib import Path
 
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _machine import describe  # noqa: E402
+from _machine import describe, write_results  # noqa: E402
 
 RESULTS = Path(__file__).resolve().parent / "results"
 
@@ -59,8 +58,6 @@ def main(argv=None) -> int:
         data = D.load(path)
         rows.append({"data": Path(path).name, **acceleration_stats(data.z, data.f)})
     result = {"machine": describe(), "rows": rows}
-    RESULTS.mkdir(parents=True, exist_ok=True)
-    (RESULTS / "acceleration.json").write_text(json.dumps(result, indent=1))
     lines = ["# How much acceleration the training data show", "",
              "Per data set: |v_{k+1} − v_k| / |v_k| (L2 over all nodes; median and 90th percentile over cases and "
              "frames, and the median per frame), the share of frames whose load does not grow (holds, releases) "
@@ -74,7 +71,7 @@ def main(argv=None) -> int:
         picks = ", ".join(f"{per[k]:.4f}" for k in (0, 4, 9, len(per) - 1) if k < len(per))
         lines.append(f"| {r['data']} | {r['cases']} × {r['frames']} | {r['median']:.4f} | {r['p90']:.4f} | {picks} | "
                      f"{r['flat_load_frames']:.0%} | {r['dv_energy_in_flat_load_frames']:.0%} |")
-    (RESULTS / "acceleration.md").write_text("\n".join(lines) + "\n")
+    write_results("acceleration", result, "\n".join(lines) + "\n", RESULTS, echo=False)
     print("\n".join(lines))
     return 0
 

@@ -25,6 +25,7 @@ import argparse
 import json
 import os
 import platform
+import sys
 import time
 from pathlib import Path
 
@@ -35,6 +36,9 @@ from jax_md import partition, space
 
 from tignn_jax import ar
 from tignn_jax.render import surface_nodes, surface_triangles
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from _machine import write_results  # noqa: E402
 
 RESULTS = Path(__file__).resolve().parent / "results"
 RADIUS, STIFFNESS = 1.0, 1e4
@@ -150,8 +154,6 @@ def main():
         results[name] = bench_case(a, b, args.repeats)
         print(name, json.dumps(results[name], indent=1))
     results["machine"]["load_average_at_end"] = os.getloadavg()
-    RESULTS.mkdir(parents=True, exist_ok=True)
-    (RESULTS / "ar_contact.json").write_text(json.dumps(results, indent=2))
     lines = ["# Contact forces between two bodies: p50 / p99 ms per call", "",
              f"Machine: {results['machine']['platform']}, {results['machine']['cpu_count']} CPUs, jax {jax.__version__} "
              f"({jax.default_backend()}); {args.repeats} calls after compilation. The 2 CPUs were shared with other jobs "
@@ -170,7 +172,7 @@ def main():
     lines += ["", "jax-md's no-cell-list builder is skipped for the 1352-node case (0.2 s per call already at 756). "
               "jax-md lists are allocated outside jit (not timed) and updated inside the timed call, as a "
               "scene must do every frame; ratios against the library version are in the JSON."]
-    (RESULTS / "ar_contact.md").write_text("\n".join(lines) + "\n")
+    write_results("ar_contact", results, "\n".join(lines) + "\n", RESULTS, indent=2, echo=False)
     print("\n".join(lines))
 
 

@@ -25,7 +25,6 @@ Writes benchmarks/results/beam_reach.{json,md}.
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 import time
 from pathlib import Path
@@ -33,7 +32,7 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _machine import describe  # noqa: E402
+from _machine import describe, write_results  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 RESULTS = ROOT / "benchmarks" / "results"
@@ -133,10 +132,7 @@ def main(argv=None) -> int:
         result[f"{kind}_median"]["rate_change_over_increment"] = float(
             np.median([r["rate_change_over_increment"] for r in sel]))
     out = Path(args.out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.with_suffix(".json").write_text(json.dumps(result, indent=1))
-    out.with_suffix(".md").write_text(format_md(result))
-    print(format_md(result))
+    write_results(out.stem, result, format_md(result), out.parent)
     return 0
 
 

@@ -28,7 +28,7 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _machine import describe, interleaved_ms  # noqa: E402
+from _machine import describe, interleaved_ms, write_results  # noqa: E402
 
 RESULTS = Path(__file__).resolve().parent / "results"
 CONFIGS = {"one device, two cores": (1, None), "one device, one core": (1, 0), "two devices, two cores": (2, None)}
@@ -115,10 +115,7 @@ def main(argv=None) -> int:
         out = subprocess.run(cmd, capture_output=True, text=True, check=True).stdout
         rows[name] = json.loads(out.strip().splitlines()[-1])
     result = {"machine": machine, "repeats": args.repeats, "rows": rows}
-    RESULTS.mkdir(parents=True, exist_ok=True)
-    (RESULTS / "bodies_one_program.json").write_text(json.dumps(result, indent=1))
-    (RESULTS / "bodies_one_program.md").write_text(format_md(result))
-    print(format_md(result))
+    write_results("bodies_one_program", result, format_md(result), RESULTS)
     return 0
 
 

@@ -32,7 +32,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-from _machine import describe  # noqa: E402
+from _machine import describe, write_results  # noqa: E402
 
 RESULTS = Path(__file__).resolve().parent / "results"
 MODES = ("prior", "exact force", "exact force, σ = σ(u)")
@@ -159,8 +159,6 @@ def main(argv=None) -> int:
     result = {"machine": describe(), "data": str(path), "skipped_nonfinite": skipped, "frame": args.frame,
               "bulk_over_shear": bulk_over_shear, "by_total_load": groups, "cases": rows,
               "wall_s": time.perf_counter() - t_start}
-    RESULTS.mkdir(parents=True, exist_ok=True)
-    (RESULTS / "bunny_correction.json").write_text(json.dumps(result, indent=1))
     lines = ["# The bunny's rest linearisation with the exact non-linear force: the ceiling of a force correction", "",
              f"Data `{path}`; {len(rows)} cases (non-finite left out: {skipped}); bulk / shear modulus "
              f"{bulk_over_shear:.0f}. Relative L2 error over each whole rollout, mean over cases, per peak resultant load.", "",
@@ -174,7 +172,7 @@ def main(argv=None) -> int:
     for load, g in groups.items():
         s = g["stress check"]
         lines.append(f"| {load} | {s['σ(u_true)']:.4f} | {s['S0 u_true']:.4f} | {s['S0 u_prior']:.4f} | {s['u_prior']:.4f} |")
-    (RESULTS / "bunny_correction.md").write_text("\n".join(lines) + "\n")
+    write_results("bunny_correction", result, "\n".join(lines) + "\n", RESULTS, echo=False)
     print("\n".join(lines))
     return 0
 

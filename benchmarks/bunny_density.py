@@ -34,7 +34,7 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _machine import describe  # noqa: E402
+from _machine import describe, write_results  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 RESULTS = ROOT / "benchmarks" / "results"
@@ -150,10 +150,8 @@ def measure(d) -> dict:
 
 
 def write(results: list, cases: int, seconds: float) -> None:
-    RESULTS.mkdir(parents=True, exist_ok=True)
     meta = {"machine": describe(), "cases_per_density": cases, "wall_s": seconds}
     m = meta["machine"]
-    (RESULTS / "bunny_density.json").write_text(json.dumps({"meta": meta, "results": results}, indent=1))
     cols = [("density", "{:.0e}"), ("sub_steps_per_frame", "{}"), ("shear_travel_per_frame_edges", "{:.2f}"),
             ("dilatational_travel_per_frame_edges", "{:.1f}"), ("u_frac_within_3_hops", "{:.2f}"),
             ("u_frac_within_6_hops", "{:.2f}"), ("dv_frac_within_3_hops", "{:.2f}"), ("u_max", "{:.2f}"),
@@ -171,7 +169,7 @@ def write(results: list, cases: int, seconds: float) -> None:
              "| " + " | ".join(heads) + " |", "|" + "---|" * len(heads)]
     for r in results:
         lines.append("| " + " | ".join(fmt.format(r[k]) for k, fmt in cols) + " |")
-    (RESULTS / "bunny_density.md").write_text("\n".join(lines) + "\n")
+    write_results("bunny_density", {"meta": meta, "results": results}, "\n".join(lines) + "\n", RESULTS, echo=False)
 
 
 def main(argv=None) -> None:

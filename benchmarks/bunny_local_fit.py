@@ -30,7 +30,6 @@ Writes benchmarks/results/bunny_local_fit.{json,md}.
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 import time
 from pathlib import Path
@@ -38,7 +37,7 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _machine import describe  # noqa: E402
+from _machine import describe, write_results  # noqa: E402
 from fem.generate import held_out_rows  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -241,8 +240,6 @@ def main(argv=None) -> int:
                       f"residual), radius {run['spectral_radius']:.4f}, rollout u {e_u:.4g} v {e_v:.4g} "
                       f"({run['fit_s']:.0f} s)", flush=True)
     out["total_s"] = time.time() - t0
-    RESULTS.mkdir(parents=True, exist_ok=True)
-    (RESULTS / "bunny_local_fit.json").write_text(json.dumps(out, indent=1))
     lines = ["# Bunny: the best P-hop linear frame map, fitted", "",
              f"Machine: {machine['cpu']}, {machine['cores']} cores, jax {machine['jax']}; load average "
              f"{machine['load_average_1m']} at start; {out['total_s']:.0f} s in all. World: the shipped "
@@ -262,7 +259,7 @@ def main(argv=None) -> int:
             lines.append(f"| {tag} | {r['hops']} | {r['mean_support_nodes']:.0f} | {r['ridge']:g} | "
                          f"{r['one_step_u']:.5f} | {r['one_step_of_kinematic_residual']:.4f} | "
                          f"{r['spectral_radius']:.4f} | {r['u']:.4g} | {r['v']:.4g} |")
-    (RESULTS / "bunny_local_fit.md").write_text("\n".join(lines) + "\n")
+    write_results("bunny_local_fit", out, "\n".join(lines) + "\n", RESULTS, echo=False)
     print("\n".join(lines))
     return 0
 

@@ -21,14 +21,13 @@ Writes benchmarks/results/bunny_probe.{json,md}.
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 from pathlib import Path
 
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _machine import describe  # noqa: E402
+from _machine import describe, write_results  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 RESULTS = ROOT / "benchmarks" / "results"
@@ -138,8 +137,6 @@ def main(argv=None) -> None:
     maps = linear_maps(data, train, val, [int(c) for c in args.clusters.split(",")])
     result = {"machine": describe(), "data": args.data, "train_cases": len(train), "val_sims": "81-90",
               "stress_divergence": div, "linear_maps": maps}
-    RESULTS.mkdir(parents=True, exist_ok=True)
-    (RESULTS / "bunny_probe.json").write_text(json.dumps(result, indent=1))
     lines = ["# What predicts the bunny's velocity increment (benchmarks/bunny_probe.py)", "",
              f"Data: `{args.data}` ({len(train)} train cases from sims 1–80, val sims 81–90).", "",
              "## Divergence of the stored nodal stresses against M Δv (free nodes)", "",
@@ -153,7 +150,7 @@ def main(argv=None) -> None:
         lines.append(f"| {m['clusters']} | {m['features']} | {m['ridge']:g} | {m['r2_train']:.3f} | "
                      f"{m['r2_val']:.3f} | {m['rollout_val_u']:.3f} | {m['rollout_val_v']:.3f} |")
     lines += ["", f"Machine: {result['machine']}"]
-    (RESULTS / "bunny_probe.md").write_text("\n".join(lines) + "\n")
+    write_results("bunny_probe", result, "\n".join(lines) + "\n", RESULTS, echo=False)
     print(f"wrote {RESULTS / 'bunny_probe.md'}")
 
 

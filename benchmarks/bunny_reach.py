@@ -25,7 +25,6 @@ Writes benchmarks/results/bunny_reach.{json,md}.
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 import time
 from pathlib import Path
@@ -33,7 +32,7 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _machine import describe  # noqa: E402
+from _machine import describe, write_results  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 RESULTS = ROOT / "benchmarks" / "results"
@@ -106,8 +105,6 @@ def main(argv=None) -> int:
         P = (phi[:, :r] / lam[:r]) @ phi[:, :r].T
         e_u, e_v = rollout_errors(P, data, free, mass, h, c, rows)
         out["modes"][r] = {"u": e_u, "v": e_v}
-    RESULTS.mkdir(parents=True, exist_ok=True)
-    (RESULTS / "bunny_reach.json").write_text(json.dumps(out, indent=1))
     lines = ["# Bunny: how far one frame reaches, and how linear it is", "",
              f"Machine: {machine['cpu']}, {machine['cores']} cores, jax {machine['jax']}; load average "
              f"{machine['load_average_1m']} at start. Data: `{args.data}`, cases sims 81–100 (val and test). "
@@ -119,7 +116,7 @@ def main(argv=None) -> int:
         lines.append(f"| entries within {hop} edges | {r['u']:.4f} | {r['v']:.4f} | {r['kept_norm_fraction']:.6f} |")
     for m, r in out["modes"].items():
         lines.append(f"| {m} lowest modes | {r['u']:.4f} | {r['v']:.4f} | |")
-    (RESULTS / "bunny_reach.md").write_text("\n".join(lines) + "\n")
+    write_results("bunny_reach", out, "\n".join(lines) + "\n", RESULTS, echo=False)
     print("\n".join(lines))
     return 0
 

@@ -30,7 +30,7 @@ import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _machine import describe  # noqa: E402
+from _machine import describe, write_results  # noqa: E402
 
 RESULTS = Path(__file__).resolve().parent / "results"
 ROOT = Path(__file__).resolve().parents[1]
@@ -109,8 +109,6 @@ def main(argv=None) -> int:
         stats[c] = {"runs": per_run}
     result = {"machine": describe(), "model": args.model, "calls": args.calls, "rounds": args.rounds,
               "conditions": stats}
-    RESULTS.mkdir(parents=True, exist_ok=True)
-    (RESULTS / "core_interference.json").write_text(json.dumps(result, indent=1))
     m = result["machine"]
     what = {"unpinned": "idle, and the step's process may use both cores (not pinned)", "idle": "idle", "spin": "a pinned Python integer loop", "matmul": "a pinned NumPy matrix product",
             "step": "the same step (second pinned process)"}
@@ -125,7 +123,7 @@ def main(argv=None) -> int:
                      ", ".join(f"{r['p99_ms']:.2f}" for r in runs) + " | " +
                      ", ".join(f"{r['p99_over_p50']:.2f}" for r in runs) + " | " +
                      ", ".join(f"{100 * r['slow_share']:.1f} %" for r in runs) + " |")
-    (RESULTS / "core_interference.md").write_text("\n".join(lines) + "\n")
+    write_results("core_interference", result, "\n".join(lines) + "\n", RESULTS, echo=False)
     print("\n".join(lines))
     return 0
 

@@ -12,7 +12,6 @@ benchmarks/results/device_step_<backend>[_TAG].{json,md} (``--out`` for another 
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import sys
 import time
@@ -23,7 +22,7 @@ import jax.numpy as jnp
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _machine import describe  # noqa: E402
+from _machine import describe, write_results  # noqa: E402
 
 RESULTS = Path(__file__).resolve().parent / "results"
 
@@ -86,9 +85,7 @@ def main(argv=None) -> int:
     rows = [time_model(m, args.repeats) for m in args.models]
     backend = machine["backend"]
     out = Path(args.out) if args.out else RESULTS
-    out.mkdir(parents=True, exist_ok=True)
     name = f"device_step_{backend}" + (f"_{args.tag}" if args.tag else "")
-    (out / f"{name}.json").write_text(json.dumps({"machine": machine, "rows": rows}, indent=1))
     lines = [f"# Learned step time on {machine['device']} ({backend})", "",
              f"Host {machine['cpu']}, {machine['cores']} cores, jax {machine['jax']}, load average "
              f"{machine['load_average_1m']} at start, XLA_FLAGS=\"{machine['xla_flags']}\". One body, "
@@ -98,7 +95,7 @@ def main(argv=None) -> int:
     for r in rows:
         lines.append(f"| {model_label(r['model'])} | {r['nodes']} | {r['edges']} | {r['hidden']} × {r['passes']} | "
                      f"{r['integrator']} | {r['median_ms']:.3f} | {r['p99_ms']:.3f} | {r['compile_s']:.1f} |")
-    (out / f"{name}.md").write_text("\n".join(lines) + "\n")
+    write_results(name, {"machine": machine, "rows": rows}, "\n".join(lines) + "\n", out, echo=False)
     print("\n".join(lines))
     return 0
 

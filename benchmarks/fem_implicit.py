@@ -16,7 +16,6 @@ Writes benchmarks/results/fem_implicit.{json,md}.
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 import time
 from pathlib import Path
@@ -26,7 +25,7 @@ import jax.numpy as jnp
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _machine import describe  # noqa: E402
+from _machine import describe, write_results  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 RESULTS = ROOT / "benchmarks" / "results"
@@ -154,10 +153,7 @@ def main(argv=None) -> int:
     result["beam"] = beam(args.repeats)
     result["bunny"] = bunny(args.repeats)
     result["machine_at_end"] = describe()
-    RESULTS.mkdir(parents=True, exist_ok=True)
-    (RESULTS / "fem_implicit.json").write_text(json.dumps(result, indent=1))
-    (RESULTS / "fem_implicit.md").write_text(report(result))
-    print(report(result))
+    write_results("fem_implicit", result, report(result), RESULTS)
     return 0
 
 

@@ -41,7 +41,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import fem  # noqa: E402
 from fem import scenes, solver  # noqa: E402
-from _machine import describe  # noqa: E402
+from _machine import describe, write_results  # noqa: E402
 
 RESULTS = Path(__file__).resolve().parent / "results"
 
@@ -192,9 +192,7 @@ def main(argv=None):
             if ref and r["variant"] != VARIANTS[base]:
                 r[key] = r["element_substeps_per_second"] / ref[0]["element_substeps_per_second"]
     out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
     payload = {"machine": describe(), "substeps": args.substeps, "repeats": args.repeats, "rows": rows}
-    (out / "fem_throughput.json").write_text(json.dumps(payload, indent=1))
     lines = ["# FEM throughput (median of %d repeats after compilation, %d sub-steps per run)" % (args.repeats, args.substeps),
              "", "Machine: " + json.dumps(payload["machine"]), "",
              "Single-process rows: one core, XLA intra-op threads 1. '2 processes': two concurrent single-core copies,",
@@ -212,7 +210,7 @@ def main(argv=None):
                      f"{r['seconds_per_substep'] * 1e6:.1f} | {r['seconds_per_simulated_second']:.1f} | "
                      f"{r['element_substeps_per_second'] / 1e6:.2f} M | {fmt(r.get('speedup_vs_vmap'))} | "
                      f"{fmt(r.get('speedup_vs_naive'))} |")
-    (out / "fem_throughput.md").write_text("\n".join(lines) + "\n")
+    write_results("fem_throughput", payload, "\n".join(lines) + "\n", out, echo=False)
     print("\n".join(lines))
 
 

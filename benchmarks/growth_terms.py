@@ -19,7 +19,6 @@ Writes benchmarks/results/step_growth_terms.{json,md} (``--tag T``: step_growth_
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 import time
 import warnings
@@ -28,7 +27,7 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _machine import describe  # noqa: E402
+from _machine import describe, write_results  # noqa: E402
 
 RESULTS = Path(__file__).resolve().parent / "results"
 DEFAULT_MODELS = ("beam-abaqus", "beam-gnn", "beam-abaqus-small", "beam-abaqus+static_l")
@@ -82,10 +81,8 @@ def main(argv=None) -> int:
             print(f"{label:>28s} {anchor:>24s}: growth {g['growth']:.3f}  "
                   + "  ".join(f"{k} {terms[k]:+.3f}" for k in (*TERMS, "total")), flush=True)
     result = {"machine": describe(), "iterations": args.iterations, "rows": rows, "wall_s": time.time() - t_start}
-    RESULTS.mkdir(exist_ok=True)
     stem = f"step_growth_terms_{args.tag}" if args.tag else "step_growth_terms"
-    (RESULTS / f"{stem}.json").write_text(json.dumps(result, indent=1))
-    (RESULTS / f"{stem}.md").write_text(render(result))
+    write_results(stem, result, render(result), RESULTS, echo=False)
     print(f"wrote {RESULTS / stem}.{{json,md}} in {time.time() - t_start:.0f} s")
     return 0
 

@@ -23,7 +23,7 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _machine import describe  # noqa: E402
+from _machine import describe, write_results  # noqa: E402
 from device_step import integrator_text, model_label  # noqa: E402
 
 RESULTS = Path(__file__).resolve().parent / "results"
@@ -118,9 +118,7 @@ def main(argv=None) -> int:
                                                                      "free_energy")}}
         print(name, json.dumps({g: round(r["u"], 4) for g, r in rows.items()}), flush=True)
 
-    RESULTS.mkdir(parents=True, exist_ok=True)
     stem = "interactions" + (f"_{args.tag}" if args.tag else "")
-    (RESULTS / f"{stem}.json").write_text(json.dumps(result, indent=1))
     lines = ["# The beam models on the fingertip cases", "",
              f"Machine: {result['machine']}.", "",
              f"Data: `{args.reference}` (reference cases) and `{args.interactions}` (fingertip cases; profiles from "
@@ -133,7 +131,7 @@ def main(argv=None) -> int:
         for g, r in m["groups"].items():
             lines.append(f"| {model_label(name)} | {text} | {g} | {r['cases']} | {r['finite']} | {r['u']:.3g} | "
                          f"{r['v']:.3g} | {r['sigma']:.3g} | {r['q']:.3g} | {r['u_max']:.3g} |")
-    (RESULTS / f"{stem}.md").write_text("\n".join(lines) + "\n")
+    write_results(stem, result, "\n".join(lines) + "\n", RESULTS, echo=False)
     print(f"wrote {RESULTS / stem}.{{json,md}}")
     return 0
 

@@ -13,9 +13,9 @@ Writes benchmarks/results/model_step.{json,md}.
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import platform
+import sys
 import time
 from pathlib import Path
 
@@ -27,6 +27,9 @@ import numpy as np
 from tignn_jax import data as D
 from tignn_jax import model as M
 from tignn_jax import train as T
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from _machine import write_results  # noqa: E402
 
 RESULTS = Path(__file__).resolve().parent / "results"
 
@@ -214,8 +217,6 @@ def main(argv=None):
     result["speedup_vs_edge_list"] = {
         "step": base / result["step_ms"][f"slots {args.chosen}"]["p50"],
         "train": result["train_ms_per_sample"]["train edge-list"] / result["train_ms_per_sample"]["train slots"]}
-    RESULTS.mkdir(parents=True, exist_ok=True)
-    (RESULTS / "model_step.json").write_text(json.dumps(result, indent=1))
     lines = ["# Model step time (beam, 756 nodes, 3960 edges)", "",
              f"Machine: {result['machine']['processor']}, {result['machine']['cpus']} CPUs, jax "
              f"{jax.__version__} ({jax.default_backend()}); load average at start "
@@ -231,7 +232,7 @@ def main(argv=None):
     lines += ["", f"Speed-up of the slot layout (gather-only, fused first edge layer, one reverse pass for ∇E and "
               f"∇S) over the straightforward edge-list version at {args.chosen}: step "
               f"{result['speedup_vs_edge_list']['step']:.2f}×, training {result['speedup_vs_edge_list']['train']:.2f}×."]
-    (RESULTS / "model_step.md").write_text("\n".join(lines) + "\n")
+    write_results("model_step", result, "\n".join(lines) + "\n", RESULTS, echo=False)
     print("\n".join(lines))
 
 

@@ -26,14 +26,13 @@ Writes benchmarks/results/prior_jump[_T].{json,md}.
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 from pathlib import Path
 
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _machine import describe  # noqa: E402
+from _machine import describe, write_results  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 RESULTS = ROOT / "benchmarks" / "results"
@@ -106,8 +105,6 @@ def main(argv=None) -> int:
            "stress_rms_per_snapshot": {k: split[:, j].round(2).tolist() for j, k in enumerate(
                ("true_hydrostatic", "prior_hydrostatic", "true_deviatoric", "prior_deviatoric"))}}
     name = "prior_jump" + (f"_{args.tag}" if args.tag else "")
-    RESULTS.mkdir(parents=True, exist_ok=True)
-    (RESULTS / f"{name}.json").write_text(json.dumps(out, indent=1))
     lines = [f"# The rest-linearised step from true states ({args.model} on {out['data']}, {len(rows)} train cases)",
              "", "One step of the prior from the true state z_k under f_k; RMS error against z_{k+1} over the RMS "
              "true increment z_{k+1} − z_k (1 = as large as the increment itself). The reference data's velocities are "
@@ -127,7 +124,7 @@ def main(argv=None) -> int:
               f"{r[3] / max(r[2], 1e-30):.3g} |" for k, r in enumerate(split)]
     m = out["machine"]
     lines += ["", f"Machine: {m['cpu']}, {m['cores']} cores, jax {m['jax']} ({m['backend']})."]
-    (RESULTS / f"{name}.md").write_text("\n".join(lines) + "\n")
+    write_results(name, out, "\n".join(lines) + "\n", RESULTS, echo=False)
     print("\n".join(lines))
     return 0
 

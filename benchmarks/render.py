@@ -21,6 +21,7 @@ import argparse
 import json
 import os
 import platform
+import sys
 import time
 from pathlib import Path
 
@@ -30,6 +31,9 @@ import numpy as np
 
 from tignn_jax import ar
 from tignn_jax.render import draw_mesh, fragment_capacity, rasterize, surface_triangles
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from _machine import write_results  # noqa: E402
 
 W, H = 640, 480
 RESULTS = Path(__file__).resolve().parent / "results"
@@ -223,8 +227,6 @@ def main():
         results["bunny_tet4"] = bench_mesh("bunny_tet4", *bunny(), args.repeats)
     results["machine"]["load_average_at_end"] = os.getloadavg()
     meshes = [k for k in ("beam_hex8", "blob_tet4", "bunny_tet4") if k in results]
-    RESULTS.mkdir(parents=True, exist_ok=True)
-    (RESULTS / "render.json").write_text(json.dumps(results, indent=2))
     lines = ["# Render time per frame, 640x480", "",
              f"Machine: {results['machine']['platform']}, {results['machine']['cpu_count']} CPUs, "
              f"jax {jax.__version__} ({jax.default_backend()}), numpy {np.__version__}. "
@@ -245,7 +247,7 @@ def main():
     lines += ["", "Render stage = vertex normals + Phong + projection + rasterise, then occlusion against a real depth "
               "image + uint8 (one jitted program, as in tignn_jax/scene.py). Target: <= 10 ms so the simulation keeps "
               ">= 23 ms of the 33 ms frame. The NumPy rasteriser is the same algorithm; the library keeps the JAX one."]
-    (RESULTS / "render.md").write_text("\n".join(lines) + "\n")
+    write_results("render", results, "\n".join(lines) + "\n", RESULTS, indent=2, echo=False)
     print("\n".join(lines))
 
 

@@ -45,7 +45,7 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _machine import describe, interleaved_ms  # noqa: E402
+from _machine import describe, interleaved_ms, write_results  # noqa: E402
 from interactions import groups, peak_errors, profiles_of  # noqa: E402
 
 RESULTS = Path(__file__).resolve().parent / "results"
@@ -192,9 +192,7 @@ def main(argv=None) -> int:
         print(kind, json.dumps({g: (round(x["u"], 4) if "u" in x else None, x["finite"]) for g, x in rows.items()}),
               flush=True)
 
-    RESULTS.mkdir(parents=True, exist_ok=True)
     stem = "rest_tangent" + (f"_{args.tag}" if args.tag else "")
-    (RESULTS / f"{stem}.json").write_text(json.dumps(result, indent=1))
     m = result["machine"]
     lines = ["# Implicit steps on the rest tangent: the beam's held-out cases", "",
              f"Machine: {m['cpu']}, {m['cores']} cores, jax {m['jax']} ({m['backend']}); the rest linearisation "
@@ -212,7 +210,7 @@ def main(argv=None) -> int:
             vals = " | ".join(f"{r[k]:.3g}" if k in r else "–" for k in ("u", "v", "sigma", "q", "u_max"))
             bad = ", ".join(map(str, sorted(r["first_non_finite_step"]))) or "–"
             lines.append(f"| {kind} | {t:.2f} | {g} | {r['cases']} | {r['finite']} | {bad} | {vals} |")
-    (RESULTS / f"{stem}.md").write_text("\n".join(lines) + "\n")
+    write_results(stem, result, "\n".join(lines) + "\n", RESULTS, echo=False)
     print(f"wrote {RESULTS / stem}.{{json,md}}")
     return 0
 

@@ -32,7 +32,7 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _machine import describe  # noqa: E402
+from _machine import describe, write_results  # noqa: E402
 
 RESULTS = Path(__file__).resolve().parent / "results"
 FEATURES = ("q1", "q2", "q3", "v1", "v2", "v3", "σ11", "σ22", "σ33", "σ12", "σ13", "σ23")
@@ -147,10 +147,8 @@ def main():
             print(f"{name:>20s} data frame 19: mean {data_growth['mean']:.4f}, max {data_growth['max']:.4f}")
     result = {"machine": machine, "iterations": args.iterations, "rows": rows, "eigenvalues": eig_rows,
               "wall_s": time.time() - t_start}
-    RESULTS.mkdir(exist_ok=True)
     stem = f"step_growth_{args.tag}" if args.tag else "step_growth"
-    (RESULTS / f"{stem}.json").write_text(json.dumps(result, indent=1))
-    (RESULTS / f"{stem}.md").write_text(render(result))
+    write_results(stem, result, render(result), RESULTS, echo=False)
     print(f"wrote {RESULTS / stem}.{{json,md}} in {time.time() - t_start:.0f} s")
 
 
