@@ -49,29 +49,20 @@ def sweep(model: str, tolerances, steps: int, fem_steps: int, hold: int = 30) ->
     batch = fem.Loads(nodal=jnp.asarray(np.stack([loads[s][:fem_steps] for s in fem_names])))
     fem_q = np.asarray(fem.simulate_batch(problem, scene.material, batch).q) * units   # [S, fem_steps+1, N, 3]
     linear = stability.fallback_model(model, params, scene)
-    z_std, free = jnp.asarray(params["norm"]["z_std"]), (graph.nodes["node_type"] == 0)[:, None]
+    z_std, node_type = params["norm"]["z_std"], graph.nodes["node_type"]
     runs = {}
     for tol in tolerances:
-        fn = api.fallback_stepper(params, linear, hold=hold, tolerance=tol)
+        guarded = api.fallback_stepper(params, linear, hold=hold, tolerance=tol)
         runs[tol] = {}
         for s in stability.SCENARIOS:
             qf = fem_q[fem_names.index("constant" if s == "noise" else s)]
             # the data's convention for the first velocity, as stability.py: a one-sided difference of the FEM's q
             z = graph.nodes["z"].at[:, 3:6].set(jnp.asarray((-3 * qf[0] + 4 * qf[1] - qf[2]) / (2 * scene.frame_dt),
                                                             jnp.float32))
-            left, key, hand_overs, states = jnp.zeros(1, jnp.int32), jax.random.PRNGKey(1), 0, [np.asarray(z)]
-            f_seq = jnp.asarray(loads[s], jnp.float32)
-            for k in range(steps):
-                if s == "noise":   # 1 % of the state std on the free nodes' input every step
-                    key, sub = jax.random.split(key)
-                    z = z + 0.01 * z_std * jax.random.normal(sub, z.shape) * free
-                z, flagged, left = fn(z, f_seq[k], left)
-                hand_overs += int(np.any(flagged))
-                states.append(np.asarray(z))
-            zs, uf = np.stack(states), qf - q0
-            err = np.linalg.norm((zs[:fem_steps + 1, :, :3] - q0) - uf, axis=(1, 2)) / max(
-                float(np.linalg.norm(uf, axis=(1, 2)).max()), 1e-12)
-            runs[tol][s] = {"hand_overs": hand_overs, "nan_or_inf": int(np.size(zs) - np.isfinite(zs).sum()),
+            zs, flags = stability.rollout(stability.holding(guarded), z, s, jnp.asarray(loads[s], jnp.float32), jax.random.PRNGKey(1), steps,
+                                          z_std, node_type)
+            err = stability.displacement_error(zs, qf - q0, q0)
+            runs[tol][s] = {"hand_overs": int(sum(flags)), "nan_or_inf": int(np.size(zs) - np.isfinite(zs).sum()),
                             "u_error_at_fem_horizon": float(err[-1]), "u_error_mean": float(np.mean(err[1:])),
                             "u_error_max": float(np.max(err[1:]))}
     mean = {tol: {k: float(np.mean([r[k] for r in rows.values()]))

@@ -47,7 +47,6 @@ import argparse
 import json
 import os
 import sys
-import time
 from pathlib import Path
 
 import jax
@@ -73,10 +72,8 @@ def run_scene(name: str, frames: int, warmup: int, devices: tuple = (), model: s
     warm-up). Reported: the round whose simulation p99 / p50 over the learned-step frames is the median of the
     rounds' (the lower median for an even count), with every round's p50 / p99 under "rounds"."""
     from tignn_jax import scene as sc
-    from tignn_jax.commands_demo import build_scene
 
-    scene, dynamics = build_scene(name, frames + warmup, model, devices=devices)
-    scene = scene._replace(skip_rest=False)   # every frame steps: the budget is for a body in motion
+    scene, dynamics = moving_scene(name, frames + warmup, devices, model)
     played, alone = [], []
     for _ in range(rounds):
         _, t = sc.run(scene, frames=frames + warmup, warmup=warmup)
@@ -117,16 +114,36 @@ def step_alone(scene, calls: int) -> dict:
     if scene.devices:
         zs = tuple(jax.device_put(z, scene.devices[0]) for z in zs)
     forces = jax.block_until_ready(forces_fn(zs, jnp.asarray(scene.track[len(scene.track) // 2])))
-    for _ in range(5):
+    for _ in range(4):   # and interleaved_ms' own first call: 5 untimed
         jax.block_until_ready(step_fn(zs, forces))
-    ms = []
-    for _ in range(calls):
-        t0 = time.perf_counter()
-        jax.block_until_ready(step_fn(zs, forces))
-        ms.append(1e3 * (time.perf_counter() - t0))
-    out = percentiles(ms)
+    out = percentiles(interleaved_ms({"step": lambda: step_fn(zs, forces)}, calls)["step"])
     out["p99_over_p50"] = out["p99_ms"] / out["p50_ms"]
     return out
+
+
+def moving_scene(name: str, frames: int, devices: tuple = (), model: str | None = None):
+    """(scene, dynamics) of ``tignn demo``'s scene ``name`` for ``frames`` frames, every frame stepped (no rest
+    skip): the budget is for a body in motion."""
+    from tignn_jax.commands_demo import build_scene
+
+    scene, dynamics = build_scene(name, frames, model, devices=devices)
+    return scene._replace(skip_rest=False), dynamics
+
+
+def alternating_rounds(name: str, frames: int, warmup: int, devices: tuple, rounds: int, model: str | None,
+                       variants: dict) -> dict:
+    """{label: [(Timings, summary)] per round}: the scene's loop with each of ``variants`` ({label: Scene fields
+    to replace}), alternating for ``rounds`` rounds of ``frames`` frames after ``warmup`` in this process, so a
+    change of the machine's load hits every variant alike (summaries split by body count)."""
+    from tignn_jax import scene as sc
+
+    scene, _ = moving_scene(name, frames + warmup, devices, model)
+    played = {k: [] for k in variants}
+    for _ in range(rounds):
+        for label, fields in variants.items():
+            _, t = sc.run(scene._replace(**fields), frames=frames + warmup, warmup=warmup)
+            played[label].append((t, t.summary(bodies=len(scene.bodies))))
+    return played
 
 
 def loop_fusion(name: str, frames: int, warmup: int, devices: tuple, rounds: int, model: str | None = None) -> dict:
@@ -135,17 +152,10 @@ def loop_fusion(name: str, frames: int, warmup: int, devices: tuple, rounds: int
     on its fallback stepped by the fallback alone) against the stages
     dispatched and awaited one by one, alternating for ``rounds`` rounds of ``frames`` frames each. Simulation
     p50 / p99 over the learned-step frames per run, and the ratio of the two variants' medians over the rounds."""
-    from tignn_jax import scene as sc
-    from tignn_jax.commands_demo import build_scene
-
-    scene, _ = build_scene(name, frames + warmup, model, devices=devices)
-    scene = scene._replace(skip_rest=False)
-    runs = {"staged": [], "fused": []}
-    for _ in range(rounds):
-        for variant in runs:
-            _, t = sc.run(scene._replace(fuse=variant == "fused"), frames=frames + warmup, warmup=warmup)
-            summary = t.summary()
-            runs[variant].append(summary.get("simulation_learned", summary["simulation"]))
+    played = alternating_rounds(name, frames, warmup, devices, rounds, model,
+                                {"staged": {"fuse": False}, "fused": {"fuse": True}})
+    runs = {k: [summary.get("simulation_learned", summary["simulation"]) for _, summary in v]
+            for k, v in played.items()}
     p50 = {k: float(np.median([r["p50_ms"] for r in v])) for k, v in runs.items()}
     return {"frames": frames, "rounds": rounds, "runs": runs, "p50_ms": p50,
             "p99_ms": {k: float(np.median([r["p99_ms"] for r in v])) for k, v in runs.items()},
@@ -158,19 +168,11 @@ def handover_modes(name: str, frames: int, warmup: int, devices: tuple, rounds: 
     the trip frame shows the previous state, the next runs the fallback twice), alternating for ``rounds`` rounds
     in the same process. Per mode, the median over the rounds of the simulation p50 / p99 over the learned-step
     frames and of the hand-over frames'."""
-    from tignn_jax import scene as sc
-    from tignn_jax.commands_demo import build_scene
-
-    scene, _ = build_scene(name, frames + warmup, model, devices=devices)
-    scene = scene._replace(skip_rest=False)
-    runs = {"same-frame": [], "next-frame": []}
-    for _ in range(rounds):
-        for mode in runs:
-            _, t = sc.run(scene._replace(handover=mode), frames=frames + warmup, warmup=warmup)
-            summary = t.summary(bodies=len(scene.bodies))
-            runs[mode].append({"learned": summary.get("simulation_learned", summary["simulation"]),
-                               "hand-over": summary.get("simulation_by_class", {}).get("hand-over"),
-                               "guard_trips": t.guard_trips})
+    played = alternating_rounds(name, frames, warmup, devices, rounds, model,
+                                {mode: {"handover": mode} for mode in ("same-frame", "next-frame")})
+    runs = {mode: [{"learned": summary.get("simulation_learned", summary["simulation"]),
+                    "hand-over": summary.get("simulation_by_class", {}).get("hand-over"),
+                    "guard_trips": t.guard_trips} for t, summary in v] for mode, v in played.items()}
 
     def median(mode, part, key):
         values = [r[part][key] for r in runs[mode] if r[part] is not None]

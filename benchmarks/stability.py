@@ -88,6 +88,39 @@ def loadings(name: str, steps: int, seed: int = 0, density: float | None = None,
                    "noise": constant}
 
 
+def rollout(fn, z, scenario: str, f_seq, key, steps: int, z_std, node_type):
+    """States [steps+1, N, 12] and per-step flags of ``fn(z, f) -> (z, flagged)`` under the loads ``f_seq``; the
+    noise scenario adds 1 % of the state std ``z_std`` to the free nodes' input every step (draws from ``key``)."""
+    states, flags = [np.asarray(z)], []
+    for k in range(steps):
+        if scenario == "noise":
+            key, sub = jax.random.split(key)
+            z = z + 0.01 * jnp.asarray(z_std) * jax.random.normal(sub, z.shape) * (node_type[:, None] == 0)
+        z, flagged = fn(z, f_seq[k])
+        states.append(np.asarray(z))
+        flags.append(bool(np.any(flagged)))
+    return np.stack(states), flags
+
+
+def holding(fallback):
+    """``api.fallback_stepper``'s ``(z, f, left) -> (z, flagged, left)`` as ``(z, f) -> (z, flagged)`` for
+    `rollout`, carrying ``left`` (the steps the body still has to spend on the fallback) from call to call."""
+    left = [jnp.zeros(1, jnp.int32)]
+
+    def fn(z, f):
+        z, flagged, left[0] = fallback(z, f, left[0])
+        return z, flagged
+
+    return fn
+
+
+def displacement_error(zs, uf, q0) -> np.ndarray:
+    """[len(uf)]: the L2 displacement error of states ``zs`` against the FEM's displacements ``uf`` over its
+    horizon, relative to the FEM's largest displacement norm there."""
+    return np.linalg.norm((zs[:len(uf), :, :3] - q0) - uf, axis=(1, 2)) / max(
+        float(np.linalg.norm(uf, axis=(1, 2)).max()), 1e-12)
+
+
 def fallback_model(model: str, params: dict, scene, damping: float | None = None) -> dict:
     """The rest-linearised FEM of ``scene`` that ``model`` falls back to: the shipped one the demo hands it to
     (`commands_demo.FALLBACKS`) where that was built for the same damping and density, which saves the
@@ -170,21 +203,10 @@ def model_runs(name: str, model: str, steps: int, fem_steps: int, newton_fallbac
                                                                    consistency=bound)
 
     def roll(fn, z, s, f_seq, key):
-        """States [steps+1, N, 12] and per-step flags of ``fn(z, f) -> (z, flagged)`` under the loads; the
-        noise scenario adds 1 % of the state std to the free nodes' input every step (draws from ``key``)."""
-        states, flags = [np.asarray(z)], []
-        for k in range(steps):
-            if s == "noise":
-                key, sub = jax.random.split(key)
-                z = z + 0.01 * jnp.asarray(z_std) * jax.random.normal(sub, z.shape) * (nt[:, None] == 0)
-            z, flagged = fn(z, f_seq[k])
-            states.append(np.asarray(z))
-            flags.append(bool(np.any(flagged)))
-        return np.stack(states), flags
+        return rollout(fn, z, s, f_seq, key, steps, z_std, nt)
 
-    def u_error(zs, uf):   # relative to the largest FEM displacement norm over the horizon
-        return np.linalg.norm((zs[:fem_steps + 1, :, :3] - q0) - uf, axis=(1, 2)) / max(
-            float(np.linalg.norm(uf, axis=(1, 2)).max()), 1e-12)
+    def u_error(zs, uf):
+        return displacement_error(zs, uf, q0)
 
     def first_over(err):   # the first step with u error > 10 % (NaN counts as over), or None
         over = np.where(~(err[1:] <= 0.10))[0]
@@ -193,11 +215,7 @@ def model_runs(name: str, model: str, steps: int, fem_steps: int, newton_fallbac
     def guarded_run(policy, s, z, f_seq, uf):   # the same loads (and noise) through the guarded steppers
         fn = guarded[policy]
         if policy.startswith("fallback"):        # it carries each body's steps left on the fallback
-            left = [jnp.zeros(1, jnp.int32)]
-
-            def fn(z_, f_, inner=fn):
-                z_, flagged, left[0] = inner(z_, f_, left[0])
-                return z_, flagged
+            fn = holding(fn)
         zs, flags = roll(fn, z, s, f_seq, jax.random.PRNGKey(1))
         err = u_error(zs, uf)
         return {"nan_or_inf": int(np.size(zs) - np.count_nonzero(np.isfinite(zs))),
