@@ -406,6 +406,13 @@ def _body_frames(b: Body, fb, z0, defer: bool = False):
     return learned, held, catch_up
 
 
+def _branch(on: bool, trip_forces) -> int:
+    """Which of `_body_frames`' (learned, held, catch_up) a body runs this frame: its learned frame unless it is
+    on its fallback (``on``), then its catch-up where the trip frame's forces are pending (a next-frame
+    hand-over), else its held step."""
+    return 0 if not on else 1 if trip_forces is None else 2
+
+
 def _concurrent_frame(scene: Scene, fallback: tuple, initial: tuple, defer: bool = False):
     """``frame_fn(zs, forces, on, pending) -> (zs, flags)``: body k's whole simulation frame (`_body_frames`:
     its learned frame, or where ``on[k]`` its fallback alone, caught up from the trip frame's forces
@@ -417,15 +424,9 @@ def _concurrent_frame(scene: Scene, fallback: tuple, initial: tuple, defer: bool
         progs.append(tuple(None if fn is None else jax.jit(fn)
                            for fn in _body_frames(b, fb, jax.device_put(z0, d), defer)))
 
-    def pick(prog, on_k, waiting):
-        learned, held, catch_up = prog
-        if not on_k or held is None:
-            return learned
-        return held if waiting is None else catch_up
-
     def frame_fn(zs, forces, on, pending):
-        out = [pick(prog, on_k, fp)(jax.device_put(z, d), jax.device_put(f, d),
-                                    None if fp is None else jax.device_put(fp, d))
+        out = [prog[_branch(on_k and prog[1] is not None, fp)](jax.device_put(z, d), jax.device_put(f, d),
+                                                               None if fp is None else jax.device_put(fp, d))
                for prog, z, f, d, on_k, fp in zip(progs, zs, forces, places, on, pending)]
         return tuple(jax.device_put(z, home) for z, _ in out), tuple(jax.device_put(g, home) for _, g in out)
 
@@ -452,7 +453,7 @@ def _fused_frames(forces_fn, scene: Scene, fallback: tuple, initial: tuple, defe
         return tuple(z for z, _ in out), forces, jnp.stack([g for _, g in out])
 
     def call(zs, tips, on, pending):
-        branch = np.where(np.asarray(on, bool), np.where([fp is not None for fp in pending], 2, 1), 0)
+        branch = [_branch(on_k, fp) for on_k, fp in zip(on, pending)]
         return fn(zs, tips, jnp.asarray(branch, jnp.int32),
                   tuple(z if fp is None else fp for z, fp in zip(idle, pending)))
 
