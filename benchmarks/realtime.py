@@ -480,8 +480,10 @@ def main(argv=None) -> int:
     parser.add_argument("--handover-rounds", type=int, default=2,
                         help="rounds of the same-frame against next-frame hand-over comparison, for the scenes "
                              "with a fallback (the ACCURATE_MODELS rows; 0: skip it)")
-    parser.add_argument("--cores", type=int, default=None,
-                        help="CPU devices for scenes of several bodies, one body per core (default: all cores)")
+    parser.add_argument("--cores", type=int, default=1,
+                        help="cores the process runs on, as `tignn demo --cores`: pinned to that many of the CPUs it "
+                             "may use (scene.pin_cores), one CPU device per core, one body per device "
+                             "(default: %(default)s, the demo's)")
     parser.add_argument("--model", default=None,
                         help="the dynamics of every scene, as `tignn demo --model` (default: each scene's shipped "
                              "model); 'fem-newton' runs the FEM's Newton-CG step (not learned), without the "
@@ -497,10 +499,17 @@ def main(argv=None) -> int:
     from tignn_jax import scene as sc
     from tignn_jax.commands_demo import FEM_NEWTON
     fem = args.model == FEM_NEWTON
+    if args.cores < 1:
+        raise SystemExit(f"--cores must be at least 1, got {args.cores}")
+    try:
+        pinned = sc.pin_cores(args.cores)   # before JAX's first operation, as `tignn demo` does
+    except ValueError as e:
+        raise SystemExit(f"--cores {args.cores}: {e}")
     flagged = False if fem else sc.real_time_xla_flags()   # before JAX's first operation, as `tignn demo` does
-    devices = sc.cpu_devices(args.cores or os.cpu_count() or 1)   # before JAX's first operation
+    devices = sc.cpu_devices(args.cores)   # before JAX's first operation
     machine = describe()
     machine["cpu_devices"] = len(devices)
+    machine["pinned_cpus"] = list(pinned)
     machine["xla_flags"] = os.environ.get("XLA_FLAGS", "") + (
         " (fem-newton: the learned loop's YNNPACK option left unset)" if fem else "" if flagged else " (set by the user)")
     scenes, variants, parallel, fusion, handovers = {}, {}, {}, {}, {}
@@ -562,7 +571,11 @@ def format_md(result: dict) -> str:
              f"{m['load_average_1m']} at start, {m['load_average_1m_at_end']} at end ({m['note']}). "
              f"{result['frames']} timed frames per scene and round after {result['warmup']} warm-up frames, "
              f"{result.get('rounds', 1)} round(s); 640×480; "
-             f"XLA_FLAGS `{m.get('xla_flags', '(not recorded)')}` (`scene.real_time_xla_flags`, as `tignn demo`).", "",
+             f"XLA_FLAGS `{m.get('xla_flags', '(not recorded)')}` (`scene.real_time_xla_flags`, as `tignn demo`); "
+             + (f"the process pinned to CPU {', '.join(map(str, m['pinned_cpus']))} of {m['cores']} with "
+                f"{m['cpu_devices']} CPU device(s) (`scene.pin_cores`, as `tignn demo --cores "
+                f"{len(m['pinned_cpus'])}`; one core against two: `pinning.md`)."
+                if m.get("pinned_cpus") else f"not pinned, {m.get('cpu_devices', '?')} CPU device(s)."), "",
              "Simulation = forces + step per frame. The budget is judged on the frames the learned model stepped "
              "(after a guard trip a body spends `fallback_hold` frames on the cheaper rest-linearised fallback; "
              "all frames are in the next column)." + (

@@ -4,9 +4,9 @@ Scenes:
 - ``two-beams``: the paper's configuration (``fem.scenes.two_beams_scene``): two copies of the 40x10x10 beam
   (shown 0.2 m long), the lower one A clamped at x = 0, the upper one B turned 90° about the vertical and lying
   across A's free half with a gap of 10 (5 cm). The fingertip presses B's free end down onto A; each body steps
-  in its own model frame, and they interact through ``ar.contact_forces``. With two or more cores (``--cores``)
-  each beam steps on its own CPU device, concurrently (``Scene.devices``); with one, both bodies' frames run in
-  one program (each body its own step, in its own ``lax.cond``: faster than one batched graph of both, see
+  in its own model frame, and they interact through ``ar.contact_forces``. The demo runs on ``--cores`` cores
+  (default 1), the process pinned to them (``scene.pin_cores``). With two or more, each beam steps on its own
+  CPU device, concurrently (``Scene.devices``); with one, both bodies' frames run in one program (each body its own step, in its own ``lax.cond``: faster than one batched graph of both, see
   ``benchmarks/results/bodies_one_program.md``).
 - ``beam``: beam A alone, pressed down at its free end.
 - ``bunny``: the Stanford bunny (10 cm tall) standing on the table, base clamped, pushed on its back with about
@@ -22,7 +22,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import time
 from pathlib import Path
 
@@ -55,9 +54,11 @@ def register(sub: argparse._SubParsersAction) -> None:
                         "backward-Euler step by 2 Newton iterations of 3 CG each (tignn_jax.newton; not learned)")
     p.add_argument("--track", default=None, help="fingertip track, JSON lines (default: a synthetic press)")
     p.add_argument("--stand-in", action="store_true", help="use the stand-in dynamics even if a model exists")
-    p.add_argument("--cores", type=int, default=None,
-                   help="CPU cores to step bodies on concurrently, one body per core (default: all of this "
-                        "machine's; 1: all bodies in one program)")
+    p.add_argument("--cores", type=int, default=1,
+                   help="CPU cores the demo runs on: the process is pinned to that many of the CPUs it may use "
+                        "(scene.pin_cores), with one CPU device per core and the bodies stepped concurrently, one "
+                        "per core; 1: all bodies in one program on one core, the steadiest frame times measured "
+                        "(benchmarks/results/pinning.md) (default: %(default)s)")
     p.set_defaults(func=run)
 
 
@@ -68,9 +69,16 @@ def run(args) -> int:
 
     if args.frames < 2:
         raise SystemExit(f"--frames must be at least 2, got {args.frames}")
-    cores = (os.cpu_count() or 1) if args.cores is None else args.cores
+    cores = args.cores
     if cores < 1:
         raise SystemExit(f"--cores must be at least 1, got {cores}")
+    try:
+        pinned = sc.pin_cores(cores)  # before JAX's first operation: XLA sizes its thread pool by these CPUs
+    except ValueError as e:
+        raise SystemExit(f"--cores {cores}: {e}")
+    except RuntimeError as e:         # run in a process where JAX has already started (a notebook, a test)
+        print(f"not pinned: {e}")
+        pinned = ()
     if args.model != FEM_NEWTON:      # the FEM's step is 3x slower without YNNPACK's fusions (session 38)
         sc.real_time_xla_flags()      # before JAX's first operation: XLA:CPU options of the learned loop
     devices = sc.cpu_devices(cores)   # before JAX's first operation: one CPU device per core
@@ -82,13 +90,15 @@ def run(args) -> int:
     track_path = out / f"{args.scene}_track.jsonl"
     sc.save_track(track_path, scene.track)  # the fingertip track in the documented format (tignn_jax/scene.py)
     frames = []
-    print(f"scene {args.scene}: {sum(len(b.q0) for b in scene.bodies)} nodes, dynamics: {dynamics}")
+    print(f"scene {args.scene}: {sum(len(b.q0) for b in scene.bodies)} nodes, dynamics: {dynamics}; "
+          + (f"pinned to CPU {', '.join(map(str, pinned))}" if pinned else f"{cores} core(s), not pinned"))
     _, timings = sc.run(scene, frames=args.frames, write=lambda i, rgb: frames.append(rgb))
     suffix = "_STAND-IN" if dynamics.startswith("STAND-IN") else ""
     gif = out / f"{args.scene}{suffix}.gif"
     t0 = time.perf_counter()
     imageio.mimsave(gif, frames, duration=1 / 30, loop=0)
     summary = {"scene": args.scene, "dynamics": dynamics, "image": [scene.camera.width, scene.camera.height],
+               "cores": cores, "pinned_cpus": list(pinned),
                "guard": "fallback" if scene.fallback else "reset",
                **timings.summary(), "gif_encode_s": time.perf_counter() - t0,
                "note": "write = handing the frame to the writer (kept in memory); the GIF is encoded after the loop"}

@@ -541,6 +541,41 @@ def real_time_xla_flags(environ=None) -> bool:
     return True
 
 
+def pin_cores(n: int) -> tuple:
+    """Pin this process to ``n`` of the CPUs it may run on (the lowest-numbered ones) and return them; () where
+    the platform cannot pin (no ``os.sched_setaffinity``: nothing is changed there).
+
+    Every thread the process has now is pinned, and threads start with their creator's CPUs, so call it before
+    JAX's first operation: XLA:CPU sizes its thread pool by the CPUs a process may use when its backend starts.
+    A backend already started keeps a pool for all the cores, and that pool squeezed onto fewer cores is slower
+    than either (measured: the two 64x2 beams' step 17–20 ms, p99 1.5–1.7 × p50, against 13 ms, 1.1 ×, for a
+    process pinned first), so this raises ``RuntimeError`` then, unless ``n`` keeps every CPU the process has.
+
+    Why pin at all: on the 2-core VM the real-time budget was measured on (session 48, ``benchmarks/pinning.py``),
+    a program spread over both cores waits for the slower one, and the cores are slowed in turns by what runs
+    beside the VM (no other process in the guest ran during the slow calls), so frames at p99 took 1.3–1.8 × p50
+    from hour to hour; on one core, p99 stayed within 1.2 × p50 in every round, at a higher p50."""
+    if isinstance(n, bool) or not isinstance(n, (int, np.integer)) or n < 1:
+        raise ValueError(f"n must be a positive integer, got {n!r}")
+    if not hasattr(os, "sched_setaffinity"):
+        return ()
+    allowed = sorted(os.sched_getaffinity(0))
+    if n > len(allowed):
+        raise ValueError(f"n = {n} is more than the {len(allowed)} CPUs this process may use ({allowed})")
+    cpus = set(allowed[:n])
+    if n < len(allowed):
+        from jax._src import xla_bridge
+        if xla_bridge.backends_are_initialized():
+            raise RuntimeError(f"pin_cores({n}) must run before JAX's first operation: the backend has already "
+                               f"sized its thread pool for {len(allowed)} CPUs")
+    for tid in os.listdir("/proc/self/task") if os.path.isdir("/proc/self/task") else ["0"]:
+        try:
+            os.sched_setaffinity(int(tid), cpus)
+        except (ProcessLookupError, PermissionError):   # a thread that ended meanwhile
+            pass
+    return tuple(sorted(cpus))
+
+
 def cpu_devices(n: int) -> tuple:
     """The local devices after asking JAX for ``n`` CPU devices (``jax_num_cpu_devices``; one per core is what
     ``Scene.devices`` wants). That can only be set before JAX's first operation in the process; after it, or on
