@@ -2,7 +2,7 @@
 
 For each scene (one beam, the paper's two beams, the bunny) the loop of ``tignn_jax.scene.run`` plays a
 fingertip press track for ``--frames`` frames after ``--warmup`` frames of compilation, with the shipped model
-of the scene, rendering at 640x480. Per frame it times: forces (fingertip unprojection + object contact), step
+of the scene, rendering at 640x480, in a process set up as ``tignn demo``'s: pinned to ``--cores`` cores (default 1; ``scene.pin_cores``; one core against two: ``benchmarks/pinning.py``). Per frame it times: forces (fingertip unprojection + object contact), step
 (the learned simulator for all bodies), render (rasterise + shade + occlude) and the whole frame. The
 simulation time per frame is forces + step (once touched, the loop dispatches forces, step and guard together
 and awaits them once, `scene.Timings.fused_frames`: the forces time is then inside the step's; the fused loop is

@@ -547,14 +547,17 @@ def pin_cores(n: int) -> tuple:
 
     Every thread the process has now is pinned, and threads start with their creator's CPUs, so call it before
     JAX's first operation: XLA:CPU sizes its thread pool by the CPUs a process may use when its backend starts.
-    A backend already started keeps a pool for all the cores, and that pool squeezed onto fewer cores is slower
-    than either (measured: the two 64x2 beams' step 17–20 ms, p99 1.5–1.7 × p50, against 13 ms, 1.1 ×, for a
-    process pinned first), so this raises ``RuntimeError`` then, unless ``n`` keeps every CPU the process has.
+    A pool made for two cores and then squeezed onto one is slower than either (measured, session 48: a process
+    with two CPU devices pinned to one core afterwards stepped the two 64x2 beams in 17–20 ms with p99 1.5–1.7 ×
+    p50, against 13–14 ms and 1.1 × for a process pinned first), so this raises ``RuntimeError`` then, unless
+    ``n`` keeps every CPU the process may use (nothing changes).
 
-    Why pin at all: on the 2-core VM the real-time budget was measured on (session 48, ``benchmarks/pinning.py``),
-    a program spread over both cores waits for the slower one, and the cores are slowed in turns by what runs
-    beside the VM (no other process in the guest ran during the slow calls), so frames at p99 took 1.3–1.8 × p50
-    from hour to hour; on one core, p99 stayed within 1.2 × p50 in every round, at a higher p50."""
+    Why pin: on the 2-core VM the real-time budget is measured on (``benchmarks/results/pinning.md``, three
+    alternating rounds), the demo's loop pinned to one core had simulation p99 within 1.09–1.26 × p50 in every
+    round of every scene, and met every budget in every round; on both cores its p50 was 1.2–1.6× lower but each
+    scene's worst round had p99 at 1.44–1.65 × p50, over 1.5 × for both two-beam rows (a program spread over both cores waits for the
+    slower one, and the VM's cores are slowed in turns by what runs beside it: no other process in the guest ran
+    during the slow calls)."""
     if isinstance(n, bool) or not isinstance(n, (int, np.integer)) or n < 1:
         raise ValueError(f"n must be a positive integer, got {n!r}")
     if not hasattr(os, "sched_setaffinity"):
