@@ -8,9 +8,10 @@ one_graph=True)``); both one after another inside the program (``stepper(params,
 depends on how many CPU devices the process made (``tignn demo --cores N`` makes N, see
 `scene.cpu_devices`) and on the cores the process may use:
 
-* one CPU device, both cores (a user's process; ``tignn demo --cores 1`` on this machine);
-* one CPU device, pinned to one core (a one-core machine);
-* two CPU devices, both cores (``tignn demo`` and ``benchmarks/realtime.py`` on this machine).
+* one CPU device, both cores (a user's process that did not pin itself);
+* one CPU device, pinned to one core (``tignn demo`` and ``benchmarks/realtime.py`` since session 48, whose
+  default ``--cores 1`` pins the process before JAX starts, ``scene.pin_cores``; or a one-core machine);
+* two CPU devices, both cores (``tignn demo --cores 2`` on this machine).
 
     python benchmarks/bodies_one_program.py [--repeats 40]
 

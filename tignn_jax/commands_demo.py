@@ -6,7 +6,8 @@ Scenes:
   across A's free half with a gap of 10 (5 cm). The fingertip presses B's free end down onto A; each body steps
   in its own model frame, and they interact through ``ar.contact_forces``. The demo runs on ``--cores`` cores
   (default 1), the process pinned to them (``scene.pin_cores``). With two or more, each beam steps on its own
-  CPU device, concurrently (``Scene.devices``); with one, both bodies' frames run in one program (each body its own step, in its own ``lax.cond``: faster than one batched graph of both, see
+  CPU device, concurrently (``Scene.devices``); with one, both bodies' frames run in one program (each body
+  its own step, in its own ``lax.cond``: faster than one batched graph of both, see
   ``benchmarks/results/bodies_one_program.md``).
 - ``beam``: beam A alone, pressed down at its free end.
 - ``bunny``: the Stanford bunny (10 cm tall) standing on the table, base clamped, pushed on its back with about
