@@ -59,8 +59,8 @@ def sweep(model: str, tolerances, steps: int, fem_steps: int, hold: int = 30) ->
             # the data's convention for the first velocity, as stability.py: a one-sided difference of the FEM's q
             z = graph.nodes["z"].at[:, 3:6].set(jnp.asarray((-3 * qf[0] + 4 * qf[1] - qf[2]) / (2 * scene.frame_dt),
                                                             jnp.float32))
-            zs, flags = stability.rollout(stability.holding(guarded), z, s, jnp.asarray(loads[s], jnp.float32), jax.random.PRNGKey(1), steps,
-                                          z_std, node_type)
+            zs, flags = stability.rollout(stability.holding(guarded), z, s, jnp.asarray(loads[s], jnp.float32),
+                                          jax.random.PRNGKey(1), steps, z_std, node_type)
             err = stability.displacement_error(zs, qf - q0, q0)
             runs[tol][s] = {"hand_overs": int(sum(flags)), "nan_or_inf": int(np.size(zs) - np.isfinite(zs).sum()),
                             "u_error_at_fem_horizon": float(err[-1]), "u_error_mean": float(np.mean(err[1:])),

@@ -26,7 +26,7 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _machine import write_results  # noqa: E402
+from _machine import describe, write_results  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 ROWS = {"beam": ("beam", None), "two-beams": ("two-beams", None), "bunny": ("bunny", None),
@@ -39,11 +39,9 @@ def child(cores: int, rows: list, frames: int, warmup: int) -> dict:
     loop played once. {row: {simulation p50/p99 (learned-step frames), frame p50/p99, step alone, budget}}."""
     from tignn_jax import scene as sc
 
-    pinned = sc.pin_cores(cores)
     sc.real_time_xla_flags()
-    devices = sc.cpu_devices(cores)
+    pinned, devices = sc.real_time_cores(cores)
     import realtime as rt
-    from _machine import describe
 
     out = {"pinned_cpus": list(pinned), "cpu_devices": len(devices), "machine": describe(), "rows": {}}
     for row in rows:

@@ -2,7 +2,9 @@
 
 For each scene (one beam, the paper's two beams, the bunny) the loop of ``tignn_jax.scene.run`` plays a
 fingertip press track for ``--frames`` frames after ``--warmup`` frames of compilation, with the shipped model
-of the scene, rendering at 640x480, in a process set up as ``tignn demo``'s: pinned to ``--cores`` cores (default 1; ``scene.pin_cores``; one core against two: ``benchmarks/pinning.py``). Per frame it times: forces (fingertip unprojection + object contact), step
+of the scene, rendering at 640x480, in a process set up as ``tignn demo``'s: pinned to ``--cores`` cores
+(default 1; ``scene.real_time_cores``; one core against two: ``benchmarks/pinning.py``). Per frame it times:
+forces (fingertip unprojection + object contact), step
 (the learned simulator for all bodies), render (rasterise + shade + occlude) and the whole frame. The
 simulation time per frame is forces + step (once touched, the loop dispatches forces, step and guard together
 and awaits them once, `scene.Timings.fused_frames`: the forces time is then inside the step's; the fused loop is
@@ -501,12 +503,11 @@ def main(argv=None) -> int:
     fem = args.model == FEM_NEWTON
     if args.cores < 1:
         raise SystemExit(f"--cores must be at least 1, got {args.cores}")
+    flagged = False if fem else sc.real_time_xla_flags()   # before JAX's first operation, as `tignn demo` does
     try:
-        pinned = sc.pin_cores(args.cores)   # before JAX's first operation, as `tignn demo` does
+        pinned, devices = sc.real_time_cores(args.cores)   # likewise: pinned, one CPU device per core
     except ValueError as e:
         raise SystemExit(f"--cores {args.cores}: {e}")
-    flagged = False if fem else sc.real_time_xla_flags()   # before JAX's first operation, as `tignn demo` does
-    devices = sc.cpu_devices(args.cores)   # before JAX's first operation
     machine = describe()
     machine["cpu_devices"] = len(devices)
     machine["pinned_cpus"] = list(pinned)

@@ -58,6 +58,7 @@ def test_pin_cores_before_jax_pins_every_thread_jax_starts_afterwards():
 
 
 JAX_FIRST = """
+import warnings
 import jax.numpy as jnp
 from tignn_jax import scene as sc
 jnp.ones(3).block_until_ready()      # the backend has started
@@ -65,6 +66,10 @@ try:
     sc.pin_cores(1)
 except RuntimeError as e:
     print("refused:", e)
+with warnings.catch_warnings(record=True) as caught:
+    warnings.simplefilter("always")
+    pinned, devices = sc.real_time_cores(1)   # the demo's set-up: goes on unpinned, and says so
+print("real_time_cores:", pinned, len(devices), [str(w.message) for w in caught])
 """
 
 
@@ -75,14 +80,20 @@ def test_pin_cores_after_jax_started_refuses_instead_of_squeezing_its_thread_poo
     done = _python(JAX_FIRST)
     assert done.returncode == 0, done.stderr[-2000:]
     assert "refused: pin_cores(1) must run before JAX's first operation" in done.stdout
+    assert "real_time_cores: () 1 [\"not pinned: pin_cores(1) must run before JAX's first operation" in done.stdout
+
+
+def _demo(tmp_path, *extra: str) -> subprocess.CompletedProcess:
+    """`tignn demo` on the beam's stand-in for 3 frames, in a fresh process (pinning acts on the whole process)."""
+    return subprocess.run([sys.executable, "-m", "tignn_jax.cli", "demo", "--scene", "beam", "--frames", "3",
+                           "--stand-in", "--out", str(tmp_path), *extra], capture_output=True, text=True, cwd=ROOT,
+                          timeout=600)
 
 
 @linux
 def test_demo_runs_pinned_to_one_core_by_default(tmp_path):
     allowed = sorted(os.sched_getaffinity(0))
-    done = subprocess.run([sys.executable, "-m", "tignn_jax.cli", "demo", "--scene", "beam", "--frames", "3",
-                           "--stand-in", "--out", str(tmp_path)], capture_output=True, text=True, cwd=ROOT,
-                          timeout=600)
+    done = _demo(tmp_path)
     assert done.returncode == 0, done.stderr[-2000:]
     summary = json.loads((tmp_path / "beam_STAND-IN_timings.json").read_text())
     assert summary["cores"] == 1 and summary["pinned_cpus"] == [allowed[0]]
@@ -92,9 +103,7 @@ def test_demo_runs_pinned_to_one_core_by_default(tmp_path):
 @linux
 def test_demo_names_a_core_count_the_machine_does_not_have(tmp_path):
     allowed = len(os.sched_getaffinity(0))
-    done = subprocess.run([sys.executable, "-m", "tignn_jax.cli", "demo", "--scene", "beam", "--frames", "3",
-                           "--stand-in", "--cores", str(allowed + 1), "--out", str(tmp_path)],
-                          capture_output=True, text=True, cwd=ROOT, timeout=600)
+    done = _demo(tmp_path, "--cores", str(allowed + 1))
     assert done.returncode != 0
     assert f"--cores {allowed + 1}: n = {allowed + 1} is more than the {allowed} CPUs" in done.stderr
 

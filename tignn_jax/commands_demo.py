@@ -73,16 +73,12 @@ def run(args) -> int:
     cores = args.cores
     if cores < 1:
         raise SystemExit(f"--cores must be at least 1, got {cores}")
-    try:
-        pinned = sc.pin_cores(cores)  # before JAX's first operation: XLA sizes its thread pool by these CPUs
-    except ValueError as e:
-        raise SystemExit(f"--cores {cores}: {e}")
-    except RuntimeError as e:         # run in a process where JAX has already started (a notebook, a test)
-        print(f"not pinned: {e}")
-        pinned = ()
     if args.model != FEM_NEWTON:      # the FEM's step is 3x slower without YNNPACK's fusions (session 38)
         sc.real_time_xla_flags()      # before JAX's first operation: XLA:CPU options of the learned loop
-    devices = sc.cpu_devices(cores)   # before JAX's first operation: one CPU device per core
+    try:                              # before JAX's first operation: pinned, one CPU device per core
+        pinned, devices = sc.real_time_cores(cores)
+    except ValueError as e:
+        raise SystemExit(f"--cores {cores}: {e}")
     scene, dynamics = build_scene(args.scene, args.frames, args.model, args.stand_in, devices=devices)
     if args.track:
         scene = scene._replace(track=sc.load_track(args.track))

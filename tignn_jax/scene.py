@@ -555,9 +555,9 @@ def pin_cores(n: int) -> tuple:
     Why pin: on the 2-core VM the real-time budget is measured on (``benchmarks/results/pinning.md``, three
     alternating rounds), the demo's loop pinned to one core had simulation p99 within 1.09–1.26 × p50 in every
     round of every scene, and met every budget in every round; on both cores its p50 was 1.2–1.6× lower but each
-    scene's worst round had p99 at 1.44–1.65 × p50, over 1.5 × for both two-beam rows (a program spread over both cores waits for the
-    slower one, and the VM's cores are slowed in turns by what runs beside it: no other process in the guest ran
-    during the slow calls)."""
+    scene's worst round had p99 at 1.44–1.65 × p50, over 1.5 × for both two-beam rows (a program spread over
+    both cores waits for the slower one, and the VM's cores are slowed in turns by what runs beside it: no other
+    process in the guest ran during the slow calls)."""
     if isinstance(n, bool) or not isinstance(n, (int, np.integer)) or n < 1:
         raise ValueError(f"n must be a positive integer, got {n!r}")
     if not hasattr(os, "sched_setaffinity"):
@@ -574,9 +574,23 @@ def pin_cores(n: int) -> tuple:
     for tid in os.listdir("/proc/self/task") if os.path.isdir("/proc/self/task") else ["0"]:
         try:
             os.sched_setaffinity(int(tid), cpus)
-        except (ProcessLookupError, PermissionError):   # a thread that ended meanwhile
+        except (ProcessLookupError, PermissionError):   # a thread that ended meanwhile, or one not ours to move
             pass
     return tuple(sorted(cpus))
+
+
+def real_time_cores(n: int) -> tuple:
+    """(pinned CPUs, devices): this process set up as ``tignn demo --cores n`` runs, pinned to ``n`` CPUs
+    (`pin_cores`) with one CPU device per core (`cpu_devices`). Both act only before JAX's first operation, so call
+    it first (after `real_time_xla_flags`, whose XLA_FLAGS the devices' backend reads when it starts). Where JAX has
+    already started (a notebook, a test), the process stays unpinned: a warning says so and pinned is ().
+    ``ValueError`` names a bad ``n``."""
+    try:
+        pinned = pin_cores(n)
+    except RuntimeError as e:
+        warnings.warn(f"not pinned: {e}", stacklevel=2)
+        pinned = ()
+    return pinned, cpu_devices(n)
 
 
 def cpu_devices(n: int) -> tuple:
