@@ -2,7 +2,7 @@
 
 Material constants are the paper's. Parameters the paper does not publish (density, damping, how the load
 varies inside a frame) are scene arguments; the defaults are the values identified against the Abaqus data
-(see `fem.identify` and benchmarks/results/abaqus_agreement.md).
+(see `fem.identify` and benchmarks/abaqus_agreement.py).
 """
 from __future__ import annotations
 
@@ -18,10 +18,10 @@ BEAM_FRAMES = 20
 BEAM_FORCE_STEP = 5000.0     # force per load node added each frame (reference data README)
 # Not published by the paper; identified by gradient descent through this FEM (fem.identify.identify_beam:
 # Adam in log space, lr 1.0, 5 iterations, train-split cases 3 and 11, frames 1–8, loss = mean relative L2 error
-# of u; history in benchmarks/results/beam_identification.json): the loss fell from 0.220 to 0.020 while the
+# of u; history in docs/research_log.md): the loss fell from 0.220 to 0.020 while the
 # Prony time scale grew from 1 to 20.8 (τ = 4.2, 10.4) with its gradient still pointing up — the Abaqus data show
 # no relaxation within the run. Taking that limit (Prony terms off) on the test split gives u 1.4 %, v 0.9 %,
-# σ 5.3 % against 3.2 %, 6.8 %, 5.6 % at s = 20.8 (benchmarks/results/abaqus_agreement*.md), so the reference
+# σ 5.3 % against 3.2 %, 6.8 %, 5.6 % at s = 20.8 (benchmarks/abaqus_agreement.py), so the reference
 # scene runs without the Prony terms by default; prony=True restores them (tau_scale=1: the paper's τ).
 BEAM_DENSITY = 7.135e-3
 BEAM_DAMPING = 18.17

@@ -273,7 +273,7 @@ def simulate_batch(problem: Problem, material: Material, loads: Loads) -> Result
 
     One call uses one CPU core for the sub-steps; to use several, split the cases over processes (as
     ``tignn generate --worker K/N`` does). Splitting them over host devices with `jax.shard_map` in one process
-    hung in the XLA CPU runtime here (jax 0.10.2; notes in benchmarks/results/fem_throughput.md).
+    hung in the XLA CPU runtime here (jax 0.10.2; see benchmarks/fem_throughput.py).
     """
     _validate_loads(problem, loads, batched=True)
     if all(a is None for a in loads):

@@ -1,11 +1,11 @@
-"""Software rasteriser and surface extraction, against brute-force and geometric answers."""
-import os
+"""Software rasteriser and surface extraction (`tignn_jax.mr`), against brute-force and geometric answers; the
+scene loop."""
 
 import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from tignn_jax.render import draw_mesh, fragment_capacity, rasterize, surface_nodes, surface_triangles
+from tignn_jax.mr import draw_mesh, fragment_capacity, rasterize, surface_nodes, surface_triangles
 
 W, H = 64, 48
 
@@ -146,7 +146,7 @@ def test_surface_triangles_rejects_other_cells():
 
 import jax  # noqa: E402
 
-from tignn_jax import ar, scene as sc  # noqa: E402
+from tignn_jax import mr  # noqa: E402
 
 
 def _spring_mass_step(q0, cells, clamped, k=40.0, damping=0.2, dt=0.05, mass=1.0):
@@ -177,16 +177,16 @@ def _demo_scene(frames=10, width=160, height=120):
     points, cells = _box_hex(4, 2, 2)
     clamped = points[:, 0] == 0.0
     tris = surface_triangles(cells, points)
-    model = ar.model_matrix([-0.04, 0.0, -0.02], np.eye(3), 0.02)       # 8 x 4 x 4 cm on the table
-    view = np.asarray(ar.look_at([0.02, 0.15, 0.22], [0.0, 0.02, 0.0], [0.0, 1.0, 0.0]))
-    cam = sc.Camera(fx=150.0, fy=150.0, cx=width / 2, cy=height / 2, width=width, height=height, near=0.02,
+    model = mr.model_matrix([-0.04, 0.0, -0.02], np.eye(3), 0.02)       # 8 x 4 x 4 cm on the table
+    view = np.asarray(mr.look_at([0.02, 0.15, 0.22], [0.0, 0.02, 0.0], [0.0, 1.0, 0.0]))
+    cam = mr.Camera(fx=150.0, fy=150.0, cx=width / 2, cy=height / 2, width=width, height=height, near=0.02,
                     far=3.0, view=view)
     z0 = np.concatenate([points, np.zeros((len(points), 9))], axis=1).astype(np.float32)
-    top_end = np.asarray(ar.transform_points(model, jnp.array([[4.0, 2.0, 1.0]])))[0]
-    body = sc.Body(q0=points, triangles=tris, model=np.asarray(model), z=z0,
+    top_end = np.asarray(mr.transform_points(model, jnp.array([[4.0, 2.0, 1.0]])))[0]
+    body = mr.Body(q0=points, triangles=tris, model=np.asarray(model), z=z0,
                    step_fn=_spring_mass_step(points, cells, clamped), tip_radius=1.2, tip_force=3.0, vmax=5.0)
-    track = sc.press_track(cam, top_end, [0.0, 1.0, 0.0], frames)
-    return sc.Scene(bodies=(body,), camera=cam, background=sc.table_background(cam), track=track), top_end
+    track = mr.press_track(cam, top_end, [0.0, 1.0, 0.0], frames)
+    return mr.Scene(bodies=(body,), camera=cam, background=mr.table_background(cam), track=track), top_end
 
 
 def test_scene_loop_compiles_only_on_the_first_frame():
@@ -201,7 +201,7 @@ def test_scene_loop_compiles_only_on_the_first_frame():
     try:
         scene, _ = _demo_scene(frames=6)
         seen = []
-        sc.run(scene, write=lambda i, rgb: seen.append(len(compiles)))
+        mr.run(scene, write=lambda i, rgb: seen.append(len(compiles)))
     finally:
         jax.monitoring.unregister_event_duration_listener(listener)
     assert seen[0] > 0 and seen[-1] == seen[0]
@@ -211,7 +211,7 @@ def test_fingertip_press_pushes_the_body_down_and_frames_are_drawn():
     # A fingertip pressing the free end's top face bends the cantilever downwards (-y), and every frame shows it.
     scene, _ = _demo_scene(frames=10)
     frames = []
-    zs, timings = sc.run(scene, write=lambda i, rgb: frames.append(rgb))
+    zs, timings = mr.run(scene, write=lambda i, rgb: frames.append(rgb))
     q0 = scene.bodies[0].q0
     q = np.asarray(zs[0][:, :3])
     tip_nodes = q0[:, 0] == 4.0
@@ -229,8 +229,8 @@ def test_fused_simulation_frames_match_the_stages_run_one_by_one():
     # equal those of the separate forces and step stages applied frame by frame.
     scene, _ = _demo_scene(frames=8)
     scene = scene._replace(skip_rest=False, guard=lambda zs: ~jnp.all(jnp.isfinite(zs[0])))
-    zs, t = sc.run(scene)
-    forces_fn, step_fn, _, _ = sc.build(scene)
+    zs, t = mr.run(scene)
+    forces_fn, step_fn, _, _ = mr.build(scene)
     ref = (jnp.asarray(scene.bodies[0].z, jnp.float32),)
     for tips in scene.track:
         ref = step_fn(ref, forces_fn(ref, tips))
@@ -252,18 +252,17 @@ def test_bodies_on_their_own_devices_step_as_in_one_program():
     script = textwrap.dedent("""
         import sys
         import numpy as np
-        from tignn_jax import scene as sc
-        devices = sc.cpu_devices(2)
+        from tignn_jax import mr
+        devices = mr.cpu_devices(2)
         assert len(devices) == 2, devices
         sys.path.insert(0, "tests")
         from test_render import _demo_scene
         scene, _ = _demo_scene(frames=6)
         b = scene.bodies[0]
-        from tignn_jax import ar
-        beside = np.asarray(ar.model_matrix([-0.04, 0.0, 0.08], np.eye(3), 0.02))   # 10 cm further along z
+        beside = np.asarray(mr.model_matrix([-0.04, 0.0, 0.08], np.eye(3), 0.02))   # 10 cm further along z
         two = scene._replace(bodies=(b, b._replace(model=beside)))
-        serial, _ = sc.run(two)
-        parallel, t = sc.run(two._replace(devices=devices))
+        serial, _ = mr.run(two)
+        parallel, t = mr.run(two._replace(devices=devices))
         for a, c in zip(serial, parallel):
             np.testing.assert_allclose(np.asarray(a), np.asarray(c), rtol=1e-6, atol=1e-6)
         assert np.abs(np.asarray(parallel[0])[:, :3] - b.q0).max() > 1e-3   # the pressed body moved
@@ -275,8 +274,8 @@ def test_bodies_on_their_own_devices_step_as_in_one_program():
         good = b._replace(guard=finite)
         bad = b._replace(model=beside, step_fn=lambda z, f: z * jnp.nan, guard=finite)
         guarded = scene._replace(bodies=(good, bad), devices=devices, skip_rest=False)
-        fused, tf = sc.run(guarded)
-        staged, ts = sc.run(guarded._replace(fuse=False))
+        fused, tf = mr.run(guarded)
+        staged, ts = mr.run(guarded._replace(fuse=False))
         for a, c in zip(fused, staged):
             np.testing.assert_allclose(np.asarray(a), np.asarray(c), rtol=1e-6, atol=1e-6)
         np.testing.assert_array_equal(np.asarray(fused[1]), b.z)
@@ -291,17 +290,17 @@ def test_bodies_on_their_own_devices_step_as_in_one_program():
         # (+1 +2): the same states once caught up, one restart step fewer after frame 3
         for mode, after_four in (("same-frame", 6.0), ("next-frame", 5.0)):
             run = handed._replace(handover=mode)
-            fused, tf = sc.run(run)
-            staged, ts = sc.run(run._replace(fuse=False))
+            fused, tf = mr.run(run)
+            staged, ts = mr.run(run._replace(fuse=False))
             for a, c in zip(fused, staged):
                 np.testing.assert_allclose(np.asarray(a), np.asarray(c), rtol=1e-6, atol=1e-6)
             np.testing.assert_allclose(np.asarray(fused[1]), b.z + 10.0, rtol=1e-6)
             assert tf.guard_trips == ts.guard_trips == 2, (mode, tf.guard_trips, ts.guard_trips)
             assert tf.fused_frames == 5, (mode, tf.fused_frames)
-            short, _ = sc.run(run, frames=4)
+            short, _ = mr.run(run, frames=4)
             np.testing.assert_allclose(np.asarray(short[1]), b.z + after_four, rtol=1e-6)
         try:
-            sc.run(two._replace(devices=devices, step=lambda zs, fs: zs))
+            mr.run(two._replace(devices=devices, step=lambda zs, fs: zs))
         except ValueError as err:
             assert "devices" in str(err)
         else:
@@ -321,21 +320,21 @@ def test_track_json_lines_round_trip(tmp_path):
     path.write_text('{"frame": 0, "tips": [[320.5, 240.25, 0.41]]}\n'
                     '{"frame": 1, "tips": []}\n'
                     '{"frame": 2, "tips": [[1, 2, 0.5], [3, 4, 0.6]], "hand": "right"}\n')
-    track = sc.load_track(path, max_tips=3)
+    track = mr.load_track(path, max_tips=3)
     assert track.shape == (3, 3, 3)
     np.testing.assert_allclose(track[0, 0], [320.5, 240.25, 0.41], rtol=1e-6)
     assert np.isnan(track[1]).all() and np.isnan(track[0, 1:]).all()
-    sc.save_track(tmp_path / "again.jsonl", track)
-    np.testing.assert_array_equal(sc.load_track(tmp_path / "again.jsonl", max_tips=3), track)
+    mr.save_track(tmp_path / "again.jsonl", track)
+    np.testing.assert_array_equal(mr.load_track(tmp_path / "again.jsonl", max_tips=3), track)
 
 
 def test_press_track_fingertip_unprojects_onto_the_pressed_point():
     # At mid-track the fingertip is `press` inside the surface along -normal: unprojecting gives that point.
     scene, top_end = _demo_scene(frames=11)
     cam = scene.camera
-    vp = jnp.asarray(sc.camera_projection(cam) @ cam.view)
+    vp = jnp.asarray(mr.camera_projection(cam) @ cam.view)
     tip = scene.track[5]
-    world = ar.unproject(jnp.asarray(tip[:, :2]), jnp.asarray(tip[:, 2]), vp, (0.0, 0.0, cam.width, cam.height))
+    world = mr.unproject(jnp.asarray(tip[:, :2]), jnp.asarray(tip[:, 2]), vp, (0.0, 0.0, cam.width, cam.height))
     np.testing.assert_allclose(world[0], top_end - np.array([0.0, 0.01, 0.0]), atol=1e-5)
 
 
@@ -343,36 +342,16 @@ def test_scene_validation_names_the_bad_array():
     scene, _ = _demo_scene(frames=2)
     bad = scene._replace(bodies=(scene.bodies[0]._replace(z=np.zeros((3, 12))),))
     with pytest.raises(ValueError, match=r"bodies\[0\].z"):
-        sc.run(bad)
-
-
-def test_demo_command_writes_gif_and_timings_and_labels_the_stand_in(tmp_path):
-    # `tignn demo` end to end on a few frames; without a model it must say the motion is a stand-in.
-    import argparse
-    import json
-
-    from tignn_jax import commands_demo
-
-    parser = argparse.ArgumentParser()
-    commands_demo.register(parser.add_subparsers())
-    cpus = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else 1   # all: this process unpinned
-    args = parser.parse_args(["demo", "--scene", "two-beams", "--frames", "3", "--stand-in", "--cores", str(cpus),
-                              "--out", str(tmp_path)])
-    assert args.func(args) == 0
-    gif = tmp_path / "two-beams_STAND-IN.gif"
-    summary = json.loads((tmp_path / "two-beams_STAND-IN_timings.json").read_text())
-    assert gif.stat().st_size > 0
-    assert summary["dynamics"].startswith("STAND-IN") and summary["frames"] == 2
-    assert {"p50_ms", "p99_ms"} <= set(summary["render"])
+        mr.run(bad)
 
 
 def _box_view():
     points, cells = _box_hex(4, 2, 2)
     tris = surface_triangles(cells, points)
-    model = ar.model_matrix([-0.04, 0.0, -0.02], np.eye(3), 0.02)
-    world = ar.transform_points(model, jnp.asarray(points, jnp.float32))
-    view = ar.look_at([0.05, 0.12, 0.2], [0.0, 0.02, 0.0], [0.0, 1.0, 0.0])
-    vp = ar.perspective(np.deg2rad(50.0), W / H, 0.02, 2.0) @ view
+    model = mr.model_matrix([-0.04, 0.0, -0.02], np.eye(3), 0.02)
+    world = mr.transform_points(model, jnp.asarray(points, jnp.float32))
+    view = mr.look_at([0.05, 0.12, 0.2], [0.0, 0.02, 0.0], [0.0, 1.0, 0.0])
+    vp = mr.perspective(np.deg2rad(50.0), W / H, 0.02, 2.0) @ view
     return points, tris, model, world, vp
 
 
@@ -386,13 +365,13 @@ def test_fingertip_at_a_rendered_nodes_pixel_and_depth_lands_on_the_node():
                                          capacity=131072))(world)
     assert not bool(raster.overflow)
     viewport = (0.0, 0.0, width, height)
-    pixels, depth = ar.project(world, vp, viewport)
+    pixels, depth = mr.project(world, vp, viewport)
     node = int(np.flatnonzero(np.all(points == [2.0, 2.0, 1.0], axis=1))[0])  # centre of the top face, seen from above
     i, j = np.floor(np.asarray(pixels[node])).astype(int)
     seen = float(raster.depth[j, i])
     footprint = 3 * float(depth[node]) * 2 * np.tan(np.deg2rad(25.0)) / height   # 3 pixels, in metres
     assert abs(seen - float(depth[node])) < footprint
-    tip = ar.unproject(jnp.array([[i + 0.5, j + 0.5]]), jnp.array([seen]), vp, viewport)
+    tip = mr.unproject(jnp.array([[i + 0.5, j + 0.5]]), jnp.array([seen]), vp, viewport)
     assert float(jnp.linalg.norm(tip[0] - world[node])) < footprint
 
 
@@ -404,8 +383,8 @@ def test_virtual_body_behind_a_real_wall_is_not_drawn():
     real_rgb = jnp.zeros((H, W, 3))
     drawn = np.isfinite(np.asarray(raster.depth))
     assert drawn.sum() > 50
-    hidden = ar.occlude(raster.rgb, raster.depth, real_rgb, jnp.full((H, W), 0.05))   # wall at 5 cm
-    shown = ar.occlude(raster.rgb, raster.depth, real_rgb, jnp.full((H, W), 1.5))     # wall at 1.5 m
+    hidden = mr.occlude(raster.rgb, raster.depth, real_rgb, jnp.full((H, W), 0.05))   # wall at 5 cm
+    shown = mr.occlude(raster.rgb, raster.depth, real_rgb, jnp.full((H, W), 1.5))     # wall at 1.5 m
     assert float(jnp.abs(hidden).max()) == 0.0
     np.testing.assert_array_equal(np.asarray(shown)[drawn], np.asarray(raster.rgb)[drawn])
 
@@ -417,21 +396,21 @@ def test_untouched_bodies_at_rest_are_not_stepped():
     away = np.full_like(scene.track, np.nan)               # no fingertip at all
     body = scene.bodies[0]
     drifting = body._replace(step_fn=lambda z, f: body.step_fn(z, f) + 1e-3)   # a step that never rests
-    zs, _ = sc.run(scene._replace(track=away, bodies=(drifting,)))
+    zs, _ = mr.run(scene._replace(track=away, bodies=(drifting,)))
     np.testing.assert_array_equal(np.asarray(zs[0]), body.z)
-    zs_all, _ = sc.run(scene._replace(track=away, bodies=(drifting,), skip_rest=False))
+    zs_all, _ = mr.run(scene._replace(track=away, bodies=(drifting,), skip_rest=False))
     assert np.abs(np.asarray(zs_all[0]) - body.z).max() > 1e-3   # without the skip it would have stepped
-    zs_press, _ = sc.run(scene)                             # the press touches it: it moves
+    zs_press, _ = mr.run(scene)                             # the press touches it: it moves
     assert np.abs(np.asarray(zs_press[0])[:, :3] - body.q0).max() > 1e-3
 
 
 def test_colour_by_displacement_draws_without_stress():
     scene, _ = _demo_scene(frames=3)
     frames = []
-    sc.run(scene._replace(colour_by="displacement"), write=lambda i, rgb: frames.append(rgb))
+    mr.run(scene._replace(colour_by="displacement"), write=lambda i, rgb: frames.append(rgb))
     assert len(frames) == 3 and frames[-1].shape == (120, 160, 3)
     with pytest.raises(ValueError, match="colour_by"):
-        sc.run(scene._replace(colour_by="temperature"))
+        mr.run(scene._replace(colour_by="temperature"))
 
 
 def test_guard_resets_bodies_whose_state_goes_bad():
@@ -439,7 +418,7 @@ def test_guard_resets_bodies_whose_state_goes_bad():
     scene, _ = _demo_scene(frames=6)
     body = scene.bodies[0]
     bad = body._replace(step_fn=lambda z, f: z * jnp.nan)
-    zs, t = sc.run(scene._replace(bodies=(bad,), guard=lambda zs: ~jnp.all(jnp.isfinite(zs[0]))))
+    zs, t = mr.run(scene._replace(bodies=(bad,), guard=lambda zs: ~jnp.all(jnp.isfinite(zs[0]))))
     np.testing.assert_array_equal(np.asarray(zs[0]), body.z)
     assert t.guard_trips > 0 and t.summary()["guard_trips"] == t.guard_trips
 
@@ -451,19 +430,19 @@ def test_guard_with_one_flag_per_body_resets_only_the_flagged_body():
     body = scene.bodies[0]
     bad = body._replace(step_fn=lambda z, f: z * jnp.nan)
     guard = lambda zs: jnp.stack([~jnp.all(jnp.isfinite(z)) for z in zs])
-    zs, t = sc.run(scene._replace(bodies=(body, bad), guard=guard))
+    zs, t = mr.run(scene._replace(bodies=(body, bad), guard=guard))
     np.testing.assert_array_equal(np.asarray(zs[1]), body.z)
     assert np.abs(np.asarray(zs[0])[:, :3] - body.q0).max() > 1e-3    # the good body was pressed and moved
     assert t.guard_trips > 0
     # the same with each body's own guard (Body.guard) instead of one over all bodies; both at once is refused
     finite = lambda z: ~jnp.all(jnp.isfinite(z))
     own = scene._replace(bodies=(body._replace(guard=finite), bad._replace(guard=finite)))
-    zs_own, t_own = sc.run(own)
+    zs_own, t_own = mr.run(own)
     for a, c in zip(zs, zs_own):
         np.testing.assert_array_equal(np.asarray(a), np.asarray(c))
     assert t_own.guard_trips == t.guard_trips
     with pytest.raises(ValueError, match="not both"):
-        sc.run(own._replace(guard=guard))
+        mr.run(own._replace(guard=guard))
 
 
 def test_one_program_per_frame_runs_a_held_body_on_its_fallback_alone():
@@ -482,9 +461,9 @@ def test_one_program_per_frame_runs_a_held_body_on_its_fallback_alone():
     fb = jax.jit(lambda z, f, restart: z + jnp.where(restart, 1.0, 2.0))
     handed = scene._replace(bodies=(body._replace(guard=finite), body._replace(step_fn=bad_step, guard=finite)),
                             skip_rest=False, fallback=(None, fb), fallback_hold=2)
-    fused, tf = sc.run(handed)
+    fused, tf = mr.run(handed)
     fused_calls, calls[:] = len(calls), []
-    staged, ts = sc.run(handed._replace(fuse=False))
+    staged, ts = mr.run(handed._replace(fuse=False))
     for a, c in zip(fused, staged):
         np.testing.assert_allclose(np.asarray(a), np.asarray(c), rtol=1e-6, atol=1e-6)
     # restart (+1) at frames 0 and 3, held (+2) at frames 1, 2, 4, 5
@@ -511,7 +490,7 @@ def test_guard_hands_flagged_bodies_to_their_fallback_for_the_hold():
     guard = lambda zs: jnp.stack([~jnp.all(jnp.isfinite(z)) for z in zs])
     hold = 2
     run = scene._replace(bodies=(bad, bad), guard=guard, fallback=(None, jax.jit(fallback)), fallback_hold=hold)
-    zs, t = sc.run(run, frames=7)
+    zs, t = mr.run(run, frames=7)
     np.testing.assert_array_equal(np.asarray(zs[0]), body.z)                      # reset
     z1 = np.asarray(zs[1])
     assert np.all(np.isfinite(z1))
@@ -530,9 +509,9 @@ def test_guard_hands_flagged_bodies_to_their_fallback_for_the_hold():
     by_class = t.summary(bodies=2)["simulation_by_class"]
     assert list(by_class) == ["hand-over"] and by_class["hand-over"]["frames"] == touched
     with pytest.raises(ValueError, match="fallback"):
-        sc.run(scene._replace(fallback=(None, None)))
+        mr.run(scene._replace(fallback=(None, None)))
     with pytest.raises(ValueError, match="fallback_hold"):
-        sc.run(scene._replace(fallback_hold=-1))
+        mr.run(scene._replace(fallback_hold=-1))
 
 
 def _resting_fallback_scene(bodies=1, frames=6):
@@ -543,7 +522,7 @@ def _resting_fallback_scene(bodies=1, frames=6):
     body = scene.bodies[0]
     finite = lambda z: ~jnp.all(jnp.isfinite(z))
     bad = body._replace(step_fn=lambda z, f: z * jnp.nan, guard=finite)
-    beside = np.asarray(ar.model_matrix([-0.04, 0.0, 0.08], np.eye(3), 0.02))
+    beside = np.asarray(mr.model_matrix([-0.04, 0.0, 0.08], np.eye(3), 0.02))
     fb = jax.jit(lambda z, f, restart: z.at[:, 3:6].add(f).at[:, 6].add(jnp.where(restart, 1.0, 2.0)))
     return scene._replace(bodies=(bad, bad._replace(model=beside))[:bodies], skip_rest=False,
                           fallback=(fb,) * bodies, fallback_hold=2)
@@ -556,26 +535,26 @@ def test_next_frame_handover_shows_the_previous_state_then_catches_up():
     # fingertip's forces of every frame in v.
     scene = _resting_fallback_scene()
     z0 = scene.bodies[0].z
-    same, ts = sc.run(scene, frames=6)
-    later, tn = sc.run(scene._replace(handover="next-frame"), frames=6)
+    same, ts = mr.run(scene, frames=6)
+    later, tn = mr.run(scene._replace(handover="next-frame"), frames=6)
     np.testing.assert_allclose(np.asarray(later[0]), np.asarray(same[0]), rtol=1e-6, atol=1e-6)
     np.testing.assert_allclose(np.asarray(later[0])[:, 6], z0[:, 6] + 10.0)   # 6 fallback steps, 2 restarted
     assert np.abs(np.asarray(later[0])[:, 3:6]).max() > 1e-3                   # the press reached v
     assert ts.guard_trips == tn.guard_trips == 2
     assert tn.handed.sum() == ts.handed.sum() == 1                             # frame 3 (frame 0 is warm-up)
     # after frame 3, the second trip: "same-frame" restarted the fallback there (+1), "next-frame" shows frame 2's
-    part_same, _ = sc.run(scene, frames=4)
-    part_later, _ = sc.run(scene._replace(handover="next-frame"), frames=4)
+    part_same, _ = mr.run(scene, frames=4)
+    part_later, _ = mr.run(scene._replace(handover="next-frame"), frames=4)
     np.testing.assert_allclose(np.asarray(part_same[0])[:, 6], z0[:, 6] + 6.0)
     np.testing.assert_allclose(np.asarray(part_later[0])[:, 6], z0[:, 6] + 5.0)
     # a hold of 0 still leaves the catch-up frame to the fallback; a body without one is reset at once
-    zero, tz = sc.run(scene._replace(handover="next-frame", fallback_hold=0), frames=6)
+    zero, tz = mr.run(scene._replace(handover="next-frame", fallback_hold=0), frames=6)
     np.testing.assert_allclose(np.asarray(zero[0])[:, 6], z0[:, 6] + 9.0)       # trips 0, 2, 4: 3 catch-ups
     assert tz.guard_trips == 3
-    reset, _ = sc.run(scene._replace(handover="next-frame", fallback=()), frames=3)
+    reset, _ = mr.run(scene._replace(handover="next-frame", fallback=()), frames=3)
     np.testing.assert_array_equal(np.asarray(reset[0]), z0)
     with pytest.raises(ValueError, match="handover"):
-        sc.run(scene._replace(handover="later"))
+        mr.run(scene._replace(handover="later"))
 
 
 def test_next_frame_handover_in_one_program_per_frame_matches_the_stages():
@@ -592,9 +571,9 @@ def test_next_frame_handover_in_one_program_per_frame_matches_the_stages():
     good, bad = scene.bodies
     good = good._replace(step_fn=_demo_scene()[0].bodies[0].step_fn)
     two = scene._replace(bodies=(good, bad._replace(step_fn=bad_step)), handover="next-frame")
-    fused, tf = sc.run(two)
+    fused, tf = mr.run(two)
     fused_calls, calls[:] = len(calls), []
-    staged, ts = sc.run(two._replace(fuse=False))
+    staged, ts = mr.run(two._replace(fuse=False))
     for a, c in zip(fused, staged):
         np.testing.assert_allclose(np.asarray(a), np.asarray(c), rtol=1e-6, atol=1e-6)
     np.testing.assert_allclose(np.asarray(fused[1])[:, 6], bad.z[:, 6] + 10.0)
@@ -605,7 +584,7 @@ def test_next_frame_handover_in_one_program_per_frame_matches_the_stages():
 
 def test_timings_split_the_learned_frames_by_what_the_bodies_did():
     ms = np.array([10.0, 11.0, 5.0, 6.0, 20.0, 1.0])
-    t = sc.Timings(forces=np.zeros(6), step=ms, render=ms, write=ms, frame=ms, reallocations=0,
+    t = mr.Timings(forces=np.zeros(6), step=ms, render=ms, write=ms, frame=ms, reallocations=0,
                    learned=np.array([1, 1, 1, 1, 1, 0], bool), learned_bodies=np.array([2, 2, 1, 1, 2, 0]),
                    handed=np.array([0, 0, 0, 0, 1, 0], bool))
     c = t.summary(bodies=2)["simulation_by_class"]
@@ -623,9 +602,9 @@ def test_loop_pauses_garbage_collection_and_restores_it():
     scene, _ = _demo_scene(frames=4)
     seen = []
     assert gc.isenabled()
-    zs, _ = sc.run(scene, write=lambda i, rgb: seen.append(gc.isenabled()))
+    zs, _ = mr.run(scene, write=lambda i, rgb: seen.append(gc.isenabled()))
     assert seen == [False] * 4 and gc.isenabled()
-    zs_on, _ = sc.run(scene, gc_pause=False, write=lambda i, rgb: seen.append(gc.isenabled()))
+    zs_on, _ = mr.run(scene, gc_pause=False, write=lambda i, rgb: seen.append(gc.isenabled()))
     assert seen[4:] == [True] * 4
     np.testing.assert_array_equal(np.asarray(zs[0]), np.asarray(zs_on[0]))
 
@@ -633,7 +612,7 @@ def test_loop_pauses_garbage_collection_and_restores_it():
         raise RuntimeError("writer failed")
 
     with pytest.raises(RuntimeError, match="writer failed"):
-        sc.run(scene, write=fail)
+        mr.run(scene, write=fail)
     assert gc.isenabled()
 
 
@@ -641,26 +620,25 @@ def test_real_time_xla_flags_add_the_loop_option_once_and_respect_the_user():
     # The real-time loop's XLA:CPU option (YNNPACK fusions off) is appended to XLA_FLAGS, after what is there,
     # once; a user's own choice of that option is left as it is.
     env = {"XLA_FLAGS": "--xla_force_host_platform_device_count=2"}
-    assert sc.real_time_xla_flags(env)
-    assert env["XLA_FLAGS"] == "--xla_force_host_platform_device_count=2 " + sc.REAL_TIME_XLA_FLAG
-    assert not sc.real_time_xla_flags(env) and env["XLA_FLAGS"].count("ynn_fusion_type") == 1
+    assert mr.real_time_xla_flags(env)
+    assert env["XLA_FLAGS"] == "--xla_force_host_platform_device_count=2 " + mr.REAL_TIME_XLA_FLAG
+    assert not mr.real_time_xla_flags(env) and env["XLA_FLAGS"].count("ynn_fusion_type") == 1
     empty = {}
-    assert sc.real_time_xla_flags(empty) and empty["XLA_FLAGS"] == sc.REAL_TIME_XLA_FLAG
+    assert mr.real_time_xla_flags(empty) and empty["XLA_FLAGS"] == mr.REAL_TIME_XLA_FLAG
     mine = {"XLA_FLAGS": "--xla_cpu_experimental_ynn_fusion_type=dot"}
-    assert not sc.real_time_xla_flags(mine) and mine["XLA_FLAGS"] == "--xla_cpu_experimental_ynn_fusion_type=dot"
+    assert not mr.real_time_xla_flags(mine) and mine["XLA_FLAGS"] == "--xla_cpu_experimental_ynn_fusion_type=dot"
 
 
 def test_demo_beams_are_the_learned_beam_and_a_press_moves_them_without_a_guard_trip():
     # the demo's default beams: the shipped `beam` (learned linear GENERIC), stepped raw; the pressed beam B goes
     # down (model z, the load axis; by about 2.5 at the deepest press of the 12-frame track, frame 6), the states
     # stay finite and nothing is reset
-    from tignn_jax import scene as sc
-    from tignn_jax.commands_demo import DEFAULT_MODELS, build_scene
+    from tignn_jax.cli.demo import DEFAULT_MODELS, build_scene
 
     assert DEFAULT_MODELS["beam"] == DEFAULT_MODELS["two-beams"] == "beam"
     scene, dynamics = build_scene("two-beams", 12)
     assert dynamics == "model beam"
-    zs, timings = sc.run(scene, frames=6)
+    zs, timings = mr.run(scene, frames=6)
     zs = [np.asarray(z) for z in zs]
     assert all(np.all(np.isfinite(z)) for z in zs)
     assert timings.guard_trips == 0

@@ -1,16 +1,30 @@
-"""tignn-jax: thermodynamics-informed graph neural networks (GENERIC) in JAX."""
-__version__ = "0.1.0"
+"""tignn-jax: thermodynamics-informed (GENERIC) simulators of deformable bodies, learned from a JAX FEM.
 
-_LAZY = {name: "tignn_jax.api" for name in
-         ("step", "rollout", "load_pretrained", "stepper", "force_check", "state_check", "state_guard",
-          "guarded_stepper", "fallback_stepper", "fallback_step", "consistency_bound",
-          "step_growth", "growth_terms", "network_is_zero")}
+The public API::
 
+    params, graph = tignn_jax.load_pretrained("beam")     # a model and the rest graph of its mesh
+    graph = tignn_jax.step(params, graph, forces)          # one frame under forces [N, 3]
+    states = tignn_jax.rollout(params, graph, forces_seq)  # [T + 1, N, 12]
 
-def __getattr__(name):
-    """``tignn_jax.step``, ``rollout``, ``load_pretrained`` and the other api functions import the model stack
-    only when first used."""
-    if name in _LAZY:
-        import importlib
-        return getattr(importlib.import_module(_LAZY[name]), name)
-    raise AttributeError(f"module 'tignn_jax' has no attribute {name!r}")
+Model classes (`tignn_jax.simulators`): `GenericGNN`, the paper's thermodynamics-informed graph network, and
+`LinearGeneric`, the learned linear GENERIC model. Training: `train`, with a recipe from ``configs/``.
+"""
+from tignn_jax.api import (load_model, load_pretrained, make_params, rest_graph, rollout, save_model,
+                           shipped_models, step, stepper)
+from tignn_jax.evaluate import evaluate
+from tignn_jax.guards import (fallback_step, fallback_stepper, force_check, guarded_stepper, state_check,
+                              state_guard)
+from tignn_jax.newton import fem_stepper
+from tignn_jax.simulators import GenericGNN, GNNConfig, LinearConfig, LinearGeneric
+from tignn_jax.train import train
+
+__version__ = "0.2.0"
+
+__all__ = [
+    "load_pretrained", "shipped_models", "load_model", "save_model", "make_params", "rest_graph",
+    "step", "rollout", "stepper",
+    "force_check", "state_check", "state_guard", "guarded_stepper", "fallback_step", "fallback_stepper",
+    "fem_stepper",
+    "GenericGNN", "GNNConfig", "LinearGeneric", "LinearConfig",
+    "train", "evaluate",
+]

@@ -1,4 +1,4 @@
-"""Rollout errors, degeneracy residuals and entropy production of a model on a data set.
+"""Rollout errors and structure diagnostics of a model on a data set.
 
 Error measure (as in ``shared/data/README.md``): per snapshot, the relative L2 error
 ``sqrt(Σ (pred − true)² / Σ true²)`` over the nodes (all nodes, or only free ones) and the variable's
@@ -8,7 +8,6 @@ first state and runs on the true forces; statistics are over snapshots 1..T (t =
 from __future__ import annotations
 
 import json
-from functools import partial
 from pathlib import Path
 
 import jax
@@ -17,7 +16,6 @@ import numpy as np
 
 from tignn_jax import api
 from tignn_jax import data as D
-from tignn_jax import model as M
 
 VARIABLES = ("q", "v", "sigma", "u")
 PUBLISHED_TEST = {"q": 4.14e-3, "v": 1.72e-2, "sigma": 9.51e-2, "u": 7.07e-2}
@@ -56,30 +54,27 @@ def relative_errors(pred, true, q0, mask=None, reference: str = "snapshot") -> n
 
 
 def rollout_cases(params: dict, data: D.Dataset, rows) -> np.ndarray:
-    """Predicted states [len(rows), T+1, N, 12] from each case's first state and forces."""
-    config = M.ModelConfig(**params["config"])
-    nt = jnp.asarray(data.node_type, jnp.int32)
-    topo = _topology(params, config, data)
-    return np.asarray(_rollout_many(params["weights"], config, params["norm"], jnp.asarray(data.z[rows, 0]),
-                                    jnp.asarray(data.f[rows]), nt, topo))
+    """Predicted states [len(rows), T+1, N, 12] of the cases ``rows`` from each case's first state and forces.
+
+    Raises:
+      ValueError: the data are on another mesh than the model.
+    """
+    check_mesh(params, data)
+    model, arrays, n = params["model"], params["arrays"], len(data.node_type)
+    return np.stack([np.asarray(api._rollout(model, n, arrays, jnp.asarray(data.z[r, 0]), jnp.asarray(data.f[r])))
+                     for r in np.atleast_1d(rows)])
 
 
-def _topology(params: dict, config: M.ModelConfig, data: D.Dataset):
-    """The model's own Topology when the data are on the model's mesh (same rest positions and edges), else one
-    built from the data's mesh: a coarse model's clustering (~0.4 s on the bunny) is not redone per call."""
-    mesh = params.get("mesh", {})
-    same = ("topo" in params and {"q0", "senders", "receivers", "node_type"} <= set(mesh)
-            and np.array_equal(mesh["q0"], np.asarray(data.q0, np.float32))   # the model stores float32
+def check_mesh(params: dict, data: D.Dataset) -> None:
+    """ValueError unless the data set's mesh (rest positions, edges, clamps) is the model's."""
+    mesh = params["mesh"]
+    same = (np.shape(mesh["q0"]) == np.shape(data.q0)
+            and np.allclose(mesh["q0"], data.q0, atol=1e-5 * max(np.abs(data.q0).max(), 1e-30))
             and np.array_equal(mesh["senders"], data.edges[0]) and np.array_equal(mesh["receivers"], data.edges[1])
             and np.array_equal(mesh["node_type"], data.node_type))
-    if same:
-        return params["topo"]
-    return M.model_topology(config, data.edges[0], data.edges[1], len(data.node_type), data.q0)
-
-
-@partial(jax.jit, static_argnames="config")
-def _rollout_many(weights, config, norm, z0, forces, node_type, topo):
-    return jax.vmap(lambda a, b: api.rollout_states(weights, config, norm, a, b, node_type, topo))(z0, forces)
+    if not same:
+        raise ValueError(f"the data ({len(data.q0)} nodes) are on another mesh than the model "
+                         f"({len(mesh['q0'])} nodes): nodes, edges or clamps differ")
 
 
 def split_errors(params: dict, data: D.Dataset, rows, pred=None) -> dict:
@@ -105,37 +100,38 @@ def summarize(errors: dict) -> dict:
 
 
 def structure_along_rollouts(params: dict, data: D.Dataset, rows, pred) -> dict:
-    """Degeneracy residuals and entropy production at every predicted state (frames 0..T-1).
-
-    Residuals are reported relative to the size of the step: ‖L∇S‖/‖dw‖ and ‖M∇E‖/‖dw‖ (whole graph); the
-    dissipated part ∇Sᵀ M ∇S is ≥ 0 by construction, and dS/dt·Δt = ∇Sᵀ dw is ≥ 0 when L∇S = 0."""
-    config = M.ModelConfig(**params["config"])
-    nt = jnp.asarray(data.node_type, jnp.int32)
-    topo = _topology(params, config, data)
-    res = np.asarray(_structure_many(params["weights"], config, params["norm"], jnp.asarray(pred[:, :-1]),
-                                     jnp.asarray(data.f[rows]), nt, topo))
-    names = ("deg_l_rel", "deg_m_rel", "entropy_rate", "dissipation")
-    out = {n: {"mean": float(res[..., i].mean()), "max": float(res[..., i].max()),
-               "min": float(res[..., i].min())} for i, n in enumerate(names)}
-    out["entropy_rate_negative_fraction"] = float(np.mean(res[..., 2] < 0))
+    """The model class's structure diagnostics (its ``diagnostics(arrays, z, f, z_next)``: e.g. the
+    degeneracy residuals and entropy production of a GENERIC network, the dissipation of a linear model) at every
+    predicted transition, as mean / max / min per quantity; {} for a class without diagnostics."""
+    model = params["model"]
+    if not hasattr(model, "diagnostics"):
+        return {}
+    one = jax.jit(jax.vmap(lambda z, f, zn: model.diagnostics(params["arrays"], z, f, zn)))
+    parts = [one(jnp.asarray(p[:-1]), jnp.asarray(data.f[r]), jnp.asarray(p[1:])) for p, r in zip(pred, rows)]
+    out = {}
+    for name in parts[0]:
+        x = np.stack([np.asarray(q[name]) for q in parts])
+        out[name] = {"mean": float(x.mean()), "max": float(x.max()), "min": float(x.min())}
     return out
 
 
-@partial(jax.jit, static_argnames="config")
-def _structure_many(weights, config, norm, states, forces, node_type, topo):
-    def one(z, f):
-        rt = M.rates(weights, config, norm, z, f, node_type, topo)
-        size = jnp.linalg.norm(rt.dw) + 1e-12
-        return jnp.stack([jnp.linalg.norm(rt.deg_l) / size, jnp.linalg.norm(rt.deg_m) / size,
-                          rt.entropy_rate, rt.dissipation])
-
-    # cases one after another (lax.map), frames vectorised: the per-node 12x12 operators and the second-order
-    # passes of every state at once need ~0.5 GB per bunny case (71 cases: 35 GB, out of memory)
-    return jax.lax.map(lambda sf: jax.vmap(one)(*sf), (states, forces))
-
-
 def evaluate(params: dict, data: D.Dataset, splits=("train", "val", "test"), structure: bool = True) -> dict:
-    """Errors (and structure diagnostics) per split; returns a JSON-ready dict and the raw error arrays."""
+    """Rollout errors (and the model's structure diagnostics) per split of a data set.
+
+    Args:
+      params: a model.
+      data: a `tignn_jax.data.Dataset` on the model's mesh.
+      splits: split names of the data set.
+      structure: also the model class's diagnostics along the predicted rollouts.
+
+    Returns:
+      (report, raw): a JSON-ready dict per split (`summarize`: mean, median and per-step mean of the relative L2
+      errors of q, v, σ and u over all nodes, free nodes and relative to the case's peak), and the raw error
+      arrays [cases, T, 4] per split and node set.
+
+    Raises:
+      ValueError: the data are on another mesh, or a split is unknown.
+    """
     report, raw = {}, {}
     for split in splits:
         rows = D.split_rows(data, split)

@@ -1,13 +1,12 @@
 """The FEM's own frame step, cheap enough to hand a body to: a fixed number of Newton iterations of backward
 Euler, each solved by a few conjugate-gradient iterations preconditioned with the rest operator turned with the body.
 
-The rest-linearised step (`framesolve`, the model ``beam-linear``) is unconditionally stable and costs one dense
-product, but for a nearly incompressible body its linear pressure (2/D1)·div u is wrong at second order in the
-rotation: a beam turned rigidly by 0.1 rad is pressed by −2·10⁵ where it is unstressed
-(`benchmarks/results/prior_jump.md`), and on the beam's fingertip cases it errs u 0.008–0.077 and σ 0.024–0.32
-relative to each case's peak. Keeping the FEM's exact internal force f_int(u) and stress σ(u) but stepping with
-the rest tangent is unstable (finite on 3 of 23 held-out cases, `rest_tangent.md`): once an element rotates,
-its stiff volumetric modes act along directions the rest solve does not hold implicitly.
+The rest-linearised step (`tignn_jax.simulators.linear` with the FEM's operators, the model ``beam-linear``) is
+unconditionally stable and costs one dense product, but for a nearly incompressible body its linear pressure
+(2/D1)·div u is wrong at second order in the rotation: a rigidly turned body is pressed where it is unstressed.
+Keeping the FEM's exact internal force f_int(u) and stress σ(u) but stepping with the rest tangent is unstable
+(see docs/research_log.md): once an element rotates, its stiff volumetric modes act along directions the rest
+solve does not hold implicitly.
 
 Backward Euler with step h, lumped mass M and mass damping α, on the free degrees of freedom, for Δv = v' − v::
 
@@ -18,20 +17,16 @@ iterate ũ (applied matrix-free as Kᵀw by ``jax.vjp`` of f_int: K is symmetric
 co-rotation, 7e-4 apart on a random beam state, and the reverse pass costs a fifth of ``jax.linearize``'s forward
 one here, 0.5 against 3.1 ms per product), each solved by ``iterations`` conjugate-gradient
 iterations preconditioned with R A₀⁻¹ Rᵀ / h², where A₀ = (1 + αh) M / h² + K₀ is the rest operator (its dense
-inverse is the fallback model's ``fs_ainv``) and R block-diagonal with each node's rotation (`rotations`: the polar
+inverse is the linear model's A⁻¹) and R block-diagonal with each node's rotation (`rotations`: the polar
 factor of the node's least-squares deformation gradient). The iteration starts from v' = 0 (``predictor="zero"``,
 ũ = u) or from v' = v (``"velocity"``, ũ = u + h v). After a sudden load the velocity predictor overshoots and
 one Newton step from it diverges (a hex bar of the beam material: at a tip deflection of 1.5 % of its length,
 `tests/test_newton.py`); from v' = 0 it does not. A rigidly turned body is left at rest: f_int and σ vanish, so
 the residual does. The input state's σ is not read: the stress is the FEM's at the new displacement.
 
-On the beam's 23 held-out FEM cases (`benchmarks/results/rest_tangent_newton.md`, errors relative to each case's
-peak) the default, 2 Newton iterations of 3 CG each from v' = 0, is finite on all and reaches test u 1e-4–0.0056,
-σ 0.0060–0.036 (the rest-linearised step: u 0.0085–0.078, σ 0.024–0.32), at 15× the rest-linearised step's cost
-(27.6 against 1.83 ms per beam step on one core of this 2-core CPU, the other core busy): a fallback for a few
-frames, not a real-time step.
-
-Use it as `api.fallback_stepper(params, linear, step=newton.fallback_step(linear, scene))`.
+Accuracy and cost against the learned and rest-linearised steps: ``benchmarks/pareto.py``. Use it as the
+``step`` of `tignn_jax.guards.fallback_stepper`, or as a reference simulator (`fem_stepper`, ``tignn demo --model
+fem-newton``).
 """
 from __future__ import annotations
 
@@ -39,7 +34,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from . import framesolve as FS
+from tignn_jax.simulators import LinearGeneric
+from tignn_jax.simulators import linear as LG
 
 PREDICTORS = ("zero", "velocity")   # the Newton iteration starts from v' = 0 (u' = u) or v' = v (u' = u + h v)
 
@@ -71,10 +67,10 @@ def rotations(x0, senders, receivers, iterations: int = 6):
     return rotation
 
 
-def newton_cg(norm: dict, node_type, x0, force, stress, rotation, iterations: int = 3, newton: int = 2,
+def newton_cg(arrays: dict, node_type, x0, force, stress, rotation, iterations: int = 3, newton: int = 2,
               predictor: str = "zero"):
-    """``step(z [N,12], f [N,3]) -> z_next``, not jitted: the module's step on a ``frame_solve`` normalisation
-    ``norm`` (with its ``fs_ainv``, `framesolve.with_inverse`), the FEM's internal force ``force`` and nodal stress
+    """``step(z [N,12], f [N,3]) -> z_next``, not jitted: the module's step with a linear model's ``arrays``
+    (its A⁻¹ the preconditioner's, its masses, α and Δt the step's), the FEM's internal force ``force`` and nodal stress
     ``stress`` (u [N,3] → [N,3] / [N,6], `fem.implicit.force_and_stress`) and a nodal ``rotation`` (`rotations`).
     A converged or zero residual stops the CG updates without dividing 0 by 0 (the rest state is kept exactly)."""
     if not isinstance(iterations, (int, np.integer)) or iterations < 1:
@@ -83,11 +79,8 @@ def newton_cg(norm: dict, node_type, x0, force, stress, rotation, iterations: in
         raise ValueError(f"newton must be a positive integer, got {newton!r}")
     if predictor not in PREDICTORS:
         raise ValueError(f"predictor must be one of {PREDICTORS}, got {predictor!r}")
-    if "fs_ainv" not in norm:
-        raise ValueError("norm has no fs_ainv: build it with framesolve.with_inverse")
-    node_type, x0 = jnp.asarray(node_type), jnp.asarray(x0, jnp.float32)
-    h, alpha, free, m = FS._constants(norm, node_type, jnp.float32)
-    ainv = jnp.asarray(norm["fs_ainv"])
+    x0 = jnp.asarray(x0, jnp.float32)
+    h, alpha, free, m = LG._constants(arrays, jnp.float32)
 
     def step(z, f):
         u, v = (z[:, :3] - x0) * free, z[:, 3:6] * free
@@ -120,7 +113,7 @@ def newton_cg(norm: dict, node_type, x0, force, stress, rotation, iterations: in
 
         def prec(w):   # R A₀⁻¹ Rᵀ w / h² on the free degrees of freedom
             back = jnp.einsum("nji,nj->ni", rot, w * free)
-            return jnp.einsum("nij,nj->ni", rot, (ainv @ back.reshape(-1)).reshape(-1, 3)) * free / h ** 2
+            return jnp.einsum("nij,nj->ni", rot, LG.apply_ainv(arrays, back.reshape(-1)).reshape(-1, 3)) * free / h ** 2
 
         dv = jnp.zeros_like(v) if predictor == "velocity" else -v   # start from v' = v, or from v' = 0
         for _ in range(int(newton)):
@@ -132,19 +125,26 @@ def newton_cg(norm: dict, node_type, x0, force, stress, rotation, iterations: in
 
 
 def fallback_step(fallback: dict, scene, iterations: int = 3, newton: int = 2, predictor: str = "zero"):
-    """The module's step (``newton`` Newton iterations of ``iterations`` CG each from ``predictor``), jitted, for a
-    rest-linearised model ``fallback`` (``frame_solve`` + ``linear_prior``, e.g. ``load_pretrained("beam-linear")``,
-    built by `framesolve.linear_model`) and the FEM scene it was built from (`fem.scenes.Scene`; its damping is taken from ``fallback``'s ``info["fem_damping"]`` where recorded):
-    ``fn(z [N,12], f [N,3]) -> z_next``. ValueError where the scene's mesh, clamps, damping or frame step are not
-    the fallback's, or the scene is not elastic (`fem.implicit.check_scope`)."""
+    """The module's step (``newton`` Newton iterations of ``iterations`` CG each from ``predictor``), jitted.
+
+    Args:
+      fallback: the rest-linearised linear model of the scene (e.g. ``load_pretrained("beam-linear")``): its A⁻¹
+        preconditions the CG iterations.
+      scene: the `fem.scenes.Scene` it was built from (its damping is taken from ``fallback``'s
+        ``info["fem_damping"]`` where recorded).
+
+    Returns:
+      ``fn(z [N,12], f [N,3]) -> z_next``.
+
+    Raises:
+      ValueError: the scene's mesh, clamps, damping or frame step are not the fallback's, or the scene is not
+        elastic (`fem.implicit.check_scope`).
+    """
     from fem import implicit, scenes
 
-    from . import api
-
-    config = api._config(fallback)
-    if not (config.frame_solve and config.linear_prior):
-        raise ValueError("fallback must be a rest-linearised model (frame_solve and linear_prior, e.g. "
-                         f"'beam-linear'), got frame_solve={config.frame_solve}, linear_prior={config.linear_prior}")
+    if not isinstance(fallback["model"], LinearGeneric):
+        raise ValueError(f"fallback must be a linear model (e.g. 'beam-linear'), got a {fallback['model'].name!r} "
+                         "model")
     mesh, info = fallback["mesh"], fallback.get("info", {})
     q0 = np.asarray(mesh["q0"], np.float32)
     if q0.shape != scene.points.shape or not np.allclose(q0, scene.points, atol=1e-4 * np.abs(q0).max()):
@@ -154,20 +154,18 @@ def fallback_step(fallback: dict, scene, iterations: int = 3, newton: int = 2, p
         raise ValueError(f"the fallback clamps other nodes than the {scene.name} scene")
     if "fem_damping" in info:
         scene = scene._replace(damping=float(info["fem_damping"]))
-    norm = FS.with_inverse(fallback["norm"], node_type)
-    dt = float(np.asarray(norm["dt"]).reshape(-1)[0])
+    arrays = fallback["arrays"]
+    dt = float(np.asarray(arrays["dt"]).reshape(-1)[0])
     if not np.isclose(dt, scene.frame_dt, rtol=1e-6):
         raise ValueError(f"the fallback steps dt = {dt}, the {scene.name} scene's frame is {scene.frame_dt}")
     problem = scenes.setup_scene(scene._replace(n_frames=1))
-    alpha = float(np.asarray(norm["fs_alpha"]).reshape(-1)[0])
+    alpha = float(np.asarray(arrays["alpha"]).reshape(-1)[0])
     if not np.isclose(alpha, float(problem.arrays.damping_alpha), rtol=1e-4):
         raise ValueError(f"the fallback's mass damping α = {alpha} is not the scene's "
                          f"{float(problem.arrays.damping_alpha)}")
     force, stress = implicit.force_and_stress(problem, scene.material)
     rotation = rotations(q0, mesh["senders"], mesh["receivers"])
-    norm = {k: jnp.asarray(v) for k, v in norm.items()}
-    return jax.jit(newton_cg(norm, node_type, q0, force, stress, rotation, iterations, newton, predictor))
-
+    return jax.jit(newton_cg(arrays, node_type, q0, force, stress, rotation, iterations, newton, predictor))
 
 
 def fem_scene(fallback: dict):

@@ -1,0 +1,167 @@
+"""The public API, as a user calls it: names, promises, errors."""
+import ast
+import inspect
+from pathlib import Path
+
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import tignn_jax as T
+from tignn_jax import graph as G
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+@pytest.fixture(scope="module")
+def beam():
+    return T.load_pretrained("beam")
+
+
+def tip_forces(params, scale=1.0):
+    q0 = params["mesh"]["q0"]
+    f = np.zeros((len(q0), 3), np.float32)
+    f[q0[:, 0] > q0[:, 0].max() - 1e-3, 2] = -scale * float(params["envelope"]["f_max"][0])
+    return f
+
+
+def test_public_names_are_listed_and_documented():
+    assert len(T.__all__) == len(set(T.__all__)) and 15 <= len(T.__all__) <= 25
+    for name in T.__all__:
+        obj = getattr(T, name)
+        doc = inspect.getdoc(obj) or ""
+        assert len(doc) > 40, f"{name} has no real docstring"
+        if inspect.isfunction(obj) and len(inspect.signature(obj).parameters) > 1:
+            assert "Args:" in doc or "Returns" in doc or "``fn(" in doc, f"{name}: no Args/Returns"
+
+
+def test_default_model_is_the_demos_beam():
+    params, graph = T.load_pretrained()
+    assert isinstance(params["model"], T.LinearGeneric)
+    assert graph.nodes["z"].shape == (756, 12)
+
+
+def test_step_rollout_and_stepper_give_the_same_states(beam):
+    params, graph = beam
+    f = tip_forces(params)
+    fn = T.stepper(params)
+    z, g = graph.nodes["z"], graph
+    for _ in range(3):
+        z, g = fn(z, jnp.asarray(f)), T.step(params, g, f)
+    states = T.rollout(params, graph, np.stack([f] * 3))
+    assert np.array_equal(np.asarray(z), np.asarray(g.nodes["z"]))
+    assert np.allclose(np.asarray(states[-1]), np.asarray(z), rtol=0, atol=1e-5 * float(np.abs(z).max()))
+    assert float(np.abs(np.asarray(z)[:, :3] - params["mesh"]["q0"]).max()) > 0.05   # it moved
+
+
+def test_several_bodies_step_each_as_alone(beam):
+    params, graph = beam
+    f = tip_forces(params)
+    two = G.batch([graph, graph])
+    out = np.asarray(T.step(params, two, np.concatenate([f, 0.5 * f])).nodes["z"])
+    one = np.asarray(T.step(params, graph, f).nodes["z"])
+    half = np.asarray(T.step(params, graph, 0.5 * f).nodes["z"])
+    assert np.allclose(out[:756], one, atol=1e-5) and np.allclose(out[756:], half, atol=1e-5)
+    fn = T.stepper(params, copies=2)
+    assert np.allclose(np.asarray(fn(two.nodes["z"], jnp.asarray(np.concatenate([f, 0.5 * f])))), out, atol=1e-6)
+
+
+def test_bad_input_is_named(beam):
+    params, graph = beam
+    with pytest.raises(ValueError, match=r"forces has shape \[756, 2\]"):
+        T.step(params, graph, np.zeros((756, 2)))
+    bad = np.zeros((756, 3))
+    bad[3, 1] = np.nan
+    with pytest.raises(ValueError, match="NaN"):
+        T.step(params, graph, bad)
+    with pytest.raises(ValueError, match=r"forces_seq has shape \[756, 3\]"):
+        T.rollout(params, graph, np.zeros((756, 3)))
+    other = G.from_state(np.zeros((10, 12)), np.array([[0, 1], [1, 0]]), np.zeros(10))
+    with pytest.raises(ValueError, match="756 nodes"):
+        T.step(params, other, np.zeros((10, 3)))
+    shuffled = graph._replace(senders=graph.receivers, receivers=graph.senders + 0)
+    shuffled = shuffled._replace(senders=jnp.roll(shuffled.senders, 1))
+    with pytest.raises(ValueError, match="edges of the model's mesh"):
+        T.step(params, shuffled, np.zeros((756, 3)))
+    with pytest.raises(ValueError, match="copies must be a positive integer, got 0"):
+        T.stepper(params, copies=0)
+    with pytest.raises(ValueError, match="stepper takes z"):
+        T.stepper(params)(jnp.zeros((10, 12)), jnp.zeros((10, 3)))
+    with pytest.raises(ValueError, match="no model named 'no-such-model'; shipped models"):
+        T.load_pretrained("no-such-model")
+
+
+def test_a_saved_model_loads_as_it_was(tmp_path, beam):
+    params, graph = beam
+    path = T.save_model(params, tmp_path / "m" / "model.npz", info={"note": "copy"})
+    again, g2 = T.load_pretrained(str(path.parent))
+    assert again["model"] == params["model"] and again["info"] == {"note": "copy"}
+    f = tip_forces(params)
+    assert np.array_equal(np.asarray(T.step(again, g2, f).nodes["z"]), np.asarray(T.step(params, graph, f).nodes["z"]))
+
+
+def test_a_file_that_is_no_model_is_refused(tmp_path):
+    np.savez(tmp_path / "x.npz", a=np.zeros(3))
+    with pytest.raises(ValueError, match="not a tignn-jax model file"):
+        T.load_model(tmp_path / "x.npz")
+
+
+def _imports(path: Path, package: str) -> set[str]:
+    """Modules of this project that a file imports anywhere (function-level imports included)."""
+    tree = ast.parse(path.read_text())
+    parts = path.relative_to(ROOT).with_suffix("").parts
+    out = set()
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Import):
+            out |= {a.name for a in node.names}
+        elif isinstance(node, ast.ImportFrom):
+            base = node.module or ""
+            if node.level:
+                pkg = parts[:-node.level] if parts[-1] != "__init__" else parts[:len(parts) - node.level + 1]
+                base = ".".join(pkg) + ("." + base if base else "")
+            out.add(base)
+            out |= {f"{base}.{a.name}" for a in node.names}
+    return {m for m in out if m.split(".")[0] in ("tignn_jax", "fem")}
+
+
+def _module_name(path: Path) -> str:
+    parts = path.relative_to(ROOT).with_suffix("").parts
+    return ".".join(parts[:-1] if parts[-1] == "__init__" else parts)
+
+
+def test_no_import_cycles_and_data_flows_from_fem_to_tignn_jax():
+    files = sorted((ROOT / "tignn_jax").rglob("*.py")) + sorted((ROOT / "fem").rglob("*.py"))
+    modules = {_module_name(p): p for p in files}
+    graph = {}
+    for name, path in modules.items():
+        deps = set()
+        for imp in _imports(path, name):
+            while imp and imp not in modules:
+                imp = imp.rpartition(".")[0]
+            if imp and imp != name and not name.startswith(imp + "."):   # a package's own __init__ is no cycle
+                deps.add(imp)
+        graph[name] = deps
+    assert not [m for m in graph if m.startswith("fem") and any(d.startswith("tignn_jax") for d in graph[m])]
+    state = {}
+
+    def visit(m, stack):
+        state[m] = "open"
+        for d in graph[m]:
+            if state.get(d) == "open":
+                raise AssertionError(f"import cycle: {' -> '.join(stack[stack.index(d):] + [d])}")
+            if d not in state:
+                visit(d, stack + [d])
+        state[m] = "done"
+
+    for m in graph:
+        if m not in state:
+            visit(m, [m])
+
+
+def test_library_docstrings_say_what_not_history():
+    # docstrings carry what and why; sessions, this machine's timings and result files belong to docs/ and
+    # benchmarks/results/
+    for path in sorted((ROOT / "tignn_jax").rglob("*.py")) + sorted((ROOT / "fem").rglob("*.py")):
+        text = path.read_text()
+        for word in ("session", "benchmarks/results", "lab_notes", "this machine", "this CPU", "this 2-core"):
+            assert word.lower() not in text.lower(), f"{path.relative_to(ROOT)} mentions {word!r}"

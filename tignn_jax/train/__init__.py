@@ -1,0 +1,62 @@
+"""Training: one trainer per model class, each with a `TrainConfig` that holds the class's own config.
+
+* `tignn_jax.train.gnn`: the GENERIC graph network (`tignn_jax.simulators.GenericGNN`), by teacher-forced
+  single steps with noise, Adam and a cosine schedule.
+* `tignn_jax.train.linear`: the linear GENERIC model (`tignn_jax.simulators.LinearGeneric`), by whole rollouts
+  through its backward-Euler solve.
+
+`tignn train --config FILE` runs either from a recipe in ``configs/`` (`load_recipe`).
+"""
+from __future__ import annotations
+
+import runpy
+from pathlib import Path
+
+TRAINERS = {"generic_gnn": "tignn_jax.train.gnn", "linear": "tignn_jax.train.linear"}
+
+
+def load_recipe(path: str | Path):
+    """The ``CONFIG`` of a recipe file (a Python file in ``configs/`` that defines ``CONFIG``, a `TrainConfig` of
+    one of the trainers) and the trainer module that runs it.
+
+    Raises:
+      ValueError: the file does not exist or defines no ``CONFIG`` of a known trainer.
+    """
+    import importlib
+
+    path = Path(path)
+    if not path.is_file():
+        raise ValueError(f"no recipe file {str(path)!r}")
+    config = runpy.run_path(str(path)).get("CONFIG")
+    for name in TRAINERS.values():
+        module = importlib.import_module(name)
+        if isinstance(config, module.TrainConfig):
+            return config, module
+    raise ValueError(f"{path} defines no CONFIG = <a TrainConfig of {sorted(TRAINERS.values())}>")
+
+
+def train(data, recipe, run_dir, progress: bool = True) -> dict:
+    """Train a model from a recipe and return it (the model written to ``run_dir``/model/model.npz).
+
+    Args:
+      data: a data file, or a list of data files on one mesh.
+      recipe: a recipe file (``configs/*.py``) or a `TrainConfig` of one of the trainers.
+      run_dir: folder for checkpoints, metrics and the model; a second call resumes.
+      progress: show progress bars.
+
+    Raises:
+      ValueError: an unknown recipe, or bad data.
+    """
+    import importlib
+
+    if isinstance(recipe, (str, Path)):
+        config, trainer = load_recipe(recipe)
+    else:
+        config, trainer = recipe, None
+        for name in TRAINERS.values():
+            module = importlib.import_module(name)
+            if isinstance(recipe, module.TrainConfig):
+                trainer = module
+        if trainer is None:
+            raise ValueError(f"recipe must be a recipe file or a TrainConfig, got {type(recipe).__name__}")
+    return trainer.run(data, config, run_dir, progress=progress)
