@@ -46,7 +46,7 @@ def beam(repeats: int) -> list:
     from fem import Loads, implicit, simulate, simulate_batch
     from fem import scenes as fs
     from tignn_jax import data as D
-    from tignn_jax import evaluate as EV
+    from tignn_jax import evaluation as EV
 
     path = D.reference_path()
     if not path.exists():

@@ -1,240 +1,170 @@
-"""Step time of the GENERIC graph network on the beam mesh (756 nodes, 3960 edges), CPU.
+"""What the public API's per-call checks cost: `tignn_jax.step` against `tignn_jax.stepper` and `rollout`.
 
-Measures, after compilation, the median of repeated jit-compiled calls of
-  * one inference step (forward + one reverse pass for ∇E and ∇S) for several sizes (hidden × passes);
-  * the same step written the straightforward way (edge list with scatter-add aggregation, edge MLP on the
-    concatenated [e, h_s, h_r], separate reverse passes for ∇E and ∇S) at the chosen size, for the ratio;
-  * one training step per sample (loss with ∇E, ∇S, degeneracy residuals; its gradient) for both layouts.
-Variants are measured round-robin in the same process so the shared machine's load hits all alike.
-Writes benchmarks/results/model_step.{json,md}.
+`tignn_jax.step(params, graph, forces)` checks every call (the graph is the model's mesh, the forces have the
+right shape and are finite) and then runs the model's compiled frame map; `tignn_jax.stepper(params, copies)`
+returns that same compiled program without the checks, for loops that hold the state as an array;
+`tignn_jax.rollout(params, graph, forces_seq)` checks once and runs T frames in one ``lax.scan``. The product
+requirement: the checks cost at most 10 % of a step, i.e. "checks overhead" = step / stepper − 1 ≤ 0.10.
 
-    python benchmarks/model_step.py [--repeats 50] [--sizes 16x2,24x3,32x4] [--chosen 24x3] [--model NAME]
+Rows: the shipped ``beam`` (one body, 756 nodes), two beams (a graph of 2 copies of the beam, 1512 nodes: `step`
+checks a batched graph's edges by value) and the shipped ``bunny`` (1330 nodes). For each row the state is the
+rest state advanced by 10 frames under a load at half the model's largest training force (``envelope["f_max"]``)
+on the free node farthest from the clamps; each call steps that state under that load (numpy float32 forces, as
+a real-time loop hands them over). Times: milliseconds per call after a compiling call, ``--repeats`` samples
+of each variant with the variants called in turn (`_machine.interleaved_ms`: a change of the machine's load hits
+all alike); reported are medians and 90th percentiles; the rollout's time is per frame (its call over T frames
+divided by T).
+
+Writes model_step.{json,md} to ``--out`` (default benchmarks/results).
+
+    python benchmarks/model_step.py [--repeats 200] [--rollout-frames 50] [--rows beam:1,beam:2,bunny:1]
+    python benchmarks/model_step.py --quick --out /tmp/model_step     # smoke run, ~30 s
 """
 from __future__ import annotations
 
 import argparse
-import os
-import platform
 import sys
-import time
 from pathlib import Path
 
-import flax.linen as nn
-import jax
-import jax.numpy as jnp
 import numpy as np
 
-from tignn_jax import data as D
-from tignn_jax import model as M
-from tignn_jax import train as T
-
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _machine import write_results  # noqa: E402
+from _machine import RESULTS_DIR, describe, interleaved_ms, write_results  # noqa: E402
 
-RESULTS = Path(__file__).resolve().parent / "results"
-
-
-class EdgeListNetwork(nn.Module):
-    """The same function as ``model.Network`` written the straightforward way: the edge MLP
-    (Dense, act, Dense) runs on every edge of an edge list on the concatenated [x_ij, h_s, h_r], and messages
-    are summed with a scatter-add (segment_sum)."""
-    config: M.ModelConfig
-
-    @nn.compact
-    def __call__(self, x_node, x_edge, senders, receivers):
-        c = self.config
-        hid, act = c.hidden, M.ACTIVATIONS[c.activation]
-        h = M.MLP(hid, hid, c.mlp_layers, c.activation)(x_node)
-        f = x_node[:, -3:]
-        n = x_node.shape[0]
-        k = 6
-        for _ in range(c.passes):
-            m = nn.Dense(hid)(act(nn.Dense(hid)(jnp.concatenate([x_edge, h[senders], h[receivers]], axis=1))))
-            msg = jax.ops.segment_sum(m, receivers, n) / k
-            h = h + M.MLP(hid, hid, c.mlp_layers, c.activation)(jnp.concatenate([h, msg, f], axis=1))
-        return M.MLP(hid, 2 + M.N_L + M.N_M, c.mlp_layers, c.activation, out_scale=0.1)(h)
+ROWS = "beam:1,beam:2,bunny:1"
+CHECKS_BUDGET = 0.10     # the checks may cost at most 10 % of a step
+WARM_FRAMES = 10         # frames from rest before the timed state
 
 
-def edge_list_features(norm, z, f, node_type, senders, receivers):
-    q, v, sigma = z[:, :3], z[:, 3:6], z[:, 6:]
-    mean, std = norm["z_mean"], norm["z_std"]
-    x_node = jnp.concatenate([(v - mean[3:6]) / std[3:6], (sigma - mean[6:]) / std[6:],
-                              jax.nn.one_hot(node_type, 2), f / norm["f_std"]], axis=1)
-    dq = q[senders] - q[receivers]
-    length = jnp.linalg.norm(dq, axis=1, keepdims=True)
-    dv = (v[senders] - v[receivers]) / norm["dv_std"]
-    grad = (dv[:, :, None] * (dq / norm["dqn_mean"])[:, None, :]).reshape(-1, 9)
-    return x_node, jnp.concatenate([dq / norm["dq_std"], (length - norm["dqn_mean"]) / norm["dqn_std"], dv, grad],
-                                   axis=1)
-
-
-def _embedding(strict: bool) -> jnp.ndarray:
-    """The entries → 12x12 matrix map as a 0/1 matrix [entries, 144] (the straightforward way: a matmul)."""
-    rows, cols = np.tril_indices(12, k=-1 if strict else 0)
-    e = np.zeros((len(rows), 144), np.float32)
-    e[np.arange(len(rows)), rows * 12 + cols] = 1.0
-    return jnp.asarray(e)
-
-
-def edge_list_rates(weights, config, norm, z, f, node_type, senders, receivers):
-    """Straightforward GENERIC increment: two separate reverse passes, dense L and M built per node."""
-    net = EdgeListNetwork(config)
-
-    def out(z_):
-        return net.apply({"params": weights}, *edge_list_features(norm, z_, f, node_type, senders, receivers),
-                         senders, receivers)
-
-    g_e = jax.grad(lambda z_: out(z_)[:, 0].sum())(z)
-    g_s = jax.grad(lambda z_: out(z_)[:, 1].sum())(z)
-    heads = out(z)
-    n = z.shape[0]
-    scale = M.state_scale(norm)
-    g_e, g_s = g_e * scale, g_s * scale
-    l_mat = (heads[:, 2:2 + M.N_L] @ _embedding(strict=True)).reshape(n, 12, 12)
-    m_mat = (heads[:, 2 + M.N_L:] @ _embedding(strict=False)).reshape(n, 12, 12)
-    big_l = l_mat - jnp.swapaxes(l_mat, 1, 2)
-    big_m = m_mat @ jnp.swapaxes(m_mat, 1, 2)
-    dw = jnp.einsum("nij,nj->ni", big_l, g_e) + jnp.einsum("nij,nj->ni", big_m, g_s)
-    clamped = (node_type != 0)[:, None] & (jnp.arange(12) < 6)[None, :]
-    dw = jnp.where(clamped, 0.0, dw)
-    return dw, jnp.einsum("nij,nj->ni", big_l, g_s), jnp.einsum("nij,nj->ni", big_m, g_e)
-
-
-def assembled_step(weights, config, norm, node_type, topo):
-    """A jit-compiled step of the shipped model with its edge features assembled per slot ([R,K,F] x_edge
-    times the first edge layer, as before the factored form): the same function, for the speed ratio."""
-    import contextlib
-
-    def network_out(weights_, config_, norm_, z, f, nt, topo_, split=False):
-        x_node, x_edge = M._features(norm_, z, f, nt, topo_, config_.edge_velocity, config_.edge_strain,
-                                     config_.node_position, edge_traction=config_.edge_traction)
-        es, heads = M.Network(config_).apply({"params": weights_}, x_node, x_edge, topo_,
-                                             M._coarse_inputs(config_, norm_, z, topo_))
-        return (es, heads) if split else jnp.concatenate([es, heads], axis=1)
-
-    @contextlib.contextmanager
-    def swapped():
-        saved, M._network_out = M._network_out, network_out
+def parse_rows(text: str) -> list:
+    """``"beam:1,beam:2,bunny"`` → [("beam", 1), ("beam", 2), ("bunny", 1)] (a shipped model name and the number
+    of bodies in the graph)."""
+    rows = []
+    for item in [s.strip() for s in text.split(",") if s.strip()]:
+        name, _, copies = item.partition(":")
         try:
-            yield
-        finally:
-            M._network_out = saved
+            k = int(copies or 1)
+        except ValueError:
+            raise SystemExit(f"--rows: {item!r} is not NAME[:COPIES]") from None
+        if k < 1:
+            raise SystemExit(f"--rows: the number of copies must be positive, got {item!r}")
+        rows.append((name, k))
+    if not rows:
+        raise SystemExit("--rows names no model")
+    return rows
 
-    fn = jax.jit(lambda z, f: M.step_state(weights, config, norm, z, f, node_type, topo))
 
-    def call(z, f):
-        with swapped():   # the swap matters while tracing (the first call); later calls reuse the trace
-            return fn(z, f)
-    return call
+def row_label(name: str, copies: int) -> str:
+    return name if copies == 1 else f"{copies} × {name}"
 
 
-def main(argv=None):
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--repeats", type=int, default=50)
-    parser.add_argument("--train-repeats", type=int, default=8)
-    parser.add_argument("--batch", type=int, default=8)
-    parser.add_argument("--sizes", default="16x2,16x3,24x3,24x4,32x3,32x4,48x4,50x10")
-    parser.add_argument("--chosen", default="24x3")
-    parser.add_argument("--model", default="beam-abaqus", help="shipped model for the public api.step timing")
-    args = parser.parse_args(argv)
+def load_of(params: dict, copies: int) -> np.ndarray:
+    """[copies·N, 3] float32: half the largest training force on each body's free node farthest from its clamped
+    nodes, pointing down (−z)."""
+    q0 = np.asarray(params["mesh"]["q0"], np.float64)
+    node_type = np.asarray(params["mesh"]["node_type"])
+    clamped = q0[node_type != 0] if np.any(node_type != 0) else q0.mean(0, keepdims=True)
+    dist = np.min(np.linalg.norm(q0[:, None] - clamped[None], axis=-1), axis=1)
+    dist[node_type != 0] = -1.0
+    f = np.zeros_like(q0, np.float32)
+    f[int(np.argmax(dist)), 2] = -0.5 * float(np.asarray(params["envelope"]["f_max"]).reshape(-1)[0])
+    return np.tile(f, (copies, 1))
 
-    d = D.load(D.reference_path())
-    rows = D.split_rows(d, "train")
-    norm = {k: jnp.asarray(v) for k, v in D.normalization(d, rows).items()}
-    nt = jnp.asarray(d.node_type, jnp.int32)
-    s, r = jnp.asarray(d.edges[0]), jnp.asarray(d.edges[1])
-    topo = M.topology(d.edges[0], d.edges[1], len(d.node_type), d.q0)
-    z, f = jnp.asarray(d.z[rows[0], 10]), jnp.asarray(d.f[rows[0], 10])
 
-    fns = {}
-    for spec in args.sizes.split(","):
-        h, p = map(int, spec.split("x"))
-        cfg = M.ModelConfig(hidden=h, passes=p)
-        w = M.init_weights(jax.random.PRNGKey(0), cfg, norm, z, f, nt, topo)
-        fn = jax.jit(lambda w, z, f, cfg=cfg: M.step_state(w, cfg, norm, z, f, nt, topo))
-        fns[f"slots {spec}"] = (fn, (w, z, f), M.count_params(w))
-    h, p = map(int, args.chosen.split("x"))
-    cfg = M.ModelConfig(hidden=h, passes=p)
-    x_node, x_edge = edge_list_features(norm, z, f, nt, s, r)
-    w_edge = EdgeListNetwork(cfg).init(jax.random.PRNGKey(0), x_node, x_edge, s, r)["params"]
-    fn = jax.jit(lambda w, z, f: z + edge_list_rates(w, cfg, norm, z, f, nt, s, r)[0] * M.state_scale(norm))
-    fns[f"edge-list {args.chosen}"] = (fn, (w_edge, z, f), M.count_params(w_edge))
+def variants(name: str, copies: int, frames: int) -> tuple:
+    """({"step", "stepper", "rollout"}: zero-argument calls, info) for one row."""
+    import jax.numpy as jnp
+    import tignn_jax
 
-    try:
-        from tignn_jax import api
-        from tignn_jax import graph as G
-        params, _ = api.load_pretrained(args.model)
-        graph = G.from_state(z, d.edges, d.node_type)
-        f_np = np.asarray(f)
-        fns[f"api.step {args.model} (validated)"] = (lambda p, g, fo: api.step(p, g, fo).nodes["z"],
-                                                      (params, graph, f_np), M.count_params(params["weights"]))
-    except ValueError as err:
-        print(f"no shipped model timed: {err}")
-    times = {k: [] for k in fns}
-    for fn, a, _ in fns.values():
-        jax.block_until_ready(fn(*a))
-    for _ in range(args.repeats):
-        for name, (fn, a, _) in fns.items():
-            t = time.perf_counter()
-            jax.block_until_ready(fn(*a))
-            times[name].append(time.perf_counter() - t)
+    params, _ = tignn_jax.load_pretrained(name)
+    graph = tignn_jax.rest_graph(params, copies)
+    forces = load_of(params, copies)
+    fast = tignn_jax.stepper(params, copies)
+    z = graph.nodes["z"]
+    for _ in range(WARM_FRAMES):
+        z = fast(z, forces)
+    graph = graph._replace(nodes={**graph.nodes, "z": z})
+    seq = np.repeat(forces[None], frames, axis=0)
+    fns = {"step": lambda: tignn_jax.step(params, graph, forces).nodes["z"],
+           "stepper": lambda: fast(z, forces),
+           "rollout": lambda: tignn_jax.rollout(params, graph, seq)}
+    # the three must compute the same frame (the same program)
+    a, b = np.asarray(fns["step"]()), np.asarray(fns["stepper"]())
+    c = np.asarray(fns["rollout"]()[1])
+    info = {"model": name, "copies": copies, "nodes": int(z.shape[0]), "class": params["model"].name,
+            "same_frame": bool(np.array_equal(a, b) and np.allclose(a, c, rtol=1e-5, atol=1e-5 * float(jnp.abs(z).max())))}
+    return fns, info
 
-    # training step per sample, both layouts, chosen size
-    b = args.batch
-    batch = T.Batch(jnp.asarray(d.z[rows[:b], 10]), jnp.asarray(d.f[rows[:b], 10]), jnp.asarray(d.z[rows[:b], 11]))
-    tcfg = T.TrainConfig(hidden=h, passes=p, batch_size=b)
-    w_slots = fns[f"slots {args.chosen}"][1][0]
-    slot_loss = jax.jit(jax.grad(lambda w: T.loss_fn(w, batch, jax.random.PRNGKey(0), norm, tcfg, nt, topo)[0]))
 
-    def edge_loss(w):
-        dw, dl, dm = jax.vmap(lambda z_, f_: edge_list_rates(w, cfg, norm, z_, f_, nt, s, r))(batch.z, batch.f)
-        target = (batch.z_next - batch.z) / M.state_scale(norm)
-        return jnp.mean((dw - target) ** 2) + jnp.mean(dl ** 2 + dm ** 2)
+def summarise(times: dict, frames: int) -> dict:
+    """Medians and 90th percentiles (ms) of one row's samples, the rollout's per frame, and the ratio."""
+    out = {}
+    for k, v in times.items():
+        v = np.asarray(v) / (frames if k == "rollout" else 1)
+        out[k] = {"p50_ms": float(np.median(v)), "p90_ms": float(np.percentile(v, 90)), "samples": len(v)}
+    ratio = out["step"]["p50_ms"] / out["stepper"]["p50_ms"]
+    out["step_over_stepper"] = ratio
+    out["checks_overhead"] = ratio - 1.0
+    out["checks_within_budget"] = bool(ratio - 1.0 <= CHECKS_BUDGET)
+    out["rollout_over_stepper"] = out["rollout"]["p50_ms"] / out["stepper"]["p50_ms"]
+    return out
 
-    edge_grad = jax.jit(jax.grad(edge_loss))
-    train = {"train slots": (slot_loss, w_slots), "train edge-list": (edge_grad, w_edge)}
-    ttimes = {k: [] for k in train}
-    for fn, w in train.values():
-        jax.block_until_ready(fn(w))
-    for _ in range(args.train_repeats):
-        for name, (fn, w) in train.items():
-            t = time.perf_counter()
-            jax.block_until_ready(fn(w))
-            ttimes[name].append((time.perf_counter() - t) / b)
 
-    ms = lambda x: float(np.median(x) * 1e3)
-    result = {
-        "machine": {"platform": platform.platform(), "processor": platform.processor() or platform.machine(),
-                    "cpus": os.cpu_count(), "jax": jax.__version__, "backend": jax.default_backend(),
-                    "load_avg_start": os.getloadavg()},
-        "graph": {"nodes": int(len(d.node_type)), "edges": int(d.edges.shape[1]), "slots": list(topo.nbr.shape)},
-        "step_ms": {k: {"p50": ms(v), "p90": float(np.percentile(v, 90) * 1e3), "params": fns[k][2]}
-                    for k, v in times.items()},
-        "train_ms_per_sample": {k: ms(v) for k, v in ttimes.items()},
-        "repeats": args.repeats, "train_batch": b,
-    }
-    base = result["step_ms"][f"edge-list {args.chosen}"]["p50"]
-    result["speedup_vs_edge_list"] = {
-        "step": base / result["step_ms"][f"slots {args.chosen}"]["p50"],
-        "train": result["train_ms_per_sample"]["train edge-list"] / result["train_ms_per_sample"]["train slots"]}
-    lines = ["# Model step time (beam, 756 nodes, 3960 edges)", "",
-             f"Machine: {result['machine']['processor']}, {result['machine']['cpus']} CPUs, jax "
-             f"{jax.__version__} ({jax.default_backend()}); load average at start "
-             f"{result['machine']['load_avg_start'][0]:.2f} (shared machine). Median of {args.repeats} calls "
-             "after compilation, variants interleaved.", "",
-             "| variant | params | step p50 (ms) | step p90 (ms) |", "|---|---|---|---|"]
-    for k, v in result["step_ms"].items():
-        lines.append(f"| {k} | {v['params']} | {v['p50']:.2f} | {v['p90']:.2f} |")
-    lines += ["", f"Training step (loss with ∇E, ∇S and degeneracy residuals, and its gradient), batch {b}, "
-              "per sample:", "", "| layout | ms per sample |", "|---|---|"]
-    for k, v in result["train_ms_per_sample"].items():
-        lines.append(f"| {k} | {v:.1f} |")
-    lines += ["", f"Speed-up of the slot layout (gather-only, fused first edge layer, one reverse pass for ∇E and "
-              f"∇S) over the straightforward edge-list version at {args.chosen}: step "
-              f"{result['speedup_vs_edge_list']['step']:.2f}×, training {result['speedup_vs_edge_list']['train']:.2f}×."]
-    write_results("model_step", result, "\n".join(lines) + "\n", RESULTS, echo=False)
-    print("\n".join(lines))
+def report(result: dict) -> str:
+    m = result["machine"]
+    lines = ["# The public API's cost: `step` (checked) against `stepper` (unchecked) and `rollout`", "",
+             f"Machine: {m['cpu']}, {m['cores']} cores, jax {m['jax']} ({m['backend']}); load average "
+             f"{m['load_average_1m']} at the start, {result['load_average_1m_end']} at the end (above {m['cores']}: "
+             f"other processes shared the CPU). Median (p90) of {result['repeats']} calls per variant after "
+             f"compilation, variants interleaved; rollout: one call over {result['rollout_frames']} frames, per frame."
+             + (" QUICK run (few repeats): indicative only." if result["quick"] else ""), "",
+             "| model | bodies | nodes | step ms | stepper ms | rollout ms / frame | step / stepper | checks overhead "
+             f"(≤ {CHECKS_BUDGET:.0%}) |", "|---|---|---|---|---|---|---|---|"]
+    for r in result["rows"]:
+        t = r["timing"]
+        cell = lambda k: f"{t[k]['p50_ms']:.3f} ({t[k]['p90_ms']:.3f})"
+        verdict = "met" if t["checks_within_budget"] else "**NOT met**"
+        lines.append(f"| {r['model']} | {r['copies']} | {r['nodes']} | {cell('step')} | {cell('stepper')} | "
+                     f"{cell('rollout')} | {t['step_over_stepper']:.3f} | {100 * t['checks_overhead']:+.1f} % "
+                     f"({verdict}) |")
+    lines += ["", "checks overhead = step / stepper − 1 (medians). `step` and `stepper` run the same compiled "
+              "program on the same state and forces; the difference is `step`'s checks (the graph's edges against the "
+              "model's mesh: by identity for the mesh's own one-body graph, by value for a batched one; the forces' "
+              "shape and finiteness) and wrapping the result in a graph. All three variants return the same frame: "
+              + ", ".join(f"{row_label(r['model'], r['copies'])} {'yes' if r['same_frame'] else 'NO'}"
+                          for r in result["rows"]) + "."]
+    return "\n".join(lines) + "\n"
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0],
+                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--repeats", type=int, default=200,
+                    help="timed calls per variant and row (default %(default)s; --quick: 20)")
+    ap.add_argument("--rollout-frames", type=int, default=50,
+                    help="frames of the timed rollout call (default %(default)s; --quick: 10)")
+    ap.add_argument("--rows", default=ROWS,
+                    help="shipped models and bodies per graph, NAME[:COPIES],... (default %(default)s)")
+    ap.add_argument("--quick", action="store_true", help="smoke run: 20 repeats, 10-frame rollouts")
+    ap.add_argument("--out", default=str(RESULTS_DIR), help="folder of model_step.{json,md} (default %(default)s)")
+    args = ap.parse_args(argv)
+    repeats = 20 if args.quick else args.repeats
+    frames = 10 if args.quick else args.rollout_frames
+    if repeats < 1 or frames < 1:
+        raise SystemExit("--repeats and --rollout-frames must be positive")
+    rows = parse_rows(args.rows)
+    machine = describe()
+    out_rows = []
+    for name, copies in rows:
+        print(f"timing {row_label(name, copies)} ...", flush=True)
+        fns, info = variants(name, copies, frames)
+        out_rows.append({**info, "timing": summarise(interleaved_ms(fns, repeats), frames)})
+    result = {"machine": machine, "repeats": repeats, "rollout_frames": frames, "quick": args.quick,
+              "checks_budget": CHECKS_BUDGET, "rows": out_rows,
+              "load_average_1m_end": describe()["load_average_1m"]}
+    write_results("model_step", result, report(result), Path(args.out))
+    return 0
 
 
 if __name__ == "__main__":
-    main()
+    raise SystemExit(main())

@@ -2,18 +2,15 @@
 small run writes its GIF, timings and fingertip track."""
 import json
 import os
+import subprocess
+import sys
+from pathlib import Path
 
 import pytest
 
 from tignn_jax import cli
 from tignn_jax.api import shipped_models
 from tignn_jax.cli import demo
-
-
-@pytest.fixture(autouse=True)
-def only_demo(monkeypatch):
-    # `tignn` with only the demo subcommand registered: these tests do not depend on the others' modules
-    monkeypatch.setattr(cli, "COMMANDS", ("tignn_jax.cli.demo",))
 
 
 def _all_cpus() -> str:
@@ -35,6 +32,16 @@ def test_bad_options_are_one_line_naming_the_value_and_exit_2(argv, names, tmp_p
     assert err.startswith("tignn demo: error: ")
     assert all(name in err for name in names), err
     assert not (tmp_path / "out").exists()   # refused before anything is written
+
+
+def test_the_tignn_process_exits_2_on_an_unknown_model_without_a_traceback(tmp_path):
+    done = subprocess.run([sys.executable, "-m", "tignn_jax.cli", "demo", "--model", "no-such-model", "--out",
+                           str(tmp_path)], capture_output=True, text=True, timeout=300,
+                          cwd=Path(__file__).resolve().parents[1])
+    assert done.returncode == 2
+    assert done.stderr.strip().splitlines() == [
+        f"tignn demo: error: --model 'no-such-model': no such model; shipped models: {', '.join(shipped_models())} "
+        "(or a model folder or .npz file, or 'fem-newton')"]
 
 
 def test_a_model_on_another_mesh_is_refused_in_one_line(tmp_path, capsys):

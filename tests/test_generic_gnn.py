@@ -11,6 +11,11 @@ from tignn_jax.simulators.generic_gnn import GenericGNN, GNNConfig
 from tignn_jax.train import gnn as T
 
 CONFIG = GNNConfig(hidden=8, mlp_layers=2, passes=2)
+# the model's methods compiled (the model static), as `tignn_jax.api` runs them
+step = jax.jit(GenericGNN.step_state, static_argnums=0)
+rates = jax.jit(GenericGNN.rates, static_argnums=0)
+operators = jax.jit(GenericGNN.operators, static_argnums=0)
+energy_entropy = jax.jit(GenericGNN.energy_entropy, static_argnums=0)
 
 
 @pytest.fixture(scope="module")
@@ -39,7 +44,7 @@ def _float64(tree):
 def test_L_is_skew_symmetric_and_M_symmetric_positive_semidefinite_at_random_states(toy):
     # GENERIC: L conserves energy (skew-symmetric), M dissipates (symmetric positive semi-definite), at every node.
     for seed in range(3):
-        big_l, big_m = toy["model"].operators(toy["arrays"], _random_state(toy, seed), toy["f"])
+        big_l, big_m = operators(toy["model"], toy["arrays"], _random_state(toy, seed), toy["f"])
         assert big_l.shape == big_m.shape == (len(toy["data"].q0), 12, 12)
         scale_l, scale_m = float(jnp.max(jnp.abs(big_l))), float(jnp.max(jnp.abs(big_m)))
         assert scale_l > 0 and scale_m > 0
@@ -54,14 +59,14 @@ def test_gradients_of_E_and_S_match_finite_differences(toy):
     with jax.enable_x64(True):
         arrays, z, f = _float64(toy["arrays"]), _float64(_random_state(toy, 7)), _float64(toy["f"])
         model = toy["model"]
-        rt = model.rates(arrays, z, f)
+        rt = rates(model, arrays, z, f)
         scale = GG.state_scale(arrays["norm"])
         rng = np.random.default_rng(0)
         for _ in range(3):
             unit = jnp.asarray(rng.normal(size=z.shape))          # a direction in w = z / s
             h = 1e-6
-            fd = (model.energy_entropy(arrays, z + h * unit * scale, f)
-                  - model.energy_entropy(arrays, z - h * unit * scale, f)) / (2 * h)
+            fd = (energy_entropy(model, arrays, z + h * unit * scale, f)
+                  - energy_entropy(model, arrays, z - h * unit * scale, f)) / (2 * h)
             analytic = jnp.stack([jnp.sum(rt.grad_e * unit), jnp.sum(rt.grad_s * unit)])
             np.testing.assert_allclose(np.asarray(analytic), np.asarray(fd), rtol=1e-6, atol=1e-9)
 
@@ -99,17 +104,17 @@ def test_rates_residuals_and_step_are_the_operators_times_the_gradients(toy):
     # The residuals that training penalises are L∇S and M∇E of the per-node operators, and the step is
     # z + s ⊙ (L∇E + M∇S) with the clamped nodes' q, v rows zeroed.
     model, arrays, z, f = toy["model"], toy["arrays"], _random_state(toy, 1), toy["f"]
-    rt = model.rates(arrays, z, f)
-    big_l, big_m = model.operators(arrays, z, f)
+    rt = rates(model, arrays, z, f)
+    big_l, big_m = operators(model, arrays, z, f)
     apply = lambda op, g: np.asarray(jnp.einsum("nij,nj->ni", op, g))
     for got, want in ((rt.deg_l, apply(big_l, rt.grad_s)), (rt.deg_m, apply(big_m, rt.grad_e))):
         np.testing.assert_allclose(np.asarray(got), want, rtol=1e-4, atol=1e-6 * np.abs(want).max())
     dw = apply(big_l, rt.grad_e) + apply(big_m, rt.grad_s)
     dw[toy["data"].node_type != 0, :6] = 0.0
     np.testing.assert_allclose(np.asarray(rt.dw), dw, rtol=1e-4, atol=1e-6 * np.abs(dw).max())
-    step = model.step_state(arrays, z, f)
-    np.testing.assert_allclose(np.asarray(step), np.asarray(z + rt.dw * GG.state_scale(arrays["norm"])),
-                               rtol=1e-6, atol=1e-6 * float(jnp.max(jnp.abs(z))))
+    euler = z + rt.dw * GG.state_scale(arrays["norm"])
+    np.testing.assert_allclose(np.asarray(step(model, arrays, z, f)), np.asarray(euler), rtol=1e-6,
+                               atol=1e-6 * float(jnp.max(jnp.abs(z))))
 
 
 def test_energy_and_entropy_change_only_through_the_degeneracy_residuals(toy):
@@ -117,8 +122,9 @@ def test_energy_and_entropy_change_only_through_the_degeneracy_residuals(toy):
     # degeneracy L∇S = M∇E = 0 holds, the step conserves energy and produces entropy ∇SᵀM∇S >= 0 (float64).
     with jax.enable_x64(True):
         model, arrays = toy["model"], _float64(toy["arrays"])
-        rt = model.rates(arrays, _float64(_random_state(toy, 2)), _float64(toy["f"]))
-        _, big_m = model.operators(arrays, _float64(_random_state(toy, 2)), _float64(toy["f"]))
+        z, f = _float64(_random_state(toy, 2)), _float64(toy["f"])
+        rt = rates(model, arrays, z, f)
+        _, big_m = operators(model, arrays, z, f)
         g_e, g_s, dw = (np.asarray(a) for a in (rt.grad_e, rt.grad_s, rt.dw))
         free = toy["data"].node_type == 0
         dot = lambda a, b: np.sum(a * b, axis=1)[free]
@@ -181,8 +187,8 @@ def test_step_is_the_papers_generic_step_of_the_network_on_the_plain_edge_list(t
     # tree, the network and forward-Euler GENERIC step written out on the edge list (float64).
     with jax.enable_x64(True):
         arrays, z, f = _float64(toy["arrays"]), _float64(_random_state(toy, 3)), _float64(toy["f"])
-        want = _reference_step(CONFIG, arrays, toy["mesh"], z, f)
-        got = toy["model"].step_state(arrays, z, f)
+        want = jax.jit(lambda a, z_, f_: _reference_step(CONFIG, a, toy["mesh"], z_, f_))(arrays, z, f)
+        got = step(toy["model"], arrays, z, f)
         np.testing.assert_allclose(np.asarray(got), np.asarray(want), rtol=1e-10, atol=1e-10)
         assert float(jnp.max(jnp.abs(want - z))) > 1e-6   # the step moves the state
 
@@ -190,7 +196,7 @@ def test_step_is_the_papers_generic_step_of_the_network_on_the_plain_edge_list(t
 def test_step_keeps_clamped_position_and_velocity_but_evolves_their_stress(toy):
     # Clamped nodes are prescribed (q, v fixed); their stress is predicted, not copied.
     z0 = toy["z"]
-    z1 = np.asarray(toy["model"].step_state(toy["arrays"], z0, toy["f"]))
+    z1 = np.asarray(step(toy["model"], toy["arrays"], z0, toy["f"]))
     clamped = toy["data"].node_type == 1
     assert clamped.sum() == 4
     np.testing.assert_array_equal(z1[clamped, :6], np.asarray(z0)[clamped, :6])
@@ -200,7 +206,7 @@ def test_step_keeps_clamped_position_and_velocity_but_evolves_their_stress(toy):
 
 def test_jitted_step_equals_the_step_without_jit(toy):
     model, arrays, z, f = toy["model"], toy["arrays"], _random_state(toy, 4), toy["f"]
-    jitted = jax.jit(GenericGNN.step_state, static_argnums=0)(model, arrays, z, f)
+    jitted = step(model, arrays, z, f)
     with jax.disable_jit():
         eager = model.step_state(arrays, z, f)
     np.testing.assert_allclose(np.asarray(jitted), np.asarray(eager), rtol=1e-6,
@@ -215,8 +221,10 @@ def test_loss_gradient_matches_finite_differences_on_weights(toy):
     with jax.enable_x64(True):
         arrays = _float64(toy["arrays"])
         batch = _float64(T.Batch(jnp.asarray(data.z[:2, 1]), jnp.asarray(data.f[:2, 1]), jnp.asarray(data.z[:2, 2])))
-        loss = lambda w: T.loss_fn(w, batch, jax.random.PRNGKey(0), arrays, cfg)[0]
-        grads = jax.grad(loss)(arrays["weights"])
+        value_and_grad = jax.jit(jax.value_and_grad(lambda w: T.loss_fn(w, batch, jax.random.PRNGKey(0), arrays,
+                                                                          cfg)[0]))
+        loss = lambda w: value_and_grad(w)[0]   # one compilation for the values and the gradient
+        grads = value_and_grad(arrays["weights"])[1]
         decoder = f"MLP_{CONFIG.passes + 1}"
         for path in (("MLP_0", "Dense_0", "kernel", (1, 2)), ("Dense_0", "kernel", (4, 3)),
                      (decoder, "Dense_1", "kernel", (5, 10))):
@@ -233,9 +241,9 @@ def test_loss_gradient_matches_finite_differences_on_weights(toy):
             analytic = grads
             for k in keys:
                 analytic = analytic[k]
-            h = 1e-6
+            h = 1e-4
             fd = (moved(h) - moved(-h)) / (2 * h)
-            np.testing.assert_allclose(float(analytic[index]), float(fd), rtol=1e-6, atol=1e-12)
+            np.testing.assert_allclose(float(analytic[index]), float(fd), rtol=1e-6, atol=1e-11)
             assert abs(float(fd)) > 1e-8
 
 
@@ -266,7 +274,7 @@ def test_step_from_rest_under_zero_force_is_finite_and_small(toy):
     # A data-free start: the rest state of the mesh (q = X, v = σ = 0) and no force, stepped by an untrained model.
     model, arrays = toy["model"], toy["arrays"]
     rest = GG.rest_state(arrays["topo"])
-    out = np.asarray(jax.jit(GenericGNN.step_state, static_argnums=0)(model, arrays, rest, jnp.zeros((16, 3))))
+    out = np.asarray(step(model, arrays, rest, jnp.zeros((16, 3))))
     assert np.all(np.isfinite(out))
     moved = np.abs(out - np.asarray(rest)) / np.asarray(toy["norm"]["dz_std"])
     assert moved.max() < 10.0   # within ten increment stds of rest
@@ -276,8 +284,8 @@ def test_step_is_translation_invariant_in_q(toy):
     # The network sees positions only through q − X differences between neighbours: shifting a body shifts its step.
     model, arrays, z, f = toy["model"], toy["arrays"], _random_state(toy, 5), toy["f"]
     shift = jnp.concatenate([jnp.asarray([0.25, -0.5, 0.125]), jnp.zeros(9)])
-    a = model.step_state(arrays, z, f)
-    b = model.step_state(arrays, z + shift, f)
+    a = step(model, arrays, z, f)
+    b = step(model, arrays, z + shift, f)
     np.testing.assert_allclose(np.asarray(b - shift), np.asarray(a), rtol=1e-5, atol=1e-5)
 
 
@@ -286,8 +294,8 @@ def test_stored_arrays_round_trip_and_prepare_checks_them(toy):
     stored = model.stored(arrays)
     assert set(stored) == {"weights", "norm"}
     again = model.prepare(stored, mesh)
-    np.testing.assert_array_equal(np.asarray(model.step_state(again, toy["z"], toy["f"])),
-                                  np.asarray(model.step_state(arrays, toy["z"], toy["f"])))
+    np.testing.assert_array_equal(np.asarray(step(model, again, toy["z"], toy["f"])),
+                                  np.asarray(step(model, arrays, toy["z"], toy["f"])))
     with pytest.raises(ValueError, match="dv_std"):
         model.prepare({**stored, "norm": {k: v for k, v in stored["norm"].items() if k != "dv_std"}}, mesh)
     with pytest.raises(ValueError, match="weights do not fit"):
@@ -324,11 +332,11 @@ def test_row_layout_aggregates_like_a_segment_sum_on_an_irregular_graph():
     assert topo.nbr.shape[0] > n and topo.nbr.shape[1] < np.bincount(r).max()   # extra rows are used
     x = jax.random.normal(jax.random.PRNGKey(0), (n, 4))
     ref = jax.ops.segment_sum(x[s], r, n)
-    got = GG.reduce_rows(jnp.sum(GG.gather_neighbors(x, topo), axis=1), topo)
+    got = jax.jit(lambda x_: GG.reduce_rows(jnp.sum(GG.gather_neighbors(x_, topo), axis=1), topo))(x)
     np.testing.assert_allclose(got, ref, atol=1e-5)
     y = jax.random.normal(jax.random.PRNGKey(1), topo.nbr.shape + (4,)) * topo.mask[..., None]
     assert abs(float(jnp.vdot(GG.gather_neighbors(x, topo), y) - jnp.vdot(x, GG.sum_reverse(y, topo)))) < 1e-4
-    grad = lambda fn: jax.grad(lambda x_: jnp.sum(jnp.sin(fn(x_))))(x)
+    grad = lambda fn: jax.jit(jax.grad(lambda x_: jnp.sum(jnp.sin(fn(x_)))))(x)
     np.testing.assert_allclose(grad(lambda x_: GG.reduce_rows(jnp.sum(GG.gather_neighbors(x_, topo) ** 2, 1), topo)),
                                grad(lambda x_: jax.ops.segment_sum(x_[s] ** 2, r, n)), atol=1e-4)
 
@@ -342,18 +350,18 @@ def test_topology_rejects_one_directional_and_duplicate_edges():
 
 
 def test_step_does_not_depend_on_the_slot_layout(toy):
-    # The same graph in rows of K = 2, 3 and the maximum degree gives one function (messages are scaled by the
+    # The same graph in rows of K = 3 and of the maximum degree gives one function (messages are scaled by the
     # maximum degree, not by K), so a model trained in one layout runs in any other.
     s, r, n = _irregular_graph(seed=9)
     q0 = np.random.default_rng(10).normal(size=(n, 3)).astype(np.float32)
     mesh = {"q0": q0, "senders": s, "receivers": r, "node_type": (np.arange(n) % 7 == 0).astype(np.int32)}
-    model = GenericGNN(CONFIG)
-    arrays = model.prepare(model.init(jax.random.PRNGKey(12), toy["norm"], mesh), mesh)
+    model = toy["model"]
+    arrays = model.prepare(model.stored(toy["arrays"]), mesh)   # the weights do not depend on the mesh
     z = jnp.concatenate([jnp.asarray(q0), 0.1 * jax.random.normal(jax.random.PRNGKey(11), (n, 9))], 1)
     f = 0.1 * jax.random.normal(jax.random.PRNGKey(13), (n, 3))
-    layouts = [GG.topology(s, r, n, q0, slots=k) for k in (2, 3, int(np.bincount(r).max()))]
-    assert len({t.nbr.shape for t in layouts}) == 3
-    outs = [model.step_state({**arrays, "topo": t}, z, f) for t in layouts]
+    layouts = [GG.topology(s, r, n, q0, slots=k) for k in (3, int(np.bincount(r).max()))]
+    assert layouts[0].nbr.shape[0] > n and layouts[1].nbr.shape[0] == n
+    outs = [step(model, {**arrays, "topo": t}, z, f) for t in layouts]
     for out in outs[1:]:
         np.testing.assert_allclose(out, outs[0], rtol=1e-5, atol=1e-6)
     assert float(layouts[0].degree_max) == np.bincount(r).max()

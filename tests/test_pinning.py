@@ -84,17 +84,12 @@ def test_pin_cores_after_jax_started_refuses_instead_of_squeezing_its_thread_poo
     assert "real_time_cores: () 1 [\"not pinned: pin_cores(1) must run before JAX's first operation" in done.stdout
 
 
-# `tignn` (tignn_jax.cli.main) with only the demo subcommand registered: the other subcommands' modules are not
-# imported, so their import time and state stay out of the pinned process
-TIGNN_DEMO = ("import sys\nfrom tignn_jax import cli\ncli.COMMANDS = ('tignn_jax.cli.demo',)\n"
-              "sys.exit(cli.main(sys.argv[1:]))")
-
-
 def _demo(tmp_path, *extra: str) -> subprocess.CompletedProcess:
     """`tignn demo` on the beam's stand-in for 3 small frames, in a fresh process (pinning acts on the whole
     process)."""
-    return _python(TIGNN_DEMO, "demo", "--scene", "beam", "--frames", "3", "--size", "96x72", "--stand-in",
-                   "--out", str(tmp_path), *extra)
+    return subprocess.run([sys.executable, "-m", "tignn_jax.cli", "demo", "--scene", "beam", "--frames", "3",
+                           "--size", "96x72", "--stand-in", "--out", str(tmp_path), *extra], capture_output=True,
+                          text=True, cwd=ROOT, timeout=600)
 
 
 @linux

@@ -11,7 +11,7 @@ Model classes (`tignn_jax.simulators`): `GenericGNN`, the paper's thermodynamics
 """
 from tignn_jax.api import (load_model, load_pretrained, make_params, rest_graph, rollout, save_model,
                            shipped_models, step, stepper)
-from tignn_jax.evaluate import evaluate
+from tignn_jax.evaluation import evaluate
 from tignn_jax.guards import (fallback_step, fallback_stepper, force_check, guarded_stepper, state_check,
                               state_guard)
 from tignn_jax.newton import fem_stepper

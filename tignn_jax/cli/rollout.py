@@ -23,7 +23,7 @@ def run(args) -> int:
 
     from tignn_jax import api
     from tignn_jax import data as D
-    from tignn_jax import evaluate as EV
+    from tignn_jax import evaluation as EV
     from tignn_jax.cli.evaluate import load_data
 
     params, _ = api.load_pretrained(args.model)

@@ -9,7 +9,8 @@ fingertip track (`tignn_jax.mr.track`). `run` plays it frame by frame::
 timed as the stages ``forces`` (unprojection, fingertip and contact forces), ``step``, ``render`` (shade,
 rasterise, hand proxy, occlusion), ``write`` (copy to the host and the caller's writer) and the whole ``frame``.
 Each stage is jitted and compiled before the first timed frame; shapes never change afterwards (the track is
-padded to a fixed number of fingertips), so nothing is recompiled. `run` returns per-stage timings (p50/p99).
+padded to a fixed number of fingertips), so nothing is recompiled unless the rasteriser's fragment buffer has to
+grow (``Timings.reallocations``). `run` returns per-stage timings (p50/p99).
 
 Units: the world and the camera are in metres (the depth camera's unit). A body's state lives in its model frame
 and units (q and forces as the body's model was trained); ``Body.model`` maps model to world (with a scale).
@@ -219,7 +220,7 @@ def run(scene: Scene, frames: int | None = None, write: Callable[[int, np.ndarra
         fingertips).
       write: ``write(frame_index, rgb [H, W, 3] uint8)`` receives every rendered frame (e.g. an imageio writer's
         ``append_data``); its time is the ``write`` stage.
-      warmup: the first frames, run but not timed (compilation happens before the first frame).
+      warmup: the first frames, run but not timed (the first frame compiles the render stage).
       gc_pause: pause automatic garbage collection as above.
 
     Returns:
@@ -277,8 +278,8 @@ def _run(scene, frames, write, warmup, gc_pause):
     per_body = scene.fuse and scene.guard is None and scene.step is None   # each body's whole frame: learned
     if per_body and scene.devices:                                         # step, guard, hand-over or fallback
         sim_fn, resolves = _fused_concurrent(forces_fn, _concurrent_frame(scene, fallback, initial, defer)), True
-    elif per_body and len(scene.bodies) > 1:   # (one body: its held frames skip the step anyway, below, and
-        sim_fn, resolves = _fused_frames(forces_fn, scene, fallback, initial, defer), True   # lax.cond cost it 2 %)
+    elif per_body and len(scene.bodies) > 1:   # (one body: its held frames skip the step anyway, below)
+        sim_fn, resolves = _fused_frames(forces_fn, scene, fallback, initial, defer), True
     elif scene.fuse and not scene.devices:
         sim_fn = _fused_simulation(forces_fn, step_fn, guard)
     if sim_fn is not None:   # compiled now, not at the first touched frame (every program of each body)

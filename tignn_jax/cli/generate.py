@@ -1,90 +1,110 @@
-"""`tignn generate`: FEM data sets for training and evaluation."""
+"""``tignn generate SCENE``: FEM data sets of the paper's scenes, resumable, in the documented data format.
+
+Each scene is a subcommand with only its own options (``tignn generate bunny --help``); the options every scene
+shares (output, workers, material overrides, integrator) are listed under "common options". The file format is
+``docs/data_format.md``.
+"""
 from __future__ import annotations
 
 import argparse
 
+from tignn_jax.cli import UsageError
 
-def register(sub: argparse._SubParsersAction) -> None:
-    g = sub.add_parser("generate", help="generate FEM data (beam-reference, beam-interactions, bunny, bunny-interactions, two-beams)",
+SCENES = {
+    "beam-reference": "the 52 reference load cases of the 40x10x10 beam (13 positions x 4 faces), as in the paper",
+    "beam-interactions": "fingertip-like patch loads on the beam that ramp, hold, move and release",
+    "bunny": "point or fingertip-sized patch loads on the Stanford bunny",
+    "bunny-interactions": "fingertip-like patch loads on the bunny that ramp, hold, move and release",
+    "two-beams": "the upper of two crossed beams pushed down onto the lower one through contact",
+}
+# the value of every scene-specific option where a scene does not have it
+DEFAULTS = {"cases": None, "seed": 0, "load_nodes": None, "rise_frames": 10, "loads_per_case": 1,
+            "exclude_loads_of": None, "load_radius": None, "load_magnitude": None, "smooth_loads": False}
+
+
+def register(sub) -> None:
+    p = sub.add_parser("generate", help="generate FEM data sets of the paper's scenes (resumable)",
                        description="Generate a data set with the FEM. Resumable: finished cases are kept in "
-                                   "OUT.parts/ and skipped when the command is run again.")
-    g.add_argument("scene", choices=("beam-reference", "beam-interactions", "bunny", "bunny-interactions", "two-beams"))
-    g.add_argument("--out", required=True, help="output .npz path")
-    g.add_argument("--cases", type=int, default=None, help="number of cases (interactions: 64, bunny: 100, two-beams: 6)")
-    g.add_argument("--seed", type=int, default=0, help="random seed for load cases (default: %(default)s)")
-    g.add_argument("--load-nodes", default=None, help="bunny: comma-separated node ids to load instead of --cases")
-    g.add_argument("--velocity", choices=("gradient", "solver"), default=None,
-                   help="z's velocity: solver (default; zero at the rest start) or gradient of q over the frames "
-                        "(the reference data's convention; default for beam-reference)")
+                                   "OUT.parts/ and skipped when the command is run again. One subcommand per scene; "
+                                   "see `tignn generate SCENE --help` for its options.")
+    scenes = p.add_subparsers(dest="scene", metavar="SCENE", required=True)
+    for name, what in SCENES.items():
+        s = scenes.add_parser(name, help=what, description=f"{what[0].upper()}{what[1:]}.")
+        s.set_defaults(func=run, **DEFAULTS)
+        own = s.add_argument_group(f"{name} options")
+        if name != "beam-reference":
+            default = {"two-beams": 6, "bunny": 100}.get(name, 64)
+            own.add_argument("--cases", type=int, default=None, help=f"number of cases (default: {default})")
+        if name not in ("beam-reference", "two-beams"):
+            own.add_argument("--seed", type=int, default=0, help="random seed of the load cases (default: 0)")
+        if name.endswith("interactions"):
+            own.add_argument("--smooth-loads", action="store_true",
+                             help="C¹ force histories (smooth rises and falls, a cross-fade when the patch moves)")
+        if name == "bunny":
+            _bunny_options(own)
+        _common_options(s.add_argument_group("common options"), name)
+
+
+def _bunny_options(g) -> None:
+    g.add_argument("--load-nodes", default=None, help="comma-separated node ids to load instead of --cases")
     g.add_argument("--rise-frames", type=int, default=10,
-                   help="bunny: frames over which the point load rises smoothly, 0 = a step (default: %(default)s)")
+                   help="frames over which each load rises smoothly, 0 = a step (default: %(default)s)")
     g.add_argument("--loads-per-case", type=int, default=1, metavar="K",
-                   help="bunny: K simultaneous point loads per case, at least 6 edges apart (default: 1)")
+                   help="K simultaneous point loads per case, at least 6 edges apart (default: %(default)s)")
     g.add_argument("--exclude-loads-of", default=None, metavar="DATA",
-                   help="bunny with --loads-per-case: never load a node within 2 edges of a load position of the "
-                        "val and test cases of this data set (its metadata's load_nodes), so they stay held out")
+                   help="with --loads-per-case > 1: never load within 2 edges of a val or test load of this data set")
     g.add_argument("--load-radius", type=float, default=None, metavar="R",
-                   help="bunny: spread each unit load over the free surface nodes within R of the load position "
-                        "(weights (1 - (d/R)^2)^2, the position's normal) instead of one node: a fingertip-sized "
-                        "press rather than a point force, whose dent is a property of the mesh (default: a point)")
+                   help="spread each load over the free surface nodes within R of its position (a fingertip-sized "
+                        "press; default: a point)")
     g.add_argument("--load-magnitude", type=float, default=None, metavar="F",
-                   help="bunny single-load cases: the total force of each load instead of 1 (the paper's unit "
-                        "load); larger loads reach the geometrically and materially non-linear range")
-    g.add_argument("--smooth-loads", action="store_true",
-                   help="interactions: C¹ force histories (smooth rises and falls, a cross-fade when the patch "
-                        "moves) instead of piecewise-linear ones, whose jumps in loading rate the frames cannot "
-                        "resolve (fem.cases.fingertip_forces)")
+                   help="total force of each load instead of 1 (the paper's unit load)")
+
+
+def _common_options(g, scene: str) -> None:
+    g.add_argument("--out", required=True, help="output .npz path")
     g.add_argument("--damping", type=float, default=None, metavar="ALPHA",
-                   help="mass-proportional damping coefficient [1/time] instead of the scene's (beam: 18.17, "
-                        "identified against the reference data; bunny: 2.0)")
-    g.add_argument("--integrator", choices=("explicit", "implicit"), default="explicit",
-                   help="explicit central differences (default) or implicit backward Euler with the frame step "
-                        "(fem.implicit: damps what a frame cannot resolve; elastic scenes without contact)")
-    g.add_argument("--newton-iterations", type=int, default=12, metavar="K",
-                   help="--integrator implicit: at most K Newton iterations per frame (default: %(default)s); "
-                        "frames that stop above the tolerance keep their residual in the data (newton_residual)")
+                   help="mass-proportional damping [1/time] instead of the scene's (beam 18.17, bunny 2.0)")
     g.add_argument("--density", type=float, default=None, metavar="RHO",
-                   help="mass density instead of the scene's (beam: 7.135e-3, identified; bunny: 1e-5, chosen so "
-                        "the first mode shows within the run; a much lighter bunny, e.g. 1e-7 with --integrator "
-                        "implicit, responds quasi-statically)")
+                   help="mass density instead of the scene's (beam 7.135e-3, bunny 1e-5)")
+    g.add_argument("--integrator", choices=("explicit", "implicit"), default="explicit",
+                   help="explicit central differences (default) or backward Euler at the frame step (elastic "
+                        "scenes without contact)")
+    g.add_argument("--newton-iterations", type=int, default=12, metavar="K",
+                   help="with --integrator implicit: at most K Newton iterations per frame (default: %(default)s)")
+    default = "gradient" if scene == "beam-reference" else "solver"
+    g.add_argument("--velocity", choices=("gradient", "solver"), default=None,
+                   help="z's velocity: the solver's (zero at the rest start) or the gradient of q over the frames "
+                        f"(the reference data's convention); default: {default}")
     g.add_argument("--worker", default="0/1", metavar="K/N",
-                   help="run only cases c with c mod N = K, to share the work among N processes; the last to "
-                        "finish writes --out (default: %(default)s)")
+                   help="run only cases c with c mod N = K (N processes share the work; the last writes --out)")
     g.add_argument("--batch", type=int, default=8, help="cases per vmapped batch (default: %(default)s)")
-    g.add_argument("--xdmf", "--paraview", dest="xdmf", action="store_true", help="also write ParaView files per case (.pvd + VTU frames)")
+    g.add_argument("--paraview", dest="xdmf", action="store_true", help="also write a ParaView series per case "
+                                                                         "(.pvd + VTU frames)")
     g.add_argument("--no-progress", action="store_true", help="no progress bar")
-    g.set_defaults(func=run_generate)
 
 
-def run_generate(args) -> int:
+def run(args) -> int:
     import numpy as np
 
-    from . import cases as cs
-    from .generate import run_cases
-    from .scenes import (beam_reference_forces, beam_scene, bunny_scene, setup_scene, two_beams_contact,
+    from fem import cases as cs
+    from fem.generate import run_cases
+    from fem.scenes import (beam_reference_forces, beam_scene, bunny_scene, setup_scene, two_beams_contact,
                          two_beams_forces, two_beams_scene)
 
     if args.cases is not None and args.cases < 1:
-        raise SystemExit(f"--cases must be positive, got {args.cases}")
+        raise UsageError(f"--cases must be positive, got {args.cases}")
     if args.batch < 1:
-        raise SystemExit(f"--batch must be positive, got {args.batch}")
+        raise UsageError(f"--batch must be positive, got {args.batch}")
     if args.newton_iterations < 1:
-        raise SystemExit(f"--newton-iterations must be positive, got {args.newton_iterations}")
+        raise UsageError(f"--newton-iterations must be positive, got {args.newton_iterations}")
     if args.newton_iterations != 12 and args.integrator != "implicit":
-        raise SystemExit("--newton-iterations applies only with --integrator implicit")
+        raise UsageError("--newton-iterations applies only with --integrator implicit")
     try:
         worker = tuple(int(t) for t in args.worker.split("/"))
         if len(worker) != 2 or not 0 <= worker[0] < worker[1]:
             raise ValueError
     except ValueError:
-        raise SystemExit(f"--worker must be K/N with 0 <= K < N, got {args.worker!r}")
-    if args.scene != "bunny":
-        for flag, value, unset in (("--load-nodes", args.load_nodes, None), ("--loads-per-case", args.loads_per_case, 1),
-                                   ("--exclude-loads-of", args.exclude_loads_of, None),
-                                   ("--load-radius", args.load_radius, None),
-                                   ("--load-magnitude", args.load_magnitude, None)):
-            if value != unset:
-                raise SystemExit(f"{flag} applies only to the bunny scene, not {args.scene}")
+        raise UsageError(f"--worker must be K/N with 0 <= K < N, got {args.worker!r}")
     meta = {"seed": args.seed, "command": f"tignn generate {args.scene}"}
     sim_ids = None
     setup_kwargs = {}
@@ -112,24 +132,24 @@ def run_generate(args) -> int:
         scene = bunny_scene()
         nodes = None
         if args.loads_per_case < 1:
-            raise SystemExit(f"--loads-per-case must be >= 1, got {args.loads_per_case}")
+            raise UsageError(f"--loads-per-case must be >= 1, got {args.loads_per_case}")
         if args.exclude_loads_of and args.loads_per_case == 1:
-            raise SystemExit("--exclude-loads-of applies only with --loads-per-case > 1 (single-load cases take "
+            raise UsageError("--exclude-loads-of applies only with --loads-per-case > 1 (single-load cases take "
                              "their positions from --cases/--seed or --load-nodes)")
         if args.load_nodes and args.loads_per_case > 1:
-            raise SystemExit("--load-nodes cannot be combined with --loads-per-case > 1 (multi-load cases place "
+            raise UsageError("--load-nodes cannot be combined with --loads-per-case > 1 (multi-load cases place "
                              "their loads themselves)")
         if args.load_radius is not None and args.loads_per_case > 1:
-            raise SystemExit("--load-radius applies only to single-load cases (--loads-per-case 1)")
+            raise UsageError("--load-radius applies only to single-load cases (--loads-per-case 1)")
         if args.load_magnitude is not None and (args.loads_per_case > 1 or not np.isfinite(args.load_magnitude)
                                                 or args.load_magnitude <= 0):
-            raise SystemExit(f"--load-magnitude must be a positive number and applies only to single-load cases, "
+            raise UsageError(f"--load-magnitude must be a positive number and applies only to single-load cases, "
                              f"got {args.load_magnitude} with --loads-per-case {args.loads_per_case}")
         if args.load_nodes:
             try:
                 nodes = [int(t) for t in args.load_nodes.split(",") if t.strip()]
             except ValueError:
-                raise SystemExit(f"--load-nodes must be comma-separated integers, got {args.load_nodes!r}")
+                raise UsageError(f"--load-nodes must be comma-separated integers, got {args.load_nodes!r}")
         try:
             if args.loads_per_case > 1:
                 held = _held_out_load_nodes(args.exclude_loads_of) if args.exclude_loads_of else []
@@ -147,31 +167,31 @@ def run_generate(args) -> int:
                 if args.load_magnitude:
                     meta["load_magnitude"] = args.load_magnitude
         except ValueError as e:
-            raise SystemExit(str(e))
+            raise UsageError(str(e))
         meta["load_nodes"] = np.asarray(picked).tolist()
         meta["rise_frames"] = args.rise_frames
     if args.damping is not None:
         if not (np.isfinite(args.damping) and args.damping >= 0):
-            raise SystemExit(f"--damping must be a finite number >= 0, got {args.damping}")
+            raise UsageError(f"--damping must be a finite number >= 0, got {args.damping}")
         scene = scene._replace(damping=args.damping)
     if args.density is not None:
-        from .material import mooney_rivlin
+        from fem.material import mooney_rivlin
 
         m = scene.material   # rebuilt through mooney_rivlin, which validates (a bad value raises naming it)
         try:
             mat = mooney_rivlin(m.c10, m.c01, m.d1, density=args.density, g=np.asarray(m.g), tau=np.asarray(m.tau))
         except ValueError as e:
-            raise SystemExit(f"--density: {e}")
+            raise UsageError(f"--density: {e}")
         scene = scene._replace(material=mat)
         meta["density"] = args.density
     problem = setup_scene(scene, **setup_kwargs)
     if args.integrator == "implicit":
-        from .implicit import check_scope
+        from fem.implicit import check_scope
 
         try:
             check_scope(problem, scene.material)
         except ValueError as e:
-            raise SystemExit(f"--integrator implicit on {args.scene}: {e}")
+            raise UsageError(f"--integrator implicit on {args.scene}: {e}")
     steps = ("1 backward-Euler step" if args.integrator == "implicit"
              else f"{problem.config.n_sub} sub-steps")
     print(f"{scene.name}: {len(forces)} cases, {len(scene.points)} nodes, {problem.config.n_frames} frames x {steps}")
@@ -194,6 +214,6 @@ def _held_out_load_nodes(path) -> list:
         ids = np.concatenate([d[k] for k in ("split_val", "split_test") if k in d.files])
         sims = list(d["sim_id"])
     if "load_nodes" not in meta:
-        raise SystemExit(f"--exclude-loads-of {path}: its metadata has no load_nodes")
+        raise UsageError(f"--exclude-loads-of {path}: its metadata has no load_nodes")
     nodes = np.asarray(meta["load_nodes"])
     return sorted({int(nodes[sims.index(i)]) for i in ids})
