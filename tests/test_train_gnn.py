@@ -204,3 +204,18 @@ def test_shipped_recipes_are_the_last_training_phases_of_the_beam_networks():
         assert recipe.model == GNNConfig(hidden=64, mlp_layers=2, passes=passes, activation="silu")
         assert recipe._replace(model=None)._asdict() == {**fields, "model": None, "epochs": epochs,
                                                           "ckpt_every": ckpt}
+
+
+def test_relative_errors_are_per_snapshot_over_the_true_norm():
+    # Known answers: one node, snapshots 0..2 whose true velocity is 2, 0 and 1 in x, predicted with an error of 0.5
+    # in each: snapshot 0 is the given state (dropped), snapshot 1 has no true norm (NaN), snapshot 2 gives 0.5.
+    q0 = np.zeros((1, 3))
+    true = np.zeros((3, 1, 12))
+    true[:, 0, 3] = [2.0, 0.0, 1.0]
+    pred = true.copy()
+    pred[:, 0, 3] += 0.5
+    errs = T.relative_errors(pred, true, q0)
+    assert errs.shape == (2, 4)
+    v = T.VARIABLES.index("v")
+    assert np.isnan(errs[0, v]) and errs[1, v] == pytest.approx(0.5)
+    assert np.all(np.isnan(errs[:, T.VARIABLES.index("u")]))   # u = q − q0 is zero throughout

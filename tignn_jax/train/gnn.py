@@ -25,7 +25,7 @@ the score is the mean relative error (over snapshots 1..T, all nodes) of v + σ 
 written to ``run_dir``/best/model.npz (`tignn_jax.api.save_model`). Orbax checkpoints at epoch boundaries hold the
 step, weights and optimiser state; batch order and noise are functions of (seed, epoch, step), so a resumed run
 reproduces the uninterrupted one. A run may start from a trained model's weights and statistics (``init_from``,
-a warm restart with a fresh schedule), as both shipped beam networks were trained in their last phase.
+a warm restart with a fresh schedule).
 """
 from __future__ import annotations
 
