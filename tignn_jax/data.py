@@ -1,4 +1,4 @@
-"""Reading simulation data sets (the contract in notes/DATA_FORMAT.md) and training-split statistics.
+"""Reading simulation data sets (the contract in docs/data_format.md) and training-split statistics.
 
 A data set is one ``.npz`` file, or a folder of per-case ``.npz`` files with the same keys whose cases are
 stacked along axis 0. States are ``z`` [cases, frames+1, nodes, 12] (q 0-2, v 3-5, Cauchy stress
@@ -165,12 +165,8 @@ def parse_split(text: str) -> str | list[int]:
     return text
 
 
-def normalization(data: Dataset, rows: np.ndarray, increments=None, chunk: int = 8) -> dict:
+def normalization(data: Dataset, rows: np.ndarray, chunk: int = 8) -> dict:
     """Per-feature statistics of the rows' cases (the training split), float32 numpy arrays.
-
-    ``increments`` [C,T,N,12] (the rows' cases): what the model's step must produce per frame, where that is not
-    z[k+1] − z[k] (the W-method targets of ``ModelConfig.frame_solve``); dz_std, port_gain and spring_k are
-    taken from them.
 
     z_mean, z_std [12]: node state; dz_std [12]: per-frame increment z[k+1]-z[k] of free nodes' q, v and all
     nodes' stress (the output scale); f_std [3]: RMS of the nodal forces that are not zero (a load on a few
@@ -179,11 +175,7 @@ def normalization(data: Dataset, rows: np.ndarray, increments=None, chunk: int =
     out-of-distribution bound of ``api.force_check``); dq_std [3] and dqn_mean, dqn_std [1]: edge vector
     q_j - q_i and its length over all frames; dv_std [3]: edge velocity difference v_j - v_i; du_std [3]: edge displacement
     difference (q_j - q_i) - (X_j - X_i); u_std [3]: node displacement q - X; x0_mean [3], x0_std [3]: rest
-    positions (mean and isotropic scale); dt [1]: the frame time step; port_gain [1] (only where some case starts
-    at rest under a load): the velocity a unit force adds in the first frame at the loaded nodes, the
-    least-squares ratio Σ Δv·f / Σ f·f (≈ Δt / nodal mass; the scale of ``ModelConfig.force_port``);
-    spring_k [1] (with port_gain, where positive): the least-squares stiffness of one spring on every mesh edge
-    that explains Δv / port_gain − f (the scale of ``ModelConfig.elastic_port``); z_dev_max [12] and u_max [1]:
+    positions (mean and isotropic scale); dt [1]: the frame time step; z_dev_max [12] and u_max [1]:
     the training envelope (see ``envelope``).
     Vectors (q, v, their increments, f, dq) get one isotropic scale (RMS over components), so a direction
     unseen in training is not blown up; stress components get their own std, floored at 1e-2 of the largest;
@@ -191,24 +183,17 @@ def normalization(data: Dataset, rows: np.ndarray, increments=None, chunk: int =
     with the number of cases.
     """
     rows = np.asarray(rows, int).ravel()
-    n_frames = data.z.shape[1] - 1
-    if increments is not None:
-        increments = np.asarray(increments)
-        want = (len(rows), n_frames) + data.z.shape[2:]
-        if increments.shape != want:
-            raise ValueError(f"increments must have the shape {want} of the rows' transitions, got {increments.shape}")
     if not (isinstance(chunk, (int, np.integer)) and chunk >= 1):
         raise ValueError(f"chunk must be a positive integer, got {chunk!r}")
     s, r = data.edges
     free = data.node_type == 0
     rest_dq = data.q0[s] - data.q0[r]
     m = _Moments()
-    gain_num = gain_den = 0.0
     # a few cases at a time: the float64 edge arrays of ~700 bunny cases at once would take ~27 GB
     for a in range(0, len(rows), chunk):
         z = data.z[rows[a:a + chunk]].astype(np.float64)
         f = data.f[rows[a:a + chunk]].astype(np.float64)
-        dz = z[:, 1:] - z[:, :-1] if increments is None else increments[a:a + chunk].astype(np.float64)
+        dz = z[:, 1:] - z[:, :-1]
         dq = z[..., s, :3] - z[..., r, :3]
         flat = z.reshape(-1, STATE_DIM)
         m.add("z", flat)
@@ -221,8 +206,6 @@ def normalization(data: Dataset, rows: np.ndarray, increments=None, chunk: int =
         m.add("dv", (z[..., s, 3:6] - z[..., r, 3:6]).reshape(-1, 3))
         m.add("du", (dq - rest_dq).reshape(-1, 3))
         m.add("u", (z[..., :3] - data.q0).reshape(-1, 3))
-        num, den = _rest_start_sums(z, f, dz)
-        gain_num, gain_den = gain_num + num, gain_den + den
     z_mean = m.mean("z")
     z_std = np.concatenate([m.centred_rms("z", slice(0, 3)), m.centred_rms("z", slice(3, 6)),
                             _floored(m.std("z")[6:])])
@@ -250,12 +233,6 @@ def normalization(data: Dataset, rows: np.ndarray, increments=None, chunk: int =
         env = envelope(data.z[rows[a:a + chunk]], data.q0, z_mean, z_std)
         dev_max, u_max = np.maximum(dev_max, env["z_dev_max"]), max(u_max, float(env["u_max"][0]))
     stats.update(z_dev_max=dev_max, u_max=np.array([u_max]))
-    gain = gain_num / gain_den if gain_den > 0 else float("nan")
-    if np.isfinite(gain) and gain > 0:
-        stats["port_gain"] = np.array([gain])
-        k = _spring_constant(data, rows, increments, free, gain)
-        if k is not None:
-            stats["spring_k"] = np.array([k])
     return {k: np.asarray(v, np.float32) for k, v in stats.items()}
 
 
@@ -298,7 +275,7 @@ class _Moments:
 
 
 def envelope(z, q0, z_mean, z_std) -> dict:
-    """The training envelope of states z [..., N, 12] (what ``api.state_check`` compares a state against):
+    """The training envelope of states z [..., N, 12] (what `tignn_jax.guards.state_check` compares a state against):
     z_dev_max [12], the largest |z − z_mean| / z_std of each feature, and u_max [1], the largest nodal
     displacement |q − q0|. Stress and velocity are heavy-tailed where loads concentrate (on the bunny's patch
     loads σ reaches 100–540 standard deviations, on the beam σ23 41), so a fixed bound in standard deviations
@@ -307,41 +284,6 @@ def envelope(z, q0, z_mean, z_std) -> dict:
     dev = np.abs((z - np.asarray(z_mean, np.float64)) / np.asarray(z_std, np.float64)).reshape(-1, STATE_DIM)
     u = np.linalg.norm(z[..., :3] - np.asarray(q0, np.float64), axis=-1)
     return {"z_dev_max": dev.max(0), "u_max": np.array([u.max()])}
-
-
-def _rest_start_sums(z, f, dz) -> tuple[float, float]:
-    """(Σ Δv·f, Σ f·f) over the loaded nodes of the first frame of the cases that start at rest (v = 0) under a
-    nonzero load (0, 0 where there are none): their ratio is ``port_gain``."""
-    at_rest = np.all(z[:, 0, :, 3:6] == 0, axis=(1, 2)) & np.any(f[:, 0] != 0, axis=(1, 2))
-    if not at_rest.any():
-        return 0.0, 0.0
-    dv, f0 = dz[at_rest, 0, :, 3:6], f[at_rest, 0]
-    return float(np.sum(dv * f0)), float(np.sum(f0 * f0))
-
-
-def _spring_constant(data: Dataset, rows, increments, free, gain, max_samples: int = 200) -> float | None:
-    """k₀ of ``ModelConfig.elastic_port``: the least-squares spring constant of one stiffness on every mesh edge,
-    Δv / port_gain − f ≈ k₀ Σ_j (ℓ_ij − ℓ⁰_ij)(q_j − q_i)/ℓ_ij at the free nodes, over up to ``max_samples``
-    transitions evenly spread over the rows' cases and frames (``increments`` as in `normalization`, else the
-    state's); None where it is not positive."""
-    s, r = data.edges
-    cases, frames = np.meshgrid(np.arange(len(rows)), np.arange(data.z.shape[1] - 1), indexing="ij")
-    pick = np.linspace(0, cases.size - 1, min(max_samples, cases.size)).round().astype(int)
-    rest = np.linalg.norm(data.q0[s] - data.q0[r], axis=-1)
-    num = den = 0.0
-    for c, k in zip(cases.ravel()[pick], frames.ravel()[pick]):
-        z = data.z[rows[c], k:k + 2].astype(np.float64)
-        q = z[0, :, :3]
-        d = q[s] - q[r]
-        length = np.linalg.norm(d, axis=-1)
-        unit = np.zeros_like(q)
-        np.add.at(unit, r, ((length - rest) / np.maximum(length, 1e-12))[:, None] * d)
-        dv = z[1, :, 3:6] - z[0, :, 3:6] if increments is None else increments[c, k, :, 3:6].astype(np.float64)
-        y = dv / gain - data.f[rows[c], k].astype(np.float64)
-        num += float(np.sum(y[free] * unit[free]))
-        den += float(np.sum(unit[free] ** 2))
-    k0 = num / den if den > 0 else float("nan")
-    return k0 if np.isfinite(k0) and k0 > 0 else None
 
 
 def _nonzero_rows(x) -> np.ndarray:

@@ -22,7 +22,6 @@ def register(sub) -> None:
 
 def run(args) -> int:
     from tignn_jax import api
-    from tignn_jax import data as D
     from tignn_jax import evaluation as EV
 
     params, _ = api.load_pretrained(args.model)

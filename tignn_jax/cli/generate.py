@@ -6,7 +6,6 @@ shares (output, workers, material overrides, integrator) are listed under "commo
 """
 from __future__ import annotations
 
-import argparse
 
 from tignn_jax.cli import UsageError
 
