@@ -42,8 +42,9 @@ per element, which removes volumetric locking. They differ in the isochoric (dev
         F_a = Σ_{e∋a} (V_e/4) F_e / V_a.
 
     * The nodal term alone is the averaged nodal deformation gradient tetrahedron of Bonet, Marriott & Hassan
-      (2001), i.e. the node-based smoothed FEM (NS-FEM) of Liu, Nguyen-Thoi, Nguyen-Xuan & Lam (2009): strains are smoothed over the
-      cell around each node, so bending no longer has to be carried by constant-strain elements. NS-FEM is too
+      (2001), i.e. the node-based smoothed FEM (NS-FEM) of Liu, Nguyen-Thoi, Nguyen-Xuan & Lam (2009): strains
+      are smoothed over the cell around each node, so bending no longer has to be carried by constant-strain
+      elements. NS-FEM is too
       soft (it is an upper bound of the compliance where FEM is a lower bound) and has spurious low-energy
       modes — patterns whose element strains cancel in every nodal average — which in explicit dynamics are
       excited and grow into hourglass-like noise (Puso & Solberg, IJNME 67, 2006).

@@ -44,7 +44,8 @@ def run_cases(scene, problem, forces, out, *, batch_size: int = 8, progress: boo
     """
     forces = np.asarray(forces, np.float32)
     if forces.ndim != 4 or forces.shape[1:] != (problem.config.n_frames, len(scene.points), 3):
-        raise ValueError(f"forces must be [cases, {problem.config.n_frames}, {len(scene.points)}, 3], got {forces.shape}")
+        raise ValueError(f"forces must be [cases, {problem.config.n_frames}, {len(scene.points)}, 3], "
+                         f"got {forces.shape}")
     if batch_size < 1:
         raise ValueError(f"batch_size must be positive, got {batch_size}")
     if velocity not in ("gradient", "solver"):
@@ -74,7 +75,8 @@ def run_cases(scene, problem, forces, out, *, batch_size: int = 8, progress: boo
             res = simulate_batch(problem, scene.material, loads)
         else:
             res, diag = run(loads)
-            extra = {"newton_residual": np.asarray(diag.residual), "newton_iterations": np.asarray(diag.newton_iterations)}
+            extra = {"newton_residual": np.asarray(diag.residual),
+                     "newton_iterations": np.asarray(diag.newton_iterations)}
         jax.block_until_ready(res.q)
         check(res, "warn")
         for j, c in enumerate(idx):

@@ -16,10 +16,11 @@ Backward Euler per step h = frame_dt / n_sub (total-Lagrangian, lumped mass M, R
 Newton's method with the exact tangent A(u) = (1 + αh) M / h² + K(u), applied matrix-free through `jax.jvp`
 of the internal force and solved by preconditioned conjugate gradients; the preconditioner is the dense inverse
 of the same operator at the reference state, (1 + αh) M / h² + K₀ (computed once per problem by `rest_operator`:
-K₀'s columns in the problem's precision, assembled and inverted in float64). The iteration stops when ‖R‖ ≤ tol · (‖f_ext‖ + ‖M vₙ / h‖ + ‖f_int(uₙ)‖ + max_k ‖f_ext(t_k)‖); the final
-relative residual and the Newton iteration count of every frame are returned, so unconverged frames are
-reported, not hidden. In float32 the residual of the bunny (forces of order 1) stalls near 3e-4 of that scale
-(rounding of the internal force), so the default tolerance is 1e-3.
+K₀'s columns in the problem's precision, assembled and inverted in float64). The iteration stops when
+‖R‖ ≤ tol · (‖f_ext‖ + ‖M vₙ / h‖ + ‖f_int(uₙ)‖ + max_k ‖f_ext(t_k)‖); the final relative residual and the
+Newton iteration count of every frame are returned, so unconverged frames are reported, not hidden. In float32
+the residual of the bunny (forces of order 1) stalls near 3e-4 of that scale (rounding of the internal force),
+so the default tolerance is 1e-3.
 
 Energy: backward Euler dissipates. ``energies.damping`` holds all dissipation that is not viscous — the Rayleigh
 term and the scheme's numerical dissipation — as the remainder of the balance

@@ -68,17 +68,20 @@ def mooney_rivlin(c10, c01=0.0, d1=1e-3, density=1.0, g=(), tau=()) -> Material:
         if not np.isfinite(val):
             raise ValueError(f"{name} must be finite, got {val!r}")
     if c10f + c01f <= 0.0:
-        raise ValueError(f"c10 + c01 must be positive (initial shear modulus 2(c10+c01)), got c10={c10f!r}, c01={c01f!r}")
+        raise ValueError("c10 + c01 must be positive (initial shear modulus 2(c10+c01)), "
+                         f"got c10={c10f!r}, c01={c01f!r}")
     if d1f <= 0.0:
         raise ValueError(f"d1 must be positive (bulk modulus 2/d1), got d1={d1f!r}")
     if rho <= 0.0:
         raise ValueError(f"density must be positive, got density={rho!r}")
     if g_arr.shape != tau_arr.shape:
-        raise ValueError(f"Prony g and tau must have the same length, got g={g_arr.tolist()} and tau={tau_arr.tolist()}")
+        raise ValueError("Prony g and tau must have the same length, "
+                         f"got g={g_arr.tolist()} and tau={tau_arr.tolist()}")
     if np.any(g_arr < 0.0) or not np.all(np.isfinite(g_arr)):
         raise ValueError(f"Prony weights g must be finite and non-negative, got g={g_arr.tolist()}")
     if g_arr.sum() >= 1.0:
-        raise ValueError(f"Prony weights must sum to less than 1 (long-term modulus > 0), got sum(g)={float(g_arr.sum())!r}")
+        raise ValueError("Prony weights must sum to less than 1 (long-term modulus > 0), "
+                         f"got sum(g)={float(g_arr.sum())!r}")
     if np.any(tau_arr <= 0.0) or not np.all(np.isfinite(tau_arr)):
         raise ValueError(f"Prony relaxation times tau must be positive, got tau={tau_arr.tolist()}")
     as_arr = lambda x: jnp.asarray(x, dtype=jnp.result_type(float))

@@ -83,4 +83,5 @@ def von_mises(sigma):
     """Von Mises stress from [..., 6] stress (S11, S22, S33, S12, S13, S23)."""
     s = np.asarray(sigma)
     s11, s22, s33, s12, s13, s23 = (s[..., i] for i in range(6))
-    return np.sqrt(0.5 * ((s11 - s22) ** 2 + (s22 - s33) ** 2 + (s33 - s11) ** 2) + 3.0 * (s12 ** 2 + s13 ** 2 + s23 ** 2))
+    return np.sqrt(0.5 * ((s11 - s22) ** 2 + (s22 - s33) ** 2 + (s33 - s11) ** 2)
+                   + 3.0 * (s12 ** 2 + s13 ** 2 + s23 ** 2))

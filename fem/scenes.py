@@ -108,7 +108,8 @@ def mirror_case(z, f, points, rot, shift):
         raise ValueError(f"x -> rot x + {shift.tolist()} does not map the mesh onto itself")
     z, f = np.asarray(z, np.float64), np.asarray(f, np.float64)
     if z.shape[-2:] != (len(points), 12) or f.shape[-2:] != (len(points), 3):
-        raise ValueError(f"z must be [..., {len(points)}, 12] and f [..., {len(points)}, 3], got {z.shape} and {f.shape}")
+        raise ValueError(f"z must be [..., {len(points)}, 12] and f [..., {len(points)}, 3], "
+                         f"got {z.shape} and {f.shape}")
     s = np.zeros(z.shape[:-1] + (3, 3))
     for k, (a, b) in enumerate(_VOIGT):
         s[..., a, b] = s[..., b, a] = z[..., 6 + k]

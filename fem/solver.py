@@ -193,7 +193,8 @@ def setup(points, cells, *, material: Material, frame_dt: float, n_frames: int, 
         raise ValueError(f"clamped node ids out of range [0, {len(pts) - 1}]: {bad.tolist()[:10]}")
     vol = el.element_volumes(pts, cl, kind)
     if np.any(vol <= 0):
-        raise ValueError(f"elements with non-positive volume (inverted or mis-ordered): ids {np.where(vol <= 0)[0][:10].tolist()}")
+        raise ValueError("elements with non-positive volume (inverted or mis-ordered): "
+                         f"ids {np.where(vol <= 0)[0][:10].tolist()}")
     if n_sub is None:
         h_max = stable_time_step(pts, cl, material, kind, safety)
         if contact is not None:
@@ -223,7 +224,8 @@ def setup(points, cells, *, material: Material, frame_dt: float, n_frames: int, 
         r0, k_c = float(contact["r0"]), float(contact["stiffness"])
         skin = float(contact.get("skin", r0))
         if r0 <= 0 or k_c <= 0 or skin < 0:
-            raise ValueError(f"contact needs r0 > 0, stiffness > 0, skin >= 0; got r0={r0}, stiffness={k_c}, skin={skin}")
+            raise ValueError("contact needs r0 > 0, stiffness > 0, skin >= 0; "
+                             f"got r0={r0}, stiffness={k_c}, skin={skin}")
         capacity = int(contact.get("capacity", 4096))
         arrays = arrays._replace(contact_a=jnp.asarray(ca, jnp.int32), contact_b=jnp.asarray(cb, jnp.int32),
                                  contact_params=jnp.asarray([r0, k_c, skin]))
@@ -237,7 +239,8 @@ def stable_time_step(points, cells, material: Material, cell_type: str, safety: 
     """safety · min_e L_e / c_d with c_d = √((K0 + 4μ0/3) / ρ) [time]."""
     mu, kappa, rho = (float(x) for x in (shear_modulus(material), bulk_modulus(material), material.density))
     c_d = math.sqrt((kappa + 4.0 * mu / 3.0) / rho)
-    return safety * float(el.characteristic_lengths(np.asarray(points, float), np.asarray(cells), cell_type).min()) / c_d
+    lengths = el.characteristic_lengths(np.asarray(points, float), np.asarray(cells), cell_type)
+    return safety * float(lengths.min()) / c_d
 
 
 def _contact_time_step(points, cells, material: Material, contact: dict, safety: float) -> float:
@@ -342,7 +345,8 @@ def _validate_loads(problem: Problem, loads: Loads, batched: bool = False):
         p = problem.arrays.pressure_faces.shape[0]
         shp = np.shape(loads.pressure)[1:] if batched else np.shape(loads.pressure)
         if shp != (cfg.n_frames, p):
-            raise ValueError(f"loads.pressure must have shape {lead}{cfg.n_frames}, {p}], got {np.shape(loads.pressure)}")
+            raise ValueError(f"loads.pressure must have shape {lead}{cfg.n_frames}, {p}], "
+                             f"got {np.shape(loads.pressure)}")
     if loads.v0 is not None:
         shp = np.shape(loads.v0)[1:] if batched else np.shape(loads.v0)
         if shp != (n, 3):
@@ -637,12 +641,14 @@ def _stored_energy(arr: Arrays, m: Material, u, visco, hg, cfg: Config, elastic:
     elif _nodal_tet(cfg):
         a = cfg.tet_blend
         Fn, Jn = _nodal_average_F_J(geo, F, det3(F))
-        e = ginf * (a * jnp.sum(geo.volume * isochoric_energy(m, F)) + (1.0 - a) * jnp.sum(geo.node_volume * isochoric_energy(m, Fn)))
+        e = ginf * (a * jnp.sum(geo.volume * isochoric_energy(m, F))
+                    + (1.0 - a) * jnp.sum(geo.node_volume * isochoric_energy(m, Fn)))
         e = e + jnp.sum(geo.node_volume * volumetric_energy(m, Jn))
     else:
         J = det3(F)
         J_node = _gather_sum(arr.incidence, jnp.tile(geo.volume * J / 4.0, 4)) / geo.node_volume
-        e = jnp.sum(geo.volume * ginf * isochoric_energy(m, F)) + jnp.sum(geo.node_volume * volumetric_energy(m, J_node))
+        e = (jnp.sum(geo.volume * ginf * isochoric_energy(m, F))
+             + jnp.sum(geo.node_volume * volumetric_energy(m, J_node)))
     if cfg.n_prony and not elastic:
         c = (m.g / (4.0 * shear_modulus(m)))[:, None, None, None]
         held = lambda vol, H: jnp.sum(vol * jnp.sum(c * H * H, axis=(0, 1, 2)))

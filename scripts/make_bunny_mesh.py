@@ -11,8 +11,8 @@ Recipe (deterministic: no random numbers are drawn; two runs write identical arr
 2. units and axes: the pymeshfix copy already has z up and stands near z = 0, in arbitrary units
    (49.4 tall, about 320 units per metre of the real bunny). We shift it to stand on z = 0, centre its footprint
    box at x = y = 0 and multiply by ``SCALE`` = 0.2, so the bunny is 9.9 units long (x), 7.6 wide (y) and,
-   after the next steps, 9.7 tall (z); one unit is about 1.6 cm of the real bunny. The scene's material (C10 = 0.26, D1 = 0.049) and unit load are given in
-   these non-dimensional units;
+   after the next steps, 9.7 tall (z); one unit is about 1.6 cm of the real bunny. The scene's material
+   (C10 = 0.26, D1 = 0.049) and unit load are given in these non-dimensional units;
 3. flatten the base: nodes below ``BASE_CUT`` are put on the plane z = ``BASE_CUT`` and the mesh is shifted down
    by it, so the clamped "bottom nodes" are exactly the nodes on z = 0;
 4. decimate with quadric edge collapse (fast-simplification) to ``SURFACE_TRIANGLES`` triangles, repair again;

@@ -134,7 +134,8 @@ def omega_max(prob, m):
 
 
 def beam_like(cell_type, distorted):
-    pts, cells = fem.box_hex_mesh((40.0, 10.0, 10.0), (20, 5, 5)) if not distorted else fem.box_hex_mesh((4.0, 3.0, 3.0), (4, 3, 3))
+    pts, cells = (fem.box_hex_mesh((40.0, 10.0, 10.0), (20, 5, 5)) if not distorted
+                  else fem.box_hex_mesh((4.0, 3.0, 3.0), (4, 3, 3)))
     if distorted:
         pts = pts + np.random.default_rng(3).uniform(-0.25, 0.25, pts.shape)
     if cell_type == "tetra":
@@ -173,7 +174,8 @@ def _assert_results_equal(a, b, rtol=1e-9):
     for name, x, y in zip(a._fields, a, b):
         if name == "energies":
             for en, xe, ye in zip(x._fields, x, y):
-                np.testing.assert_allclose(np.asarray(xe), np.asarray(ye), rtol=rtol, atol=rtol * (np.abs(ye).max() + 1e-300), err_msg=en)
+                np.testing.assert_allclose(np.asarray(xe), np.asarray(ye), rtol=rtol,
+                                           atol=rtol * (np.abs(ye).max() + 1e-300), err_msg=en)
         elif y is not None:
             x, y = np.asarray(x), np.asarray(y)
             assert x.shape == y.shape, (name, x.shape, y.shape)

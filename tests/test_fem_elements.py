@@ -42,7 +42,8 @@ def interior_nodes(n=4):
 
 
 def element_stress(prob, m, x):
-    fn = jax.jit(lambda arr, m, x: solver._element_stress(arr, m, x - arr.points, solver._zero_visco(arr, prob.config), prob.config))
+    fn = jax.jit(lambda arr, m, x: solver._element_stress(arr, m, x - arr.points,
+                                                          solver._zero_visco(arr, prob.config), prob.config))
     return np.asarray(fn(prob.arrays, m, x))
 
 
@@ -64,7 +65,8 @@ def test_linear_displacement_on_distorted_mesh_gives_uniform_stress(cell_type, f
     ref = np.asarray(fem.cauchy_stress(m, jnp.asarray(A)))
     ref6 = ref[[0, 1, 2, 0, 0, 1], [0, 1, 2, 1, 2, 2]]
     scale = np.abs(ref).max()
-    np.testing.assert_allclose(element_stress(prob, m, x), np.broadcast_to(ref6, (len(cells), 6)), rtol=0, atol=1e-8 * scale)
+    np.testing.assert_allclose(element_stress(prob, m, x), np.broadcast_to(ref6, (len(cells), 6)),
+                               rtol=0, atol=1e-8 * scale)
     f = internal_force(prob, m, x)
     assert np.abs(f).max() > 0.05 * scale  # boundary nodes carry the tractions
     np.testing.assert_allclose(f[interior_nodes()], 0.0, atol=1e-8 * scale)
@@ -89,7 +91,8 @@ def test_large_rigid_rotation_is_stress_free(cell_type, formulation):
 
 # --- forces are the gradient of the energy --------------------------------------------------------------------
 
-def _force_vs_energy_gradient(cell_type, material, amplitude, seed=2, formulation="nodal", blend=fem.elements.TET_BLEND):
+def _force_vs_energy_gradient(cell_type, material, amplitude, seed=2, formulation="nodal",
+                              blend=fem.elements.TET_BLEND):
     pts, cells = distorted_mesh(cell_type, amplitude=0.15)
     prob = setup(pts, cells, material, formulation, tet_blend=blend)
     x = prob.arrays.points + amplitude * jnp.asarray(np.random.default_rng(seed).normal(size=pts.shape))
@@ -231,7 +234,8 @@ def cantilever_fe(cell_type, divisions, material, P, formulation="nodal"):
     spacing = np.array([BEAM_L, BEAM_B, BEAM_B]) / np.array(divisions)
     reach = 1 if cell_type == "hexahedron" else 2
     force = jax.jit(lambda u: fem.internal_force(prob, material, X + u.reshape(-1, 3)).ravel())
-    tangent = lambda u: sparse_tangent(lambda du: force(jnp.asarray(u) + du), pts, spacing, reach)[dofs][:, dofs].tocsc()
+    tangent = lambda u: sparse_tangent(lambda du: force(jnp.asarray(u) + du), pts, spacing,
+                                       reach)[dofs][:, dofs].tocsc()
     K = tangent(np.zeros(X.size))
     # tip load P in y, lumped on the tip-face nodes with the bilinear tributary areas of the grid
     tip = np.where(pts[:, 0] > BEAM_L - 1e-9)[0]

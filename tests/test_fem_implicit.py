@@ -129,7 +129,8 @@ def test_batch_matches_single_runs_and_generation_keeps_residuals(tmp_path):
     res, diag = implicit.simulate_implicit_batch(prob, m, fem.Loads(nodal=jnp.asarray(forces)))
     one, _ = implicit.simulate_implicit(prob, m, fem.Loads(nodal=jnp.asarray(forces[1])))
     np.testing.assert_allclose(np.asarray(res.q[1]), np.asarray(one.q), atol=1e-9)
-    sc = scenes.Scene("bar", pts, np.asarray(prob.arrays.cells), "tetra", fem.meshes.mesh_edges(np.asarray(prob.arrays.cells)),
+    sc = scenes.Scene("bar", pts, np.asarray(prob.arrays.cells), "tetra",
+                      fem.meshes.mesh_edges(np.asarray(prob.arrays.cells)),
                       (pts[:, 0] < 1e-9).astype(np.int8), m, 0.05, 4, 1.0, "linear")
     out = run_cases(sc, prob, forces, tmp_path / "d.npz", batch_size=2, progress=False, velocity="solver",
                     integrator="implicit")

@@ -91,7 +91,8 @@ def test_cauchy_stress_rotates_with_the_body():
     Q, _ = np.linalg.qr(np.random.default_rng(0).normal(size=(3, 3)))
     Q *= np.sign(np.linalg.det(Q))
     ref = Q @ np.diag(principal_cauchy(c10, c01, d1, np.diag(U))) @ Q.T
-    np.testing.assert_allclose(np.asarray(fem.cauchy_stress(m, jnp.asarray(Q @ U))), ref, rtol=0, atol=1e-9 * np.abs(ref).max())
+    np.testing.assert_allclose(np.asarray(fem.cauchy_stress(m, jnp.asarray(Q @ U))), ref,
+                               rtol=0, atol=1e-9 * np.abs(ref).max())
 
 
 def test_strain_energy_density_is_mooney_rivlin_in_principal_stretches():
@@ -100,7 +101,8 @@ def test_strain_energy_density_is_mooney_rivlin_in_principal_stretches():
     m = fem.mooney_rivlin(c10, c01, d1)
     lam = np.array([1.3, 0.9, 0.8])
     J, sq = np.prod(lam), lam ** 2
-    ref = (c10 * (J ** (-2 / 3) * sq.sum() - 3) + c01 * (J ** (-4 / 3) * (sq[0] * sq[1] + sq[1] * sq[2] + sq[2] * sq[0]) - 3)
+    ref = (c10 * (J ** (-2 / 3) * sq.sum() - 3)
+           + c01 * (J ** (-4 / 3) * (sq[0] * sq[1] + sq[1] * sq[2] + sq[2] * sq[0]) - 3)
            + (J - 1) ** 2 / d1)
     np.testing.assert_allclose(float(fem.strain_energy_density(m, jnp.diag(jnp.asarray(lam)))), ref, rtol=1e-12)
 
@@ -124,7 +126,8 @@ def test_uniaxial_stretch_element_stress_and_forces_match_closed_form(cell_type)
         F = uniaxial_F(c10, c01, d1, stretch)
         ref = principal_cauchy(c10, c01, d1, np.diag(F))
         x = jnp.asarray(X @ F.T)
-        sig_e = np.asarray(solver._element_stress(prob.arrays, m, x - prob.arrays.points, solver._zero_visco(prob.arrays, prob.config), prob.config))
+        sig_e = np.asarray(solver._element_stress(prob.arrays, m, x - prob.arrays.points,
+                                                  solver._zero_visco(prob.arrays, prob.config), prob.config))
         np.testing.assert_allclose(sig_e[:, 0], ref[0], rtol=1e-6)
         np.testing.assert_allclose(sig_e[:, 1:], 0.0, atol=1e-6 * abs(ref[0]))
         # nodal forces of a homogeneous stress: the face tractions P·n lumped equally on each boundary face's nodes

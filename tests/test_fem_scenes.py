@@ -211,7 +211,8 @@ def test_generation_writes_the_data_format_and_resumes(tmp_path, monkeypatch):
     d = np.load(out)
     assert d["z"].shape == (3, 4, len(pts), 12) and d["f"].shape == (3, 3, len(pts), 3)
     assert str(d["cell_type"]) == "hexahedron" and '"scene": "bar"' in str(d["metadata"])
-    np.testing.assert_allclose(d["z"][:, :, :, 3:6], np.gradient(d["z"][:, :, :, :3], 0.05, axis=1, edge_order=2), atol=1e-4)
+    np.testing.assert_allclose(d["z"][:, :, :, 3:6], np.gradient(d["z"][:, :, :, :3], 0.05, axis=1, edge_order=2),
+                               atol=1e-4)
     tip = np.abs(d["z"][:, -1, pts[:, 0] == 4.0, 1]).mean(1)
     assert tip[0] < tip[1] < tip[2]
     calls = []
@@ -292,7 +293,8 @@ def test_generate_rejects_a_bad_density_and_implicit_with_contact_before_running
     for bad in ("-1", "nan", "0"):
         with pytest.raises(SystemExit, match="density"):
             cli.main(["generate", "beam-reference", "--out", str(tmp_path / "x.npz"), "--density", bad])
-    with pytest.raises(SystemExit, match="--integrator implicit on two-beams: implicit dynamics does not support contact"):
+    with pytest.raises(SystemExit,
+                       match="--integrator implicit on two-beams: implicit dynamics does not support contact"):
         cli.main(["generate", "two-beams", "--out", str(tmp_path / "x.npz"), "--integrator", "implicit"])
     assert not (tmp_path / "x.npz").exists()
 

@@ -125,18 +125,31 @@ def test_best_model_is_written_and_reproduces_its_validation_score(toy, validate
 def test_warm_start_begins_from_the_parent_with_its_statistics(toy, validated, tmp_path):
     parent = validated["params"]
     louder = toy["data"]._replace(f=toy["data"].f * 2.0)   # data whose force scale differs from the parent's
-    child = T.train(louder, TINY, tmp_path / "child", split=NO_VAL, stop_after_epoch=0, init_from=validated["run"],
-                    **QUIET)
+    child = T.train(louder, TINY._replace(init_from=str(validated["run"])), tmp_path / "child", split=NO_VAL,
+                    stop_after_epoch=0, **QUIET)
     np.testing.assert_array_equal(_flat(child), _flat(parent))      # no step taken: the parent's weights
     np.testing.assert_array_equal(np.asarray(child["arrays"]["norm"]["f_std"]),
                                   np.asarray(parent["arrays"]["norm"]["f_std"]))
     record = json.loads((tmp_path / "child" / "config.json").read_text())
     assert record["init_from"].endswith("model.npz")
     with pytest.raises(ValueError, match="architecture differs"):
-        T.train(toy["path"], TINY._replace(model=GNNConfig(hidden=12, passes=1)), tmp_path / "bad",
-                split=NO_VAL, init_from=validated["run"], **QUIET)
+        T.train(toy["path"], TINY._replace(model=GNNConfig(hidden=12, passes=1), init_from=str(validated["run"])),
+                tmp_path / "bad", split=NO_VAL, **QUIET)
     with pytest.raises(ValueError, match="no model file"):
-        T.train(toy["path"], TINY, tmp_path / "bad2", split=NO_VAL, init_from=tmp_path / "nowhere", **QUIET)
+        T.train(toy["path"], TINY._replace(init_from=str(tmp_path / "nowhere")), tmp_path / "bad2", split=NO_VAL,
+                **QUIET)
+
+
+def test_run_writes_the_selected_model_where_the_cli_reports_it(toy, validated, tmp_path):
+    # `tignn train --config` calls run: a finished run (here the validated one, resumed) writes model/model.npz.
+    from tignn_jax import api
+
+    model = T.run(str(toy["path"]), TINY, validated["run"], progress=False)
+    assert (validated["run"] / "model" / "model.npz").exists()
+    np.testing.assert_array_equal(_flat(model), _flat(api.load_model(validated["run"] / "best" / "model.npz")))
+    # two files concatenated (sim ids 1-5, 6-10), 4 training cases as above (the same compiled step), no selection
+    twice = T.run([str(toy["path"])] * 2, TINY, tmp_path / "two", progress=False, split=([1, 2, 6, 7], None))
+    assert twice["info"]["data"] == [str(toy["path"].resolve())] * 2
 
 
 def test_a_batch_with_a_non_finite_loss_is_skipped(toy, tmp_path):
@@ -203,7 +216,7 @@ def test_shipped_recipes_are_the_last_training_phases_of_the_beam_networks():
         recipe = T.CONFIGS[name]
         assert recipe.model == GNNConfig(hidden=64, mlp_layers=2, passes=passes, activation="silu")
         assert recipe._replace(model=None)._asdict() == {**fields, "model": None, "epochs": epochs,
-                                                          "ckpt_every": ckpt}
+                                                          "ckpt_every": ckpt, "init_from": None}
 
 
 def test_relative_errors_are_per_snapshot_over_the_true_norm():

@@ -60,9 +60,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="image width x height in pixels, each 32..4096; the field of view follows the width "
                         "(default: %(default)s)")
     p.add_argument("--model", default=None,
-                   help=f"a shipped model name (default per scene: {DEFAULT_MODELS}), a model folder or .npz file on "
-                        f"the scene's mesh, or {FEM_NEWTON!r}: the FEM's own backward-Euler step by 2 Newton "
-                        "iterations of 3 CG each (tignn_jax.newton; not learned)")
+                   help="a shipped model name (default: beam for the beam scenes, bunny for the bunny), a model "
+                        f"folder or .npz file on the scene's mesh, or {FEM_NEWTON!r}: the FEM's own backward-Euler "
+                        "step by 2 Newton iterations of 3 CG each (tignn_jax.newton; not learned)")
     p.add_argument("--track", default=None,
                    help="fingertip track, JSON lines (format: tignn_jax.mr.track; default: a synthetic press)")
     p.add_argument("--stand-in", action="store_true",

@@ -65,6 +65,9 @@ class TrainConfig(NamedTuple):
       seed: of the initial weights, the batch order and the noise.
       eval_every: epochs between validations (and best-model updates).
       ckpt_every: epochs between checkpoints (the last epoch of a run always gets one).
+      init_from: a model file (or a run folder holding best/model.npz) to start from, with its normalisation
+        statistics (part of the function its weights compute); its architecture must be ``model``. None: new
+        weights drawn with ``seed``.
     """
     model: GNNConfig = GNNConfig()
     lr: float = 3e-3
@@ -79,6 +82,7 @@ class TrainConfig(NamedTuple):
     seed: int = 0
     eval_every: int = 2
     ckpt_every: int = 2
+    init_from: str | None = None
 
     def check(self) -> TrainConfig:
         """Returns the config unchanged.
@@ -112,7 +116,7 @@ class TrainConfig(NamedTuple):
         return {**self._asdict(), "model": self.model._asdict()}
 
 
-# the shipped beam networks' last training phases (both warm-started with init_from from an earlier phase)
+# the last training phases of the two beam networks (each warm-started from its earlier phase's model: set init_from)
 CONFIGS = {
     "tiny": TrainConfig(GNNConfig(hidden=8, passes=1), batch_size=4, epochs=2, warmup_steps=2, eval_every=1,
                         ckpt_every=1),
@@ -288,8 +292,7 @@ def to_params(model: GenericGNN, stored: dict, mesh: dict, envelope: dict, info:
 
 
 def train(data_path, config: TrainConfig, run_dir, split=("train", "val"), progress: bool = True, *,
-          init_from=None, stop_after_epoch: int | None = None, time_limit_s: float | None = None,
-          log=print) -> dict:
+          stop_after_epoch: int | None = None, time_limit_s: float | None = None, log=print) -> dict:
     """Train a `GenericGNN` (or resume the run in ``run_dir`` from its latest checkpoint).
 
     Writes ``run_dir``/config.json (the recipe, data and parent), metrics.jsonl (one line per epoch: the mean
@@ -297,15 +300,13 @@ def train(data_path, config: TrainConfig, run_dir, split=("train", "val"), progr
     checkpoints/ (orbax), best.json and best/model.npz (the lowest validation score so far).
 
     Args:
-      data_path: a data file or folder (`tignn_jax.data.load`), or a loaded `tignn_jax.data.Dataset`.
+      data_path: a data file or folder (`tignn_jax.data.load`), a list of them on one mesh (their cases
+        concatenated), or a loaded `tignn_jax.data.Dataset`.
       config: the recipe.
       run_dir: the run's folder.
       split: (training split, validation split): split names of the data set or lists of sim ids; a validation
         split of None skips validation (and the best model).
       progress: show a progress bar per epoch (tqdm).
-      init_from: a model file (or a run folder holding best/model.npz) to start from: its weights and its
-        normalisation statistics, which are part of the function its weights compute; its architecture must be
-        ``config.model``.
       stop_after_epoch, time_limit_s: end the run early at an epoch boundary, with a checkpoint, as an
         interruption would; the schedule still spans ``config.epochs``.
       log: called with one line of text per epoch.
@@ -314,21 +315,21 @@ def train(data_path, config: TrainConfig, run_dir, split=("train", "val"), progr
       The model dict (`to_params`) of the last weights.
 
     Raises:
-      ValueError: an invalid recipe, a batch larger than the training set, an unknown split, or an ``init_from``
-        that is missing or of another architecture.
+      ValueError: an invalid recipe, a batch larger than the training set, an unknown split, or an
+        ``config.init_from`` that is missing or of another architecture.
     """
     import orbax.checkpoint as ocp
     from tqdm import tqdm
 
     cfg = config.check()
     model = GenericGNN(cfg.model)
-    data = data_path if isinstance(data_path, D.Dataset) else D.load(data_path)
+    data = _load(data_path)
     train_split, val_split = split
     rows = D.split_rows(data, train_split)
     val_rows = D.split_rows(data, val_split) if val_split is not None else None
     run_dir = Path(run_dir).resolve()
     run_dir.mkdir(parents=True, exist_ok=True)
-    parent = _parent(init_from, model) if init_from is not None else None
+    parent = _parent(cfg.init_from, model) if cfg.init_from is not None else None
     record = {"recipe": cfg.as_dict(), "data": _describe(data_path), "split": [_jsonable(s) for s in split]}
     if parent is not None:
         record.update(init_from=parent["path"], init_elapsed_s=parent["elapsed_s"])
@@ -375,7 +376,7 @@ def train(data_path, config: TrainConfig, run_dir, split=("train", "val"), progr
         log(f"resumed from epoch {start_epoch} (step {int(state['step'])})")
     _truncate_log(run_dir / "metrics.jsonl", start_epoch)
     state = jax.device_put(state, replicated)
-    train_step = make_train_step(cfg, total_steps, arrays)
+    train_step = make_train_step(cfg._replace(init_from=None), total_steps, arrays)   # one program per recipe
 
     z_train, f_train = data.z[rows], data.f[rows]
     w_train = case_weights(data, rows, cfg.case_weight) if cfg.case_weight > 0 else None
@@ -428,6 +429,29 @@ def train(data_path, config: TrainConfig, run_dir, split=("train", "val"), progr
     return to_params(model, final, mesh, envelope, {**info, "best": best})
 
 
+def run(data_paths, config: TrainConfig, run_dir, progress: bool = True, split=("train", "val")) -> dict:
+    """Train from a recipe (resumable) and write the selected model to ``run_dir``/model/model.npz: what
+    ``tignn train --config`` calls.
+
+    Args:
+      data_paths: a data file or a list of data files on one mesh (their cases concatenated).
+      config: the recipe.
+      run_dir: the run's folder (see `train`).
+      progress: show progress bars.
+      split: (training split, validation split) as in `train`; without a validation split the last weights are
+        written.
+
+    Returns:
+      The written model (`tignn_jax.api.load_model`).
+    """
+    from tignn_jax import api
+
+    last = train(data_paths, config, run_dir, split=split, progress=progress)
+    best, path = Path(run_dir) / "best" / "model.npz", Path(run_dir) / "model" / "model.npz"
+    api.save_model(api.load_model(best) if best.exists() else last, path)
+    return api.load_model(path)
+
+
 def _parent(init_from, model: GenericGNN) -> dict:
     """The stored arrays, path and training time of the model a warm-started run begins from, checked against
     ``model``'s class and architecture."""
@@ -447,8 +471,20 @@ def _parent(init_from, model: GenericGNN) -> dict:
     return {"path": str(path.resolve()), "stored": params["model"].stored(params["arrays"]), "elapsed_s": elapsed}
 
 
+def _load(data_path) -> D.Dataset:
+    if isinstance(data_path, D.Dataset):
+        return data_path
+    if isinstance(data_path, (list, tuple)):
+        return D.concatenate(*(D.load(p) for p in data_path))
+    return D.load(data_path)
+
+
 def _describe(data_path):
-    return "a Dataset in memory" if isinstance(data_path, D.Dataset) else str(Path(data_path).resolve())
+    if isinstance(data_path, D.Dataset):
+        return "a Dataset in memory"
+    if isinstance(data_path, (list, tuple)):
+        return [str(Path(p).resolve()) for p in data_path]
+    return str(Path(data_path).resolve())
 
 
 def _jsonable(split):
