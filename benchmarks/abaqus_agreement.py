@@ -42,9 +42,9 @@ def errors(ours, ref):
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--ours", required=True, help="our beam-reference data set (.npz)")
-    ap.add_argument("--reference", default=str(REFERENCE))
+    ap.add_argument("--reference", default=str(REFERENCE), help="the Abaqus beam data (default %(default)s)")
     ap.add_argument("--identification", default=None, help="JSON history of fem.identify (optional)")
-    ap.add_argument("--out", default=str(RESULTS))
+    ap.add_argument("--out", default=str(RESULTS), help="output folder (default %(default)s)")
     ap.add_argument("--name", default="abaqus_agreement", help="file name stem of the results")
     args = ap.parse_args(argv)
     ref = dict(np.load(args.reference))

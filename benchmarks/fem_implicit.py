@@ -5,13 +5,17 @@ material and damping; errors as in benchmarks/pareto.py (relative L2 over all 75
 1..20 and cases; the FEM's v = numpy.gradient of its q, the data's convention) for the explicit solver and the
 implicit one with 1, 2 and 4 backward-Euler steps per frame. Bunny: one point-load case (rise over 10
 frames), implicit against explicit (its own stable sub-step): the mean relative L2 difference of u over the
-frames. Cost: median wall time of a 20-frame run of one case after compilation, per frame; the preconditioner
+frames. Cost: median wall time of a run of one case after compilation, per frame; the preconditioner
 (computed once per mesh and step) is reported separately. Both solvers are timed in the same run.
 
     XLA_FLAGS="--xla_cpu_multi_thread_eigen=false intra_op_parallelism_threads=1" \
         taskset -c 0 python benchmarks/fem_implicit.py [--repeats 5]
+    python benchmarks/fem_implicit.py --quick --out /tmp/fem_implicit     # smoke run, ~40 s
 
-Writes benchmarks/results/fem_implicit.{json,md}.
+``--quick``: one test case, its first 3 frames, one run each, 1 implicit step per frame only, no bunny; the
+preconditioner is the shipped ``beam-linear`` model's A⁻¹ (the same rest operator at the frame step, built when
+the model loads), not a new linearisation. Writes fem_implicit.{json,md} to ``--out`` (default
+benchmarks/results).
 """
 from __future__ import annotations
 
@@ -42,7 +46,10 @@ def _median_ms(fn, repeats: int) -> float:
     return float(np.median(times))
 
 
-def beam(repeats: int) -> list:
+QUICK_FRAMES = 3
+
+
+def beam(repeats: int, quick: bool = False) -> list:
     from fem import Loads, implicit, simulate, simulate_batch
     from fem import scenes as fs
     from tignn_jax import data as D
@@ -52,34 +59,60 @@ def beam(repeats: int) -> list:
     if not path.exists():
         raise SystemExit(f"reference data not found at {path}")
     data = D.load(path)
-    rows = D.split_rows(data, list(TEST_SIMS))
+    rows = D.split_rows(data, list(TEST_SIMS[:1] if quick else TEST_SIMS))
+    frames = QUICK_FRAMES if quick else data.f.shape[1]
     scene = fs.beam_scene()
-    problem = fs.setup_scene(scene)
-    forces = jnp.asarray(fs.beam_reference_forces(scene, data.sim_id[rows]), jnp.float32)
+    problem = fs.setup_scene(scene._replace(n_frames=frames))
+    forces = jnp.asarray(fs.beam_reference_forces(scene, data.sim_id[rows])[:, :frames], jnp.float32)
+    true = data.z[rows, :frames + 1]
 
     def errors(q, sig):
         q, sig = np.asarray(q, np.float64), np.asarray(sig, np.float64)
         v = np.gradient(q, float(data.dt), axis=1, edge_order=2)
-        e = EV.relative_errors(np.concatenate([q, v, sig], -1), data.z[rows], data.q0)[:, 1:]
+        e = EV.relative_errors(np.concatenate([q, v, sig], -1), true, data.q0)[:, 1:]
         return {k: float(np.mean(e[..., i])) for i, k in enumerate(("q", "v", "sigma", "u"))}
 
     out = []
-    res = simulate_batch(problem, scene.material, Loads(nodal=forces))
     one = Loads(nodal=forces[0])
+    if quick:   # one case: its errors from the single-case run that is timed (one compilation less)
+        res = jax.tree_util.tree_map(lambda a: a[None], simulate(problem, scene.material, one, on_inversion="ignore"))
+    else:
+        res = simulate_batch(problem, scene.material, Loads(nodal=forces))
     ms = _median_ms(lambda: simulate(problem, scene.material, one, on_inversion="ignore").q, repeats)
-    out.append(dict(name="explicit (stable sub-step)", steps_per_frame=problem.config.n_sub, ms_per_frame=ms / 20,
-                    **errors(res.q, res.sigma)))
-    for n_sub in (1, 2, 4):
+    out.append(dict(name="explicit (stable sub-step)", steps_per_frame=problem.config.n_sub,
+                    ms_per_frame=ms / frames, **errors(res.q, res.sigma)))
+    for n_sub in ((1,) if quick else (1, 2, 4)):
         t0 = time.perf_counter()
-        pinv = implicit.preconditioner(problem, scene.material, n_sub)
+        pinv = shipped_preconditioner(scene) if quick else implicit.preconditioner(problem, scene.material, n_sub)
         pre_s = time.perf_counter() - t0
-        res, diag = implicit.simulate_implicit_batch(problem, scene.material, Loads(nodal=forces), pinv, n_sub=n_sub)
+        if quick:
+            res, diag = jax.tree_util.tree_map(lambda a: a[None], implicit.simulate_implicit(
+                problem, scene.material, one, pinv, n_sub=n_sub))
+        else:
+            res, diag = implicit.simulate_implicit_batch(problem, scene.material, Loads(nodal=forces), pinv,
+                                                         n_sub=n_sub)
         ms = _median_ms(lambda: implicit.simulate_implicit(problem, scene.material, one, pinv, n_sub=n_sub)[0].q,
                         repeats)
-        out.append(dict(name=f"implicit, {n_sub} step(s) per frame", steps_per_frame=n_sub, ms_per_frame=ms / 20,
-                        preconditioner_s=pre_s, newton_residual_max=float(np.max(diag.residual)),
+        out.append(dict(name=f"implicit, {n_sub} step(s) per frame", steps_per_frame=n_sub,
+                        ms_per_frame=ms / frames, preconditioner_s=pre_s,
+                        preconditioner="beam-linear's A⁻¹" if quick else "fem.implicit.preconditioner",
+                        newton_residual_max=float(np.max(diag.residual)),
                         newton_iterations_max=int(np.max(diag.newton_iterations)), **errors(res.q, res.sigma)))
     return out
+
+
+def shipped_preconditioner(scene):
+    """The shipped ``beam-linear`` model's A⁻¹ [3N, 3N]: the inverse of the beam's rest operator
+    (1 + αΔt) M / Δt² + K₀ at the frame step (identity on the clamped nodes), what `fem.implicit.preconditioner`
+    computes for one step per frame; checked to be built for the scene's damping and density."""
+    import tignn_jax
+
+    linear, _ = tignn_jax.load_pretrained("beam-linear")
+    info = linear["info"]
+    if not (np.isclose(info.get("fem_damping", np.nan), scene.damping, rtol=1e-6)
+            and np.isclose(info.get("fem_density", np.nan), scene.material.density, rtol=1e-6)):
+        raise SystemExit("beam-linear was built for another damping or density than the beam scene")
+    return jnp.asarray(linear["arrays"]["ainv"])
 
 
 def bunny(repeats: int) -> list:
@@ -111,11 +144,13 @@ def bunny(repeats: int) -> list:
 
 def report(result: dict) -> str:
     m = result["machine"]
-    lines = ["# The implicit FEM as a baseline", "",
+    frames = result.get("frames", 20)
+    lines = ["# The implicit FEM as a baseline" + (" (QUICK smoke run)" if result.get("quick") else ""), "",
              f"Machine: {m['cpu']}, {m['cores']} cores, jax {m['jax']}; load average {m['load_average_1m']} at the "
-             f"start. XLA_FLAGS=`{result['xla_flags']}`. Cost: median of {result['repeats']} 20-frame runs of one "
-             "case after compilation, per frame; the preconditioner (dense rest operator, once per mesh and step) "
-             "is listed apart.", "",
+             f"start. XLA_FLAGS=`{result['xla_flags']}`. Cost: median of {result['repeats']} {frames}-frame runs of "
+             "one case after compilation, per frame; the preconditioner (dense rest operator, once per mesh and step) "
+             "is listed apart." + (" QUICK: one test case, its first 3 frames, the preconditioner taken from the "
+                                   "shipped beam-linear model." if result.get("quick") else ""), "",
              "## Beam, Abaqus test split (errors against the Abaqus data, as in pareto.md)", "",
              "| solver | steps per frame | ms per frame | × faster than explicit | u | v | σ | q | preconditioner [s] | Newton residual max / iterations max |",
              "|---|---|---|---|---|---|---|---|---|---|"]
@@ -126,7 +161,9 @@ def report(result: dict) -> str:
                   else "–")
         lines.append(f"| {r['name']} | {r['steps_per_frame']} | {r['ms_per_frame']:.2f} | {base / r['ms_per_frame']:.1f} "
                      f"| {r['u']:.4f} | {r['v']:.4f} | {r['sigma']:.4f} | {r['q']:.2e} | {pre} | {newton} |")
-    b = result["bunny"]
+    b = result.get("bunny")
+    if not b:
+        return "\n".join(lines) + "\n"
     lines += ["", "## Bunny, one point load (load case 2 of `tignn generate bunny`, rise over 10 frames)", "",
               f"Explicit: {b[0]['steps_per_frame']} sub-steps per frame, {b[0]['ms_per_frame']:.1f} ms per frame. "
               f"Implicit (1 step per frame): {b[1]['ms_per_frame']:.1f} ms per frame "
@@ -144,16 +181,22 @@ def report(result: dict) -> str:
 def main(argv=None) -> int:
     import os
 
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--repeats", type=int, default=5, help="timed runs per solver (default: %(default)s)")
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0],
+                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--repeats", type=int, default=5, help="timed runs per solver (default: %(default)s; quick 1)")
+    ap.add_argument("--quick", action="store_true", help="smoke run: one beam case, 3 frames, no bunny")
+    ap.add_argument("--out", default=str(RESULTS), help="folder of fem_implicit.{json,md} (default %(default)s)")
     args = ap.parse_args(argv)
-    if args.repeats < 1:
+    repeats = 1 if args.quick else args.repeats
+    if repeats < 1:
         raise SystemExit(f"--repeats must be positive, got {args.repeats}")
-    result = {"machine": describe(), "xla_flags": os.environ.get("XLA_FLAGS", "(unset)"), "repeats": args.repeats}
-    result["beam"] = beam(args.repeats)
-    result["bunny"] = bunny(args.repeats)
+    result = {"machine": describe(), "xla_flags": os.environ.get("XLA_FLAGS", "(unset)"), "repeats": repeats,
+              "quick": args.quick, "frames": QUICK_FRAMES if args.quick else 20}
+    result["beam"] = beam(repeats, args.quick)
+    if not args.quick:
+        result["bunny"] = bunny(repeats)
     result["machine_at_end"] = describe()
-    write_results("fem_implicit", result, report(result), RESULTS)
+    write_results("fem_implicit", result, report(result), Path(args.out))
     return 0
 
 

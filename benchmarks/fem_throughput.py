@@ -1,4 +1,4 @@
-"""FEM throughput: time per sub-step and element-sub-steps per second, single and batched, after compilation.
+r"""FEM throughput: time per sub-step and element-sub-steps per second, single and batched, after compilation.
 
 Meshes: the paper's beam (500 hex8, 756 nodes) and the bunny (tet4, 1330 nodes / 4698 tets). Each variant runs
 a fixed number of sub-steps in one `lax.scan` (the solver's own sub-step: Verlet update, internal forces,
@@ -6,8 +6,8 @@ viscous update) for 1…52 load cases. Variants, all in the same run:
 
 * "trailing batch (solver)": what `fem.simulate_batch` runs — the cases are the last, contiguous axis of the
   state ([N, 3, B]); per-element data broadcast against it (hex8; tet4 falls back to `jax.vmap` over that axis);
-* "vmap (cases first)": `jax.vmap` of the single-case sub-step, which puts the case axis first — the batched
-  path of `simulate_batch` before 2026-11-21, the straightforward version the speed-up is measured against;
+* "vmap (cases first)": `jax.vmap` of the single-case sub-step, which puts the case axis first — the
+  straightforward batched version the speed-up is measured against;
 * "naive jax.grad + scatter": the internal force as `jax.grad` of the element energy with a scatter-add
   assembly — what one writes first.
 
@@ -17,6 +17,8 @@ of the cases (how `tignn generate --worker K/2` uses this machine), and report t
 measured while both run.
 
     python benchmarks/fem_throughput.py [--substeps 200] [--repeats 5] [--batches 1,4,16,52]
+    python benchmarks/fem_throughput.py --scenes beam --substeps 5 --repeats 1 --batches 2 --naive-batches 1 \
+        --two-process-batches "" --out /tmp/fem_throughput          # smoke run, ~30 s
 
 Writes benchmarks/results/fem_throughput.{json,md}.
 """
@@ -139,16 +141,18 @@ def two_processes(scene_name, batch, substeps, repeats):
 
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--substeps", type=int, default=200)
-    ap.add_argument("--repeats", type=int, default=5)
-    ap.add_argument("--batches", default="1,16,32,52")
-    ap.add_argument("--naive-batches", default="1,16")
-    ap.add_argument("--two-process-batches", default="32,64")
-    ap.add_argument("--scenes", default="beam,bunny")
+    ap.add_argument("--substeps", type=int, default=200, help="sub-steps per timed run (default %(default)s)")
+    ap.add_argument("--repeats", type=int, default=5, help="timed runs per row (default %(default)s)")
+    ap.add_argument("--batches", default="1,16,32,52", help="load cases per run, beam (default %(default)s)")
+    ap.add_argument("--naive-batches", default="1,16", help="batches of the naive variant (default %(default)s)")
+    ap.add_argument("--two-process-batches", default="32,64",
+                    help="batches of the two-process rows, beam; '' for none (default %(default)s)")
+    ap.add_argument("--scenes", default="beam,bunny", help="scenes, of beam,bunny (default %(default)s)")
     ap.add_argument("--bunny-batches", default="1,16",
-                    help="batches for the bunny (its vmap rows at 32+ cases take minutes each)")
-    ap.add_argument("--bunny-two-process-batches", default="32")
-    ap.add_argument("--out", default=str(RESULTS))
+                    help="batches for the bunny (its vmap rows at 32+ cases take minutes each; default %(default)s)")
+    ap.add_argument("--bunny-two-process-batches", default="32",
+                    help="batches of the two-process rows, bunny; '' for none (default %(default)s)")
+    ap.add_argument("--out", default=str(RESULTS), help="folder of fem_throughput.{json,md} (default %(default)s)")
     ap.add_argument("--child", nargs=3, metavar=("SCENE", "BATCH", "CORE"), help=argparse.SUPPRESS)
     ap.add_argument("--sync", help=argparse.SUPPRESS)
     args = ap.parse_args(argv)

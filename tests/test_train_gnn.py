@@ -1,6 +1,7 @@
 """Training the GENERIC graph network: the loss goes down, an interrupted run resumes to the same weights, the best
 model is written and loads, warm starts begin from their parent, bad batches and bad recipes are refused."""
 import json
+from pathlib import Path
 
 import jax
 import jax.numpy as jnp
@@ -11,9 +12,12 @@ from jax.sharding import Mesh, NamedSharding, PartitionSpec as P
 from tignn_jax import data as D
 from tignn_jax.simulators.generic_gnn import GenericGNN, GNNConfig
 from tignn_jax.train import gnn as T
+from tignn_jax.train import load_recipe
 
+ROOT = Path(__file__).resolve().parents[1]
 # one recipe for every run here, so the training step compiles once
-TINY = T.CONFIGS["tiny"]._replace(epochs=4, batch_size=4, lr=1e-2, warmup_steps=1, eval_every=100, ckpt_every=100)
+TINY = load_recipe(ROOT / "configs" / "tiny_gnn.py")[0]._replace(epochs=4, batch_size=4, lr=1e-2, warmup_steps=1,
+                                                                  eval_every=100, ckpt_every=100)
 QUIET = dict(progress=False, log=lambda s: None)
 NO_VAL = ("train", None)
 
@@ -212,11 +216,11 @@ def test_shipped_recipes_are_the_last_training_phases_of_the_beam_networks():
     # The records of the shipped beam networks' training (model files' info: train_config), in this recipe's form.
     fields = {"lr": 3e-4, "lr_end": 2e-5, "weight_decay": 1e-6, "batch_size": 2, "warmup_steps": 50, "noise": 0.2,
               "deg_weight": 1.0, "case_weight": 1.0, "seed": 0, "eval_every": 2}
-    for name, passes, epochs, ckpt in (("beam-abaqus", 3, 8, 2), ("beam-abaqus-64x2", 2, 60, 10)):
-        recipe = T.CONFIGS[name]
-        assert recipe.model == GNNConfig(hidden=64, mlp_layers=2, passes=passes, activation="silu")
-        assert recipe._replace(model=None)._asdict() == {**fields, "model": None, "epochs": epochs,
-                                                          "ckpt_every": ckpt, "init_from": None}
+    recipe, trainer = load_recipe(ROOT / "configs" / "beam_abaqus.py")
+    assert trainer is T
+    assert recipe.model == GNNConfig(hidden=64, mlp_layers=2, passes=3, activation="silu")
+    assert recipe._replace(model=None)._asdict() == {**fields, "model": None, "epochs": 8, "ckpt_every": 2,
+                                                      "init_from": None}
 
 
 def test_relative_errors_are_per_snapshot_over_the_true_norm():

@@ -24,10 +24,10 @@ def register(sub) -> None:
 def run(args) -> int:
     from tignn_jax.train import load_recipe
 
+    config, trainer = load_recipe(args.config)
     for path in args.data:
         if not Path(path).is_file():
             raise UsageError(f"--data {path}: no such file")
-    config, trainer = load_recipe(args.config)
     trainer.run(args.data if len(args.data) > 1 else args.data[0], config, args.run_dir,
                 progress=not args.no_progress)
     print(f"model: {Path(args.run_dir).resolve() / 'model' / 'model.npz'}")

@@ -28,8 +28,7 @@ Network inputs, normalised by the training split's statistics (``norm``, from `t
 per node the velocity, the stress, a one-hot node type and the force f (which also enters every message-passing
 update); per directed edge j → i the relative position q_j − q_i and its length, the relative velocity v_j − v_i
 and the nine products (v_j − v_i) ⊗ (q_j − q_i) (whose sum over a node's edges estimates the velocity gradient).
-The state enters E only through relative positions, velocities and stresses, so the model is translation
-invariant in q.
+Positions enter only through relative positions, so the model is invariant to translations of the body.
 
 Edges are stored receiver-major in rows of K slots (`Topology`); the first layer of each edge MLP is computed in
 node-level parts, so every matrix product acts on the N nodes and an edge costs a gather, an add and an
@@ -45,6 +44,7 @@ Usage::
 from __future__ import annotations
 
 import dataclasses
+from functools import partial
 from typing import Callable, ClassVar, NamedTuple
 
 import flax.linen as nn
@@ -222,9 +222,7 @@ class GenericGNN:
         _check_norm(norm)
         topo = mesh_topology(mesh)
         jnorm = {k: jnp.asarray(v, jnp.float32) for k, v in norm.items()}
-        z, f = rest_state(topo), jnp.zeros((topo.x0.shape[0], 3), jnp.float32)
-        node_type = jnp.asarray(mesh["node_type"], jnp.int32)
-        weights = Network(self.config).init(key, *inputs(jnorm, z, f, node_type, topo), topo)["params"]
+        weights = _initial_weights(self.config, key, jnorm, jnp.asarray(mesh["node_type"], jnp.int32), topo)
         return {"weights": weights, "norm": {k: np.asarray(v, np.float32) for k, v in norm.items()}}
 
     def prepare(self, stored: dict, mesh: dict) -> dict:
@@ -301,6 +299,14 @@ class GenericGNN:
             diff = sorted(k for k in set(have) | set(need) if have.get(k) != need.get(k))
             raise ValueError(f"the weights do not fit {self.config}: parameters that differ (name: stored, "
                              f"expected) {[(k, have.get(k), need.get(k)) for k in diff[:6]]}")
+
+
+@partial(jax.jit, static_argnums=0)
+def _initial_weights(config: GNNConfig, key, norm: dict, node_type, topo: Topology):
+    """`Network.init` at the rest state under zero force, compiled as one program (the same numbers as the eager
+    init; XLA drops the forward pass, whose outputs are not used)."""
+    z, f = rest_state(topo), jnp.zeros((topo.x0.shape[0], 3), jnp.float32)
+    return Network(config).init(key, *inputs(norm, z, f, node_type, topo), topo)["params"]
 
 
 def _check_norm(norm: dict) -> None:

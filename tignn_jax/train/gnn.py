@@ -116,18 +116,6 @@ class TrainConfig(NamedTuple):
         return {**self._asdict(), "model": self.model._asdict()}
 
 
-# the last training phases of the two beam networks (each warm-started from its earlier phase's model: set init_from)
-CONFIGS = {
-    "tiny": TrainConfig(GNNConfig(hidden=8, passes=1), batch_size=4, epochs=2, warmup_steps=2, eval_every=1,
-                        ckpt_every=1),
-    "beam": TrainConfig(),
-    "beam-abaqus": TrainConfig(GNNConfig(hidden=64, mlp_layers=2, passes=3), lr=3e-4, epochs=8, warmup_steps=50,
-                               case_weight=1.0),
-    "beam-abaqus-64x2": TrainConfig(GNNConfig(hidden=64, mlp_layers=2, passes=2), lr=3e-4, epochs=60,
-                                    warmup_steps=50, case_weight=1.0, ckpt_every=10),
-}
-
-
 class Batch(NamedTuple):
     """Stacked transitions of one mesh: z, z_next [B, N, 12]; f [B, N, 3] (the force during the step); w [B, 12]
     per-sample feature weights (`case_weights`) or None."""

@@ -756,8 +756,9 @@ def _save(run_dir, paths, data, rows_tr, config, stored, info) -> dict:
     from tignn_jax.simulators.linear import LinearGeneric
 
     meta = data_metadata(paths[0])
-    info = {**info, "data": [str(p) for p in paths], "recipe": _jsonable(config),
-            "fem_density": meta["material"]["density"], "fem_damping": meta["damping"]}
+    info = {**info, "data": [str(p) for p in paths], "recipe": _jsonable(config)}
+    if "material" in meta and "damping" in meta:   # the FEM scene of the data (the Newton step rebuilds it)
+        info.update(fem_density=meta["material"]["density"], fem_damping=meta["damping"])
     mesh = {"q0": data.q0, "senders": data.edges[0], "receivers": data.edges[1], "node_type": data.node_type}
     model = api.make_params(LinearGeneric(config.model), stored, mesh, D.normalization(data, rows_tr), info)
     path = api.save_model(model, Path(run_dir) / "model" / "model.npz")
