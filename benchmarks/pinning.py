@@ -158,8 +158,8 @@ def main(argv=None) -> int:
     if bad or not rows:
         raise SystemExit(f"unknown row(s) {bad}; choose from {list(ROWS)}")
     if args.rounds < 1 or args.frames < 10 or args.warmup < 1:
-        raise SystemExit(f"--rounds must be ≥ 1, --frames ≥ 10 and --warmup ≥ 1, got {args.rounds}, {args.frames} "
-                         f"and {args.warmup}")
+        raise SystemExit(f"--rounds must be ≥ 1, --frames ≥ 10 and --warmup ≥ 1, got {args.rounds}, "
+                         f"{args.frames} and {args.warmup}")
     if args.child is not None:
         print(json.dumps(child(args.child, rows, args.frames, args.warmup)))
         return 0

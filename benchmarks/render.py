@@ -1,26 +1,36 @@
-"""Render time per frame at 640x480: the JAX rasteriser (tignn_jax.render) against the same algorithm in NumPy.
+"""Render time per frame at 640×480: does the render stage fit its share of the frame, and does the JAX
+rasteriser beat the same algorithm in NumPy?
 
-Meshes: the beam (a 40x10x10 box meshed 20x5x5 hex8 -> 450 boundary quads -> 900 triangles), a 1352-node
-tet4 solid (a 13x13x8-node blob, each hex split into 6 tets) and, when fem/data/bunny.npz is present, the
-1330-node bunny (2000 surface triangles). Each is shown about 0.2 m across, 0.45 m in front of the camera, and
-deformed differently every frame (a travelling bend) so nothing is cached between frames.
+Question: the loop's render stage (`tignn_jax.mr.render`) should take ≤ 10 ms at 640×480, so that the simulation
+keeps ≥ 23 ms of a 33 ms frame; the library keeps the JAX rasteriser only if it is faster than the same row/span
+algorithm in NumPy.
 
-Measured per frame, medians / p99 / min over repeats after compilation, the variants interleaved frame by frame
-(so each sees the same load from other jobs on the machine):
-- ``raster_jax``: ``rasterize`` alone (projected vertices in, image out), JAX jit;
-- ``raster_numpy``: the same row/span fragment algorithm written in NumPy (rows and fragments generated with
-  ``np.repeat``, z-buffer with ``np.minimum.at``), no capacity needed;
-- ``draw_jax``: the render stage of the real-time loop as ``scene.py`` runs it, one jitted program:
-  ``draw_mesh`` (normals, Phong, projection, rasterise), ``ar.occlude`` against a real depth image, uint8.
+How: three meshes, each shown about 0.2 m across, 0.45 m in front of the camera, and deformed differently every
+frame (a travelling bend) so that nothing is cached between frames: the beam (a 40×10×10 box meshed 20×5×5 hex8:
+450 boundary quads, 900 triangles), a 1352-node tet4 blob (a 13×13×8-node block, each hex split into 6 tets)
+and, where fem/data/bunny.npz is present, the 1330-node bunny (2000 surface triangles). Timed per frame after
+compilation, the variants interleaved frame by frame so that each sees the same load from other processes
+(p50 / p99 / min over ``--repeats`` frames):
 
-Run: ``python benchmarks/render.py [--repeats 200]``; writes benchmarks/results/render.{json,md}.
+- ``raster_jax``: `tignn_jax.mr.rasterize` alone (projected vertices in, image out), jitted;
+- ``raster_numpy``: the same row/span fragment algorithm in NumPy (rows and fragments generated with
+  ``np.repeat``, the z-buffer with ``np.minimum.at``; no fragment capacity needed); its image is compared with
+  the JAX one;
+- ``draw_jax``: the render stage as the loop (`tignn_jax.mr.scene`) runs it, one jitted program:
+  `tignn_jax.mr.draw_mesh` (normals, Phong, projection, rasterise), `tignn_jax.mr.occlude` against a real depth
+  image, uint8.
+
+Writes ``render.{json,md}`` to ``--out`` (default benchmarks/results) with the CPU and its load average at start
+and end (a load above the core count means other processes shared the CPU). ``--quick`` is a smoke test (a few
+frames), not a measurement.
+
+    python benchmarks/render.py [--repeats 200]
 """
+
 from __future__ import annotations
 
 import argparse
 import json
-import os
-import platform
 import sys
 import time
 from pathlib import Path
@@ -29,14 +39,14 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from tignn_jax import ar
-from tignn_jax.render import draw_mesh, fragment_capacity, rasterize, surface_triangles
+from tignn_jax import mr
+from tignn_jax.mr import draw_mesh, fragment_capacity, rasterize, surface_triangles
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _machine import write_results  # noqa: E402
+from _machine import RESULTS_DIR, describe, write_results  # noqa: E402
 
 W, H = 640, 480
-RESULTS = Path(__file__).resolve().parent / "results"
+MESHES = ("beam_hex8", "blob_tet4", "bunny_tet4")
 
 
 def box_hex(nx, ny, nz, size):
@@ -62,7 +72,7 @@ def tet_blob():
 
 
 def rasterize_numpy(pixels, depth, colours, triangles, width, height):
-    """NumPy version of ``tignn_jax.render.rasterize`` (same rows/spans, rules and z-buffer), returning
+    """NumPy version of `tignn_jax.mr.rasterize` (same rows/spans, rules and z-buffer), returning
     (rgb, depth); fragments are generated with ``np.repeat`` (exact sizes, no capacity)."""
     p = pixels[triangles]
     w = depth[triangles]
@@ -116,8 +126,8 @@ def rasterize_numpy(pixels, depth, colours, triangles, width, height):
 
 
 def camera():
-    view = ar.look_at([0.05, 0.25, 0.45], [0.0, 0.0, 0.0], [0.0, 1.0, 0.0])
-    projection = ar.perspective(np.deg2rad(55.0), W / H, 0.05, 5.0)
+    view = mr.look_at([0.05, 0.25, 0.45], [0.0, 0.0, 0.0], [0.0, 1.0, 0.0])
+    projection = mr.perspective(np.deg2rad(55.0), W / H, 0.05, 5.0)
     return projection @ view, jnp.array([0.05, 0.25, 0.45])
 
 
@@ -155,20 +165,20 @@ def bench_mesh(name, points, cells, repeats):
     tris = surface_triangles(cells, points)
     centre = points.mean(0)
     scale = 0.2 / np.ptp(points[:, 0])
-    model = ar.model_matrix(-scale * centre, np.eye(3), scale)
+    model = mr.model_matrix(-scale * centre, np.eye(3), scale)
     vp, eye = camera()
-    frames = [np.asarray(ar.transform_points(model, jnp.asarray(deformed(points, i), jnp.float32)))
+    frames = [np.asarray(mr.transform_points(model, jnp.asarray(deformed(points, i), jnp.float32)))
               for i in range(16)]
     values = np.linalg.norm(points - centre, axis=1)
-    colours = ar.colour_map(jnp.asarray(values), values.min(), values.max())
+    colours = mr.colour_map(jnp.asarray(values), values.min(), values.max())
     light = jnp.array([-0.3, -1.0, -0.5])
     real_depth = jnp.full((H, W), 0.5).at[:, : W // 3].set(0.3)  # a real object covering the left third
     real_rgb = jnp.full((H, W, 3), 0.4)
 
-    proj = [ar.project(jnp.asarray(f), vp, (0.0, 0.0, W, H)) for f in frames]
+    proj = [mr.project(jnp.asarray(f), vp, (0.0, 0.0, W, H)) for f in frames]
     pix_np = [(np.asarray(p), np.asarray(d)) for p, d in proj]
-    shaded = np.asarray(ar.phong(jnp.asarray(frames[0]), ar.vertex_normals(jnp.asarray(frames[0]), jnp.asarray(tris)),
-                                 colours, eye, light))
+    first = jnp.asarray(frames[0])
+    shaded = np.asarray(mr.phong(first, mr.vertex_normals(first, jnp.asarray(tris)), colours, eye, light))
     capacity = fragment_capacity(*pix_np[0], tris, W, H, headroom=1.5)
     tris_j = jnp.asarray(tris)
     frames_j = [jnp.asarray(f) for f in frames]
@@ -184,7 +194,7 @@ def bench_mesh(name, points, cells, repeats):
     @jax.jit
     def render_stage(q, real_rgb, real_depth):
         r = draw_mesh(q, tris_j, colours, vp, eye, light, width=W, height=H, capacity=capacity)
-        rgb = ar.occlude(r.rgb, r.depth, real_rgb, real_depth)
+        rgb = mr.occlude(r.rgb, r.depth, real_rgb, real_depth)
         return (jnp.clip(rgb, 0.0, 1.0) * 255.0 + 0.5).astype(jnp.uint8), r.overflow
 
     def render(q):
@@ -207,49 +217,62 @@ def bench_mesh(name, points, cells, repeats):
         **timings({"raster_jax": raster_jax, "raster_numpy": raster_np, "draw_jax": draw_jax}, repeats),
     }
     result["numpy_over_jax_p50"] = result["raster_numpy"]["p50_ms"] / result["raster_jax"]["p50_ms"]
-    print(name, json.dumps(result, indent=1))
+    print(name, json.dumps(result), flush=True)
     return result
 
 
-def main():
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--repeats", type=int, default=200)
-    args = parser.parse_args()
-    results = {
-        "machine": {"platform": platform.platform(), "processor": platform.processor(),
-                    "cpu_count": os.cpu_count(), "jax": jax.__version__, "numpy": np.__version__,
-                    "backend": jax.default_backend(), "load_average_at_start": os.getloadavg()},
-        "image": [W, H], "repeats": args.repeats,
-        "beam_hex8": bench_mesh("beam_hex8", *beam(), args.repeats),
-        "blob_tet4": bench_mesh("blob_tet4", *tet_blob(), args.repeats),
-    }
-    if bunny() is not None:
-        results["bunny_tet4"] = bench_mesh("bunny_tet4", *bunny(), args.repeats)
-    results["machine"]["load_average_at_end"] = os.getloadavg()
-    meshes = [k for k in ("beam_hex8", "blob_tet4", "bunny_tet4") if k in results]
-    lines = ["# Render time per frame, 640x480", "",
-             f"Machine: {results['machine']['platform']}, {results['machine']['cpu_count']} CPUs, "
-             f"jax {jax.__version__} ({jax.default_backend()}), numpy {np.__version__}. "
-             f"{args.repeats} frames each after compilation. The 2 CPUs were shared with other jobs (load average "
-             f"{results['machine']['load_average_at_start'][0]:.1f} at start, "
-             f"{results['machine']['load_average_at_end'][0]:.1f} at end), so p50/p99 are inflated and noisy; "
-             "min is the least contended frame.", "",
-             "| mesh | nodes | triangles | pixels drawn | raster JAX p50 / p99 (ms) | raster NumPy p50 / p99 (ms) "
-             "| NumPy / JAX (p50) | render stage p50 / p99 / min (ms) |",
-             "|---|---|---|---|---|---|---|---|"]
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(
+        description="Render time per frame at 640x480: the JAX rasteriser and render stage against the same "
+                    "algorithm in NumPy; writes render.{json,md}.")
+    parser.add_argument("--repeats", type=int, default=None,
+                        help="timed frames per mesh and variant, at least 3 (default: 200; --quick: 5)")
+    parser.add_argument("--meshes", default=",".join(MESHES),
+                        help=f"meshes, comma-separated, from {list(MESHES)}; the bunny only where "
+                             "fem/data/bunny.npz is present (default: all)")
+    parser.add_argument("--quick", action="store_true", help="a smoke test: 5 frames per mesh (unless --repeats)")
+    parser.add_argument("--out", type=Path, default=RESULTS_DIR,
+                        help="folder the results are written to (default: benchmarks/results)")
+    args = parser.parse_args(argv)
+    repeats = args.repeats if args.repeats is not None else 5 if args.quick else 200
+    meshes = [m for m in args.meshes.split(",") if m]
+    bad = [m for m in meshes if m not in MESHES]
+    if bad or not meshes or repeats < 3:
+        raise SystemExit(f"--meshes must name some of {list(MESHES)} (unknown: {bad}) and --repeats be ≥ 3, got "
+                         f"{args.meshes!r} and {repeats}")
+    machine = {**describe(), "numpy": np.__version__}
+    makers = {"beam_hex8": beam, "blob_tet4": tet_blob, "bunny_tet4": bunny}
+    results = {"machine": machine, "quick": args.quick, "image": [W, H], "repeats": repeats}
     for key in meshes:
+        mesh = makers[key]()
+        if mesh is not None:   # the bunny without fem/data/bunny.npz
+            results[key] = bench_mesh(key, *mesh, repeats)
+    machine["load_average_1m_at_end"] = describe()["load_average_1m"]
+    lines = ["# Render time per frame, 640×480", "",
+             f"Machine: {machine['cpu']}, {machine['cores']} cores, jax {machine['jax']} ({machine['backend']}), "
+             f"numpy {np.__version__}; load average {machine['load_average_1m']} at start, "
+             f"{machine['load_average_1m_at_end']} at end ({machine['note']}). {repeats} frames per mesh after "
+             "compilation, the variants interleaved frame by frame; min is the least contended frame."
+             + (" QUICK RUN (smoke test): not a measurement." if args.quick else ""), "",
+             "| mesh | nodes | triangles | pixels drawn | raster JAX p50 / p99 (ms) | raster NumPy p50 / p99 (ms) "
+             "| NumPy / JAX (p50) | largest colour difference, JAX vs NumPy | render stage p50 / p99 / min (ms) "
+             "| render stage ≤ 10 ms (p50) |",
+             "|---|---|---|---|---|---|---|---|---|---|"]
+    for key in (k for k in MESHES if k in results):
         r = results[key]
+        d = r["draw_jax"]
         lines.append(f"| {key} | {r['nodes']} | {r['surface_triangles']} | {r['drawn_pixels']} | "
                      f"{r['raster_jax']['p50_ms']:.2f} / {r['raster_jax']['p99_ms']:.2f} | "
                      f"{r['raster_numpy']['p50_ms']:.2f} / {r['raster_numpy']['p99_ms']:.2f} | "
-                     f"{r['numpy_over_jax_p50']:.2f} | "
-                     f"{r['draw_jax']['p50_ms']:.2f} / {r['draw_jax']['p99_ms']:.2f} / {r['draw_jax']['min_ms']:.2f} |")
-    lines += ["", "Render stage = vertex normals + Phong + projection + rasterise, then occlusion against a real depth "
-              "image + uint8 (one jitted program, as in tignn_jax/scene.py). Target: <= 10 ms so the simulation keeps "
-              ">= 23 ms of the 33 ms frame. The NumPy rasteriser is the same algorithm; the library keeps the JAX one."]
-    write_results("render", results, "\n".join(lines) + "\n", RESULTS, indent=2, echo=False)
-    print("\n".join(lines))
+                     f"{r['numpy_over_jax_p50']:.2f} | {r['max_abs_diff_jax_vs_numpy']:.1e} | "
+                     f"{d['p50_ms']:.2f} / {d['p99_ms']:.2f} / {d['min_ms']:.2f} | "
+                     f"{'yes' if d['p50_ms'] <= 10.0 else 'no'} |")
+    lines += ["", "Render stage = vertex normals + Phong + projection + rasterise, then occlusion against a real "
+              "depth image + uint8 (one jitted program, as in `tignn_jax.mr.scene`). Target: ≤ 10 ms, so that the "
+              "simulation keeps ≥ 23 ms of the 33 ms frame. The NumPy rasteriser is the same algorithm."]
+    write_results("render", results, "\n".join(lines) + "\n", folder=args.out, indent=2)
+    return 0
 
 
 if __name__ == "__main__":
-    main()
+    raise SystemExit(main())

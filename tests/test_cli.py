@@ -118,3 +118,15 @@ def test_debug_shows_the_traceback():
     out = subprocess.run([sys.executable, "-m", "tignn_jax.cli", "--debug", "evaluate", "--data", "no-such.npz"],
                          capture_output=True, text=True)
     assert out.returncode != 0 and "Traceback" in out.stderr
+
+
+def test_a_tiny_graph_network_trains_by_the_cli(tmp_path, tiny_data):
+    run = tmp_path / "gnn"
+    assert main(["train", "--config", str(ROOT / "configs" / "tiny_gnn.py"), "--data", str(tiny_data),
+                 "--run-dir", str(run), "--no-progress"]) == 0
+    import tignn_jax as T
+
+    params, graph = T.load_pretrained(str(run / "model"))
+    assert isinstance(params["model"], T.GenericGNN)
+    z = T.rollout(params, graph, np.zeros((3, 20, 3), np.float32))
+    assert np.all(np.isfinite(np.asarray(z)))

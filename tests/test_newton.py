@@ -18,6 +18,8 @@ H = 0.05
 
 @pytest.fixture(scope="module")
 def bar():
+    """A 4×1×1 hex bar of the beam's material clamped at x = 0, its problem, its rest-linearised model's arrays,
+    the FEM's force and stress and the nodal rotations."""
     pts, cells = fem.box_hex_mesh((8.0, 2.0, 2.0), (4, 1, 1))
     node_type = (pts[:, 0] < 1e-9).astype(np.int8)
     material = fem.mooney_rivlin(c10=1.5e5, c01=5e3, d1=1e-7, density=7.135e-3)
@@ -49,6 +51,7 @@ def _tip_case(pts, load):   # a tip load held for 5 frames, then released for 3
     return f
 
 
+@pytest.mark.slow   # the bar's Newton steps compile for minutes on two shared cores
 def test_one_newton_step_from_v_zero_tracks_the_converged_fem_where_the_velocity_predictor_diverges(bar):
     # A sudden tip load, held, then released: the converged backward-Euler FEM (Newton to 1e-4) against one
     # Newton iteration per frame. From the predictor u + h v the frame after the sudden load overshoots (v = u₁/h
@@ -71,6 +74,7 @@ def test_one_newton_step_from_v_zero_tracks_the_converged_fem_where_the_velocity
     assert error() < 0.005                                       # the defaults: 2 Newton iterations of 3 CG
 
 
+@pytest.mark.slow   # the bar's Newton steps compile for minutes on two shared cores
 def test_the_step_keeps_rest_and_a_rigidly_turned_body_unstressed(bar):
     # From rest under no load the residual is exactly zero: CG must not divide 0 by 0. A free body turned rigidly
     # by 1 rad (far outside the rest linearisation's range) is left where it is, unstressed.
@@ -93,12 +97,12 @@ def test_the_step_keeps_rest_and_a_rigidly_turned_body_unstressed(bar):
         assert np.abs(out[:, 6:]).max() < 1e-3 * 1.5e5, pred
 
 
-def test_bad_arguments_are_named(bar):
-    pts, node_type, problem, material, arrays, force, stress, rotation, stored = bar
+def test_bad_arguments_are_named():
+    # the iteration counts and the predictor are checked before anything is built
     for kw, word in (({"iterations": 0}, "iterations"), ({"newton": 0}, "newton"), ({"predictor": "guess"},
                                                                                       "predictor")):
         with pytest.raises(ValueError, match=word):
-            newton.newton_cg(arrays, node_type, pts, force, stress, rotation, **kw)
+            newton.newton_cg({}, None, np.zeros((1, 3)), None, None, None, **kw)
 
 
 def test_fallback_step_for_the_shipped_beam_fallback():
@@ -156,12 +160,10 @@ def test_rotations_recover_a_rigid_rotation():
     np.testing.assert_allclose(r, np.broadcast_to(np.eye(3), r.shape), atol=1e-5)
 
 
-def test_fem_scene_of_the_shipped_linear_models_and_the_demo_dynamics():
+def test_fem_scene_of_the_shipped_linear_models():
     # each shipped rest-linearised model names its FEM scene by its mesh, with the density and damping it records;
-    # `tignn demo --model fem-newton` steps the beam with that scene's Newton step (not learned), which pushes a
-    # pressed tip down, is labelled as the FEM and is not taken for the stand-in
+    # a model on no shipped scene's mesh is refused
     import tignn_jax
-    from tignn_jax.cli.demo import build_scene
 
     for name, scene_name in (("beam-linear", "beam"), ("bunny-linear", "bunny")):
         linear, _ = tignn_jax.load_pretrained(name)
@@ -169,10 +171,19 @@ def test_fem_scene_of_the_shipped_linear_models_and_the_demo_dynamics():
         assert scene.name == scene_name
         assert scene.damping == pytest.approx(linear["info"]["fem_damping"])
         assert scene.material.density == pytest.approx(linear["info"]["fem_density"])
-    linear, graph = tignn_jax.load_pretrained("beam-linear")
     other = dict(linear, mesh=dict(linear["mesh"], q0=np.asarray(linear["mesh"]["q0"]) * 2.0))
     with pytest.raises(ValueError, match="no shipped FEM scene"):
         newton.fem_scene(other)
+
+
+@pytest.mark.slow   # two compilations of the beam's Newton step (about 80 s on two shared cores)
+def test_the_demo_dynamics_of_fem_newton():
+    # `tignn demo --model fem-newton` steps the beam with its scene's Newton step (not learned), which pushes a
+    # pressed tip down, is labelled as the FEM and is not taken for the stand-in; it is `tignn_jax.fem_stepper`
+    import tignn_jax
+    from tignn_jax.cli.demo import build_scene
+
+    linear, _ = tignn_jax.load_pretrained("beam-linear")
     scene, dynamics = build_scene("beam", 4, "fem-newton")
     assert dynamics.startswith("FEM backward Euler") and "not learned" in dynamics
     body = scene.bodies[0]

@@ -276,6 +276,14 @@ class GenericGNN:
         return Rates(dw=dw, grad_e=g_e, grad_s=g_s, deg_l=apply_l(l_mat, g_s), deg_m=apply_m(m_mat, g_e),
                      entropy_rate=jnp.sum(g_s * dw), dissipation=jnp.sum(g_s * m_s))
 
+    def diagnostics(self, arrays: dict, z, f, z_next) -> dict:
+        """The structure of one step from z [N, 12] under f [N, 3] (``z_next`` is not needed: the rate is local):
+        {"deg_l_rel", "deg_m_rel": ‖L∇S‖ and ‖M∇E‖ over ‖Δw‖, "entropy_rate": ∇Sᵀ Δw, "dissipation": ∇Sᵀ M ∇S}."""
+        r = self.rates(arrays, z, f)
+        size = jnp.linalg.norm(r.dw) + 1e-12
+        return {"deg_l_rel": jnp.linalg.norm(r.deg_l) / size, "deg_m_rel": jnp.linalg.norm(r.deg_m) / size,
+                "entropy_rate": r.entropy_rate, "dissipation": r.dissipation}
+
     def operators(self, arrays: dict, z, f):
         """Per-node L [N, 12, 12] (skew-symmetric) and M [N, 12, 12] (symmetric PSD) at state z [N, 12] under
         f [N, 3], in the scaled coordinates w = z / s."""
