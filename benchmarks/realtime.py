@@ -276,7 +276,7 @@ def parse_args(argv=None):
                         help="rounds of the fused-against-staged loop comparison per scene; 0 skips it "
                              "(default: 2; --quick: 0)")
     parser.add_argument("--fusion-frames", type=int, default=None,
-                        help="timed frames per run of that comparison (default: 200)")
+                        help="timed frames per run of that comparison, at least 10 (default: 200; --quick: 10)")
     parser.add_argument("--cores", type=int, default=1,
                         help="cores the process runs on, as `tignn demo --cores`: pinned to that many of the CPUs it "
                              "may use, one CPU device per core, one body per device (default: %(default)s, the "

@@ -161,23 +161,32 @@ def first_over(err, bound: float = 0.10):
     return int(over[0] + 1) if len(over) else None
 
 
-def energy_series(params: dict, zs, forces, noise) -> dict | None:
+def diagnostics_fn(params: dict):
+    """The model class's energy balance ``fn(z [B,N,12], f [B,N,3], z_next) -> {"energy", "work", "dissipation"}``
+    [B] each, jitted for float64 inputs; None for a class without ``diagnostics``."""
+    model = params["model"]
+    if not hasattr(model, "diagnostics"):
+        return None
+    return jax.jit(jax.vmap(lambda z, f, zn: model.diagnostics(params["arrays"], z, f, zn)))
+
+
+def energy_series(params: dict, zs, forces, noise, fn=None) -> dict | None:
     """E per state and the dissipation D per frame of a model class with ``diagnostics`` (None otherwise),
     from each frame's input state (the state plus the noise) to its output; evaluated in float64 on the
     float32 states."""
-    model = params["model"]
-    if not hasattr(model, "diagnostics"):
+    fn = diagnostics_fn(params) if fn is None else fn
+    if fn is None:
         return None
     zs = np.nan_to_num(np.asarray(zs, np.float32)).astype(np.float64)
     inputs = zs[:-1] + noise
     forces = np.asarray(forces, np.float64)
     with jax.enable_x64(True):   # the balance of the float32 states, summed in float64 (K's entries are large)
-        one = jax.jit(jax.vmap(lambda z, f, zn: model.diagnostics(params["arrays"], z, f, zn)))
-        parts = [one(jnp.asarray(inputs[i:i + CHUNK]), jnp.asarray(forces[i:i + CHUNK]),
-                     jnp.asarray(zs[i + 1:i + 1 + CHUNK])) for i in range(0, len(inputs), CHUNK)]
-        e0 = float(model.diagnostics(params["arrays"], jnp.asarray(zs[0]), jnp.zeros((zs.shape[1], 3)),
-                                     jnp.asarray(zs[0]))["energy"])
-    energy = np.concatenate([[e0]] + [np.asarray(p["energy"], np.float64) for p in parts])
+        parts = [fn(*(jnp.asarray(_pad(a[i:i + CHUNK])) for a in (inputs, forces, zs[1:])))
+                 for i in range(0, len(inputs), CHUNK)]
+    sizes = [min(CHUNK, len(inputs) - i) for i in range(0, len(inputs), CHUNK)]
+    parts = [{k: np.asarray(v, np.float64)[:n] for k, v in p.items()} for p, n in zip(parts, sizes)]
+    e0 = parts[0]["energy"][0] - parts[0]["work"][0] + parts[0]["dissipation"][0]   # E(z₀) = E(z₁) − W + D
+    energy = np.concatenate([[e0]] + [p["energy"] for p in parts])
     return {"E": energy, "D": np.concatenate([np.asarray(p["dissipation"], np.float64) for p in parts])}
 
 
@@ -206,13 +215,20 @@ def how_it_leaves(params: dict, z, past_forces, hops) -> dict:
             "hops_from_load": int(hops[node, loaded].min()) if len(loaded) else None}
 
 
-def flagged_frames(params: dict, zs) -> np.ndarray:
-    """[T+1] bool: the state guard's verdict on every state of a rollout."""
+def flagged_frames(params: dict, zs, guard=None) -> np.ndarray:
+    """[T+1] bool: the state guard's verdict on every state of a rollout (``guard``: a jitted vmap of
+    `tignn_jax.state_guard`, made here if None)."""
     import tignn_jax
 
-    guard = jax.jit(jax.vmap(tignn_jax.state_guard(params, TOLERANCE)))
+    guard = jax.jit(jax.vmap(tignn_jax.state_guard(params, TOLERANCE))) if guard is None else guard
     zs = np.asarray(zs, np.float32)
-    return np.concatenate([np.asarray(guard(jnp.asarray(zs[i:i + CHUNK]))) for i in range(0, len(zs), CHUNK)])
+    return np.concatenate([np.asarray(guard(jnp.asarray(_pad(zs[i:i + CHUNK]))))[:min(CHUNK, len(zs) - i)]
+                           for i in range(0, len(zs), CHUNK)])
+
+
+def _pad(a):
+    """``a`` padded to CHUNK rows by repeating its last row (one compiled shape for every chunk)."""
+    return a if len(a) == CHUNK else np.concatenate([a, np.repeat(a[-1:], CHUNK - len(a), axis=0)])
 
 
 def basic(zs, q0) -> dict:
@@ -251,6 +267,8 @@ def scene_runs(name: str, steps: int, reference_steps: int, seed: int = 0, model
         raise ValueError(f"reference must be one of {REFERENCES}, got {reference!r}")
     ref_step = tignn_jax.fem_stepper(linear) if reference == "newton" else tignn_jax.stepper(linear)
     fem = scan_rollout(lambda c, z, f: (c, ref_step(z, f), jnp.zeros((), bool)))
+    guard = jax.jit(jax.vmap(tignn_jax.state_guard(params, TOLERANCE)))
+    balance = diagnostics_fn(params)
     out = {"model": model, "model_class": params["model"].name,
            "reference": f"fem_stepper({LINEAR[name]})" if reference == "newton" else LINEAR[name],
            "nodes": len(q0), "runs": {}, "reference_runs": {}}
@@ -274,9 +292,9 @@ def scene_runs(name: str, steps: int, reference_steps: int, seed: int = 0, model
         zs, _ = rolls["plain"](z0, f_seq, jnp.asarray(e))
         zs = np.asarray(zs, np.float64)
         err = displacement_error(zs, u_ref, q0)
-        flags = flagged_frames(params, zs)
+        flags = flagged_frames(params, zs, guard)
         first = int(np.argmax(flags)) if flags.any() else None
-        energy = energy_series(params, zs, loads[s], e)
+        energy = energy_series(params, zs, loads[s], e, balance)
         run = {**basic(zs, q0), "u_error_at_reference_horizon": float(err[-1]),
                "u_error_max": float(np.nanmax(err)) if np.isfinite(err).any() else float("nan"),
                "first_step_u_error_over_10pct": first_over(err),

@@ -123,7 +123,10 @@ def run(args) -> int:
     suffix = "_STAND-IN" if dynamics.startswith("STAND-IN") else ""
     gif = out / f"{args.scene}{suffix}.gif"
     t0 = time.perf_counter()
-    imageio.mimsave(gif, frames, duration=1 / 30, loop=0)
+    label = "von Mises stress" if scene.colour_by == "stress" else "displacement |u|"
+    vmax = scene.bodies[0].vmax
+    imageio.mimsave(gif, [mr.with_legend(f, 0.0, vmax, f"{label} (data units)") for f in frames],
+                    duration=1 / 30, loop=0)
     summary = {"scene": args.scene, "dynamics": dynamics, "image": [scene.camera.width, scene.camera.height],
                "cores": args.cores, "pinned_cpus": list(pinned),
                "guard": "fallback" if scene.fallback else "reset",

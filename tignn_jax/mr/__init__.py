@@ -6,6 +6,7 @@ Modules, one concept each:
 * `tignn_jax.mr.surface`: a volume mesh's outward surface triangles, their nodes, vertex normals.
 * `tignn_jax.mr.forcing`: fingertip forces on a body and penalty contact between bodies.
 * `tignn_jax.mr.render`: colour map, Phong shading, a software rasteriser, occlusion by a real depth image.
+* `tignn_jax.mr.legend`: the colour legend drawn onto finished frames.
 * `tignn_jax.mr.background`: the real RGB and depth image, a synthetic table, the hand proxy.
 * `tignn_jax.mr.track`: fingertip tracks (the JSON-lines format, a synthetic press).
 * `tignn_jax.mr.scene`: `Scene`, `Body` and the real-time loop `run`.
@@ -21,6 +22,7 @@ from tignn_jax.mr.camera import (Camera, camera_projection, clip_coordinates, lo
                                  perspective, project, projection_from_intrinsics, rotation_matrix,
                                  transform_points, unproject)
 from tignn_jax.mr.forcing import contact_energy, contact_forces, fingertip_forces
+from tignn_jax.mr.legend import with_legend
 from tignn_jax.mr.render import (Raster, colour_map, draw_mesh, fragment_capacity, occlude, phong, rasterize,
                                  von_mises)
 from tignn_jax.mr.runtime import REAL_TIME_XLA_FLAG, cpu_devices, pin_cores, real_time_cores, real_time_xla_flags
@@ -38,6 +40,7 @@ __all__ = [
     "contact_energy", "contact_forces", "fingertip_forces",
     # render
     "Raster", "colour_map", "draw_mesh", "fragment_capacity", "occlude", "phong", "rasterize", "von_mises",
+    "with_legend",
     # background
     "Background", "hand_proxy", "table_background",
     # track
