@@ -12,7 +12,7 @@ frames. Cost: median wall time of a run of one case after compilation, per frame
         taskset -c 0 python benchmarks/fem_implicit.py [--repeats 5]
     python benchmarks/fem_implicit.py --quick --out /tmp/fem_implicit     # smoke run, ~40 s
 
-``--quick``: one test case, its first 3 frames, one run each, 1 implicit step per frame only, no bunny; the
+``--quick``: one test case, its first 2 frames, one run each, 1 implicit step per frame only, no bunny; the
 preconditioner is the shipped ``beam-linear`` model's A⁻¹ (the same rest operator at the frame step, built when
 the model loads), not a new linearisation. Writes fem_implicit.{json,md} to ``--out`` (default
 benchmarks/results).
@@ -36,8 +36,11 @@ RESULTS = ROOT / "benchmarks" / "results"
 TEST_SIMS = (9, 10, 12, 13, 38, 44)
 
 
-def _median_ms(fn, repeats: int) -> float:
-    jax.block_until_ready(fn())
+def _median_ms(fn, repeats: int, warm: bool = True) -> float:
+    """Median wall time [ms] of ``repeats`` calls of ``fn``, after a compiling call unless ``warm`` is False (fn
+    already ran)."""
+    if warm:
+        jax.block_until_ready(fn())
     times = []
     for _ in range(repeats):
         t0 = time.perf_counter()
@@ -46,7 +49,7 @@ def _median_ms(fn, repeats: int) -> float:
     return float(np.median(times))
 
 
-QUICK_FRAMES = 3
+QUICK_FRAMES = 2
 
 
 def beam(repeats: int, quick: bool = False) -> list:
@@ -78,7 +81,7 @@ def beam(repeats: int, quick: bool = False) -> list:
         res = jax.tree_util.tree_map(lambda a: a[None], simulate(problem, scene.material, one, on_inversion="ignore"))
     else:
         res = simulate_batch(problem, scene.material, Loads(nodal=forces))
-    ms = _median_ms(lambda: simulate(problem, scene.material, one, on_inversion="ignore").q, repeats)
+    ms = _median_ms(lambda: simulate(problem, scene.material, one, on_inversion="ignore").q, repeats, warm=not quick)
     out.append(dict(name="explicit (stable sub-step)", steps_per_frame=problem.config.n_sub,
                     ms_per_frame=ms / frames, **errors(res.q, res.sigma)))
     for n_sub in ((1,) if quick else (1, 2, 4)):
@@ -92,7 +95,7 @@ def beam(repeats: int, quick: bool = False) -> list:
             res, diag = implicit.simulate_implicit_batch(problem, scene.material, Loads(nodal=forces), pinv,
                                                          n_sub=n_sub)
         ms = _median_ms(lambda: implicit.simulate_implicit(problem, scene.material, one, pinv, n_sub=n_sub)[0].q,
-                        repeats)
+                        repeats, warm=not quick)
         out.append(dict(name=f"implicit, {n_sub} step(s) per frame", steps_per_frame=n_sub,
                         ms_per_frame=ms / frames, preconditioner_s=pre_s,
                         preconditioner="beam-linear's A⁻¹" if quick else "fem.implicit.preconditioner",
@@ -149,7 +152,7 @@ def report(result: dict) -> str:
              f"Machine: {m['cpu']}, {m['cores']} cores, jax {m['jax']}; load average {m['load_average_1m']} at the "
              f"start. XLA_FLAGS=`{result['xla_flags']}`. Cost: median of {result['repeats']} {frames}-frame runs of "
              "one case after compilation, per frame; the preconditioner (dense rest operator, once per mesh and step) "
-             "is listed apart." + (" QUICK: one test case, its first 3 frames, the preconditioner taken from the "
+             "is listed apart." + (" QUICK: one test case, its first 2 frames, the preconditioner taken from the "
                                    "shipped beam-linear model." if result.get("quick") else ""), "",
              "## Beam, Abaqus test split (errors against the Abaqus data, as in pareto.md)", "",
              "| solver | steps per frame | ms per frame | × faster than explicit | u | v | σ | q | preconditioner [s] | Newton residual max / iterations max |",
@@ -184,7 +187,7 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0],
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--repeats", type=int, default=5, help="timed runs per solver (default: %(default)s; quick 1)")
-    ap.add_argument("--quick", action="store_true", help="smoke run: one beam case, 3 frames, no bunny")
+    ap.add_argument("--quick", action="store_true", help="smoke run: one beam case, 2 frames, no bunny")
     ap.add_argument("--out", default=str(RESULTS), help="folder of fem_implicit.{json,md} (default %(default)s)")
     args = ap.parse_args(argv)
     repeats = 1 if args.quick else args.repeats

@@ -22,7 +22,7 @@ two XLA:CPU configurations (YNNPACK's fusions on, XLA's default, and off, the op
 `tignn_jax.mr.REAL_TIME_XLA_FLAG`), timed interleaved, and the faster counts. The Pareto front is the set of
 points not dominated in (time, u error); a second front asks for domination in (time, u, v, σ) at once.
 Writes pareto.{json,md,png} to ``--out`` (default benchmarks/results); the FEM's errors, which are deterministic,
-are cached in runs/pareto/.
+are cached in runs/pareto/errors.json (by a full run; delete it after changing the FEM).
 
     python benchmarks/pareto.py [--repeats 200] [--newton 1x3,2x3,3x5]
     python benchmarks/pareto.py --quick --out /tmp/pareto      # smoke run: one case, cheap variants
@@ -370,8 +370,8 @@ def main(argv=None) -> int:
     variants = [v for v in FEM_VARIANTS if v[0] in QUICK_FEM] if args.quick else list(FEM_VARIANTS)
     repeats = 20 if args.quick else args.repeats
     min_seconds = 0.5 if args.quick else 3.0
-    cache_path = RUNS / ("errors_quick.json" if args.quick else "errors.json")
-    cache = json.loads(cache_path.read_text()) if cache_path.exists() else {}
+    cache_path = None if args.quick else RUNS / "errors.json"      # a quick run neither reads nor writes it
+    cache = json.loads(cache_path.read_text()) if cache_path is not None and cache_path.exists() else {}
     test_sims = data.sim_id[rows].tolist()
     if cache.get("test_sims") != test_sims:
         cache = {"test_sims": test_sims}
@@ -411,8 +411,9 @@ def main(argv=None) -> int:
         if name not in cache:
             print(f"errors: {name}", flush=True)
             cache[name] = fem_errors(div, factor, data, rows)
-            RUNS.mkdir(parents=True, exist_ok=True)
-            cache_path.write_text(json.dumps(cache, indent=1))
+            if cache_path is not None:
+                cache_path.parent.mkdir(parents=True, exist_ok=True)
+                cache_path.write_text(json.dumps(cache, indent=1))
         print(f"timing {name}", flush=True)
         t = fem_frame_time(div, factor, int(data.sim_id[rows[0]]), min_seconds=min_seconds)
         points.append({"name": name, "kind": "fem", "density_factor": factor, **cache[name], "ms": t["p50_ms"],

@@ -185,7 +185,9 @@ def energy_series(params: dict, zs, forces, noise, fn=None) -> dict | None:
                  for i in range(0, len(inputs), CHUNK)]
     sizes = [min(CHUNK, len(inputs) - i) for i in range(0, len(inputs), CHUNK)]
     parts = [{k: np.asarray(v, np.float64)[:n] for k, v in p.items()} for p, n in zip(parts, sizes)]
-    e0 = parts[0]["energy"][0] - parts[0]["work"][0] + parts[0]["dissipation"][0]   # E(z₀) = E(z₁) − W + D
+    with jax.enable_x64(True):   # E(z₀): the balance of the frame z₀ → z₀ under no force
+        e0 = float(np.asarray(fn(*(jnp.asarray(_pad(a)) for a in (zs[:1], np.zeros_like(forces[:1]), zs[:1]))
+                                 )["energy"])[0])
     energy = np.concatenate([[e0]] + [p["energy"] for p in parts])
     return {"E": energy, "D": np.concatenate([np.asarray(p["dissipation"], np.float64) for p in parts])}
 

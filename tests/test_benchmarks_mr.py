@@ -82,7 +82,7 @@ def test_ar_contact_quick_writes_the_beam_row(tmp_path):
     result, md = _results(tmp_path, "ar_contact")
     r = result["beams"]
     assert r["nodes"] == [756, 756] and r["pairs_in_contact"] > 0
-    assert r["pruned_max_abs_diff_vs_dense"] < 1e-2 * 1e4 * 1e-3   # forces of order 1e4: equal to float32 rounding
+    assert r["pruned_max_abs_diff_vs_dense"] < 0.1   # forces of order 1e4: the same to float32 rounding
     for variant in ("dense", "dense_cond", "pruned", "pruned_apart") + (("jaxmd_cell",) if result["jax_md"] else ()):
         assert r[variant]["p50_ms"] > 0
     assert "| beams | 756+756 |" in md

@@ -1,6 +1,11 @@
 """tignn_jax.newton: the FEM's backward-Euler frame step by a fixed number of Newton iterations, against the
 converged FEM on a small hex bar of the beam's nearly incompressible material, on the shipped beam-linear's scene
-(`tignn_jax.fem_stepper`) and as the demo's ``--model fem-newton``."""
+(`tignn_jax.fem_stepper`) and as the demo's ``--model fem-newton``.
+
+The checks marked ``long`` compile the Newton step several times (its conjugate-gradient iterations are unrolled:
+30–80 s per compilation on two shared cores) and run only with ``TIGNN_LONG_TESTS=1``."""
+import os
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -14,6 +19,8 @@ from tignn_jax.simulators import LinearGeneric
 from tignn_jax.simulators import linear as LG
 
 H = 0.05
+long = pytest.mark.skipif(os.environ.get("TIGNN_LONG_TESTS") != "1",
+                          reason="compiles the Newton step several times (minutes): set TIGNN_LONG_TESTS=1")
 
 
 @pytest.fixture(scope="module")
@@ -51,7 +58,7 @@ def _tip_case(pts, load):   # a tip load held for 5 frames, then released for 3
     return f
 
 
-@pytest.mark.slow   # the bar's Newton steps compile for minutes on two shared cores
+@long
 def test_one_newton_step_from_v_zero_tracks_the_converged_fem_where_the_velocity_predictor_diverges(bar):
     # A sudden tip load, held, then released: the converged backward-Euler FEM (Newton to 1e-4) against one
     # Newton iteration per frame. From the predictor u + h v the frame after the sudden load overshoots (v = u₁/h
@@ -74,7 +81,7 @@ def test_one_newton_step_from_v_zero_tracks_the_converged_fem_where_the_velocity
     assert error() < 0.005                                       # the defaults: 2 Newton iterations of 3 CG
 
 
-@pytest.mark.slow   # the bar's Newton steps compile for minutes on two shared cores
+@long
 def test_the_step_keeps_rest_and_a_rigidly_turned_body_unstressed(bar):
     # From rest under no load the residual is exactly zero: CG must not divide 0 by 0. A free body turned rigidly
     # by 1 rad (far outside the rest linearisation's range) is left where it is, unstressed.
@@ -176,7 +183,7 @@ def test_fem_scene_of_the_shipped_linear_models():
         newton.fem_scene(other)
 
 
-@pytest.mark.slow   # two compilations of the beam's Newton step (about 80 s on two shared cores)
+@long
 def test_the_demo_dynamics_of_fem_newton():
     # `tignn demo --model fem-newton` steps the beam with its scene's Newton step (not learned), which pushes a
     # pressed tip down, is labelled as the FEM and is not taken for the stand-in; it is `tignn_jax.fem_stepper`

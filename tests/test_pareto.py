@@ -1,5 +1,6 @@
-"""The pieces of benchmarks/pareto.py that decide its results: the Pareto front, the coarse-mesh transfer and
-the mixed-precision step."""
+"""The pieces of benchmarks/pareto.py that decide its results: the Pareto front, the coarse-mesh transfer, the
+timing under both XLA configurations and the report."""
+import json
 import sys
 from pathlib import Path
 
@@ -12,8 +13,6 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
 import pareto  # noqa: E402
 
 from fem import box_hex_mesh, beam_mesh  # noqa: E402
-from tignn_jax import data as D  # noqa: E402
-from tignn_jax import model as M  # noqa: E402
 
 
 def test_pareto_front_keeps_exactly_the_non_dominated_points():
@@ -39,36 +38,6 @@ def test_pareto_front_over_several_errors_needs_domination_in_all():
     error = [[0.5, 0.5], [0.2, 0.9], [0.3, 0.1], [0.6, 0.6]]
     assert pareto.pareto_front(cost, error).tolist() == [0, 1, 2]
     assert pareto.pareto_front(cost, [e[0] for e in error]).tolist() == [0, 1]
-
-
-def test_linear_frame_settles_on_the_static_solution_of_the_rest_stiffness():
-    """The rest-linearised backward-Euler frame (the cheap FEM baseline) under a held load settles on
-    K₀ u = f (dense K₀ from the same linearisation, clamped rows removed), with 1 and 2 solves per frame."""
-    from fem import implicit
-
-    divisions = (5, 2, 2)
-    frame1, scene, _ = pareto.linear_frame(divisions, 1)
-    frame2, _, _ = pareto.linear_frame(divisions, 2)
-    lin = pareto._LINEAR[divisions]
-    n = len(scene.points)
-    k = np.zeros((n, n, 3, 3))
-    k[lin.k_rows, lin.k_cols] = lin.k_blocks
-    k = k.transpose(0, 2, 1, 3).reshape(3 * n, 3 * n)
-    free = np.repeat(np.asarray(scene.node_type) == 0, 3)
-    f = np.zeros((n, 3))
-    f[np.asarray(scene.points)[:, 0] > 40.0 - 1e-6, 2] = -100.0   # u ~ 0.1: far above float32 rounding of q
-    u_static = np.zeros(3 * n)
-    u_static[free] = np.linalg.solve(k[np.ix_(free, free)], f.reshape(-1)[free])
-    fj = jnp.asarray(f, jnp.float32)
-    for frame in (frame1, frame2):
-        z = jnp.concatenate([jnp.asarray(scene.points, jnp.float32), jnp.zeros((n, 9))], 1)
-        for _ in range(400):
-            z = frame(z, fj, fj)
-        u = np.asarray(z[:, :3]) - scene.points
-        assert np.linalg.norm(u.reshape(-1) - u_static) < 1e-3 * np.linalg.norm(u_static)
-        # at rest: the motion per frame is at float32 rounding of the positions (~40 × 6e-8 per step)
-        assert float(jnp.abs(z[:, 3:6]).max()) * 0.05 < 2e-3 * np.abs(u_static).max()
-    assert isinstance(lin, implicit.RestLinearization)
 
 
 @pytest.mark.parametrize("divisions", [(10, 3, 3), (14, 4, 4)])
@@ -108,37 +77,6 @@ def test_trilinear_weights_reject_points_outside_the_box():
         pareto.trilinear_weights(np.array([[41.0, 1.0, 1.0]]), (10, 3, 3))
 
 
-def _tiny_model():
-    data = D.synthetic_beam(cases=2, frames=3)
-    rows = D.split_rows(data, "train")
-    norm = {k: jnp.asarray(v) for k, v in D.normalization(data, rows).items()}
-    nt = jnp.asarray(data.node_type, jnp.int32)
-    topo = M.topology(data.edges[0], data.edges[1], len(data.node_type), data.q0)
-    cfg = M.ModelConfig(hidden=8, passes=2)
-    z, f = jnp.asarray(data.z[0, 2]), jnp.asarray(data.f[0, 2])
-    w = M.init_weights(jax.random.PRNGKey(1), cfg, norm, z, f, nt, topo)
-    return w, cfg, norm, z, f, nt, topo
-
-
-def test_mixed_step_in_float32_is_the_model_step():
-    # the mixed-precision step only changes the network's dtype; in float32 it must be model.step_state
-    w, cfg, norm, z, f, nt, topo = _tiny_model()
-    ref = jax.jit(lambda z: M.step_state(w, cfg, norm, z, f, nt, topo))(z)
-    out = jax.jit(lambda z: pareto.step_mixed(w, cfg, norm, z, f, nt, topo, jnp.float32))(z)
-    np.testing.assert_allclose(np.asarray(out), np.asarray(ref), rtol=1e-5, atol=1e-6)
-
-
-def test_mixed_step_in_bfloat16_keeps_a_float32_state_near_the_float32_step():
-    # bfloat16 network, float32 state: the increment is perturbed at the ~1 % level, the state stays float32
-    w, cfg, norm, z, f, nt, topo = _tiny_model()
-    ref = np.asarray(jax.jit(lambda z: M.step_state(w, cfg, norm, z, f, nt, topo))(z))
-    w16 = pareto.cast_weights(w, jnp.bfloat16)
-    out = jax.jit(lambda z: pareto.step_mixed(w16, cfg, norm, z, f, nt, topo, jnp.bfloat16))(z)
-    assert out.dtype == jnp.float32
-    dz_ref, dz = ref - np.asarray(z), np.asarray(out) - np.asarray(z)
-    assert np.linalg.norm(dz - dz_ref) <= 0.1 * np.linalg.norm(dz_ref)
-
-
 def test_each_step_is_timed_under_both_xla_configurations_and_keeps_the_faster():
     # best_config picks each name's faster configuration and keeps every median; the compiled configurations
     # compute the same step (the option changes how XLA:CPU runs it, not what)
@@ -153,8 +91,10 @@ def test_each_step_is_timed_under_both_xla_configurations_and_keeps_the_faster()
     assert set(compiled) == set(pareto.XLA_CONFIGS)
     for c in compiled.values():
         np.testing.assert_allclose(np.asarray(c(*args)), np.asarray(fn(*args)), rtol=1e-5)
-    timed = pareto.time_configs({"f": fn}, args, repeats=5)
+    timed = pareto.time_configs({"f": (fn, args)}, repeats=5)
     assert set(timed) == {"f"} and set(timed["f"]["p50_by_xla"]) == set(pareto.XLA_CONFIGS)
+    plain = pareto.time_configs({"f": (fn, args)}, repeats=5, configs=False)
+    assert set(plain["f"]["p50_by_xla"]) == {"default"} and plain["f"]["xla"] == "default"
 
 
 def test_the_shipped_verdict_names_each_front_it_is_on_or_off():
@@ -163,21 +103,6 @@ def test_the_shipped_verdict_names_each_front_it_is_on_or_off():
         "does NOT lie on the (time, u) front but lies on the (time, u, v, σ) front")
     assert pareto.shipped_verdict({"on_front": True, "on_front_uvs": True}).endswith("and on the (time, u, v, σ) front")
     assert pareto.shipped_verdict({"on_front": False, "on_front_uvs": False}).endswith("nor on the (time, u, v, σ) front")
-
-
-def test_cached_errors_of_a_model_are_stale_once_its_weights_change():
-    # errors cached for one set of weights must not be reported for another (the shipped model is retrained)
-    w = {"weights": {"a": np.ones((2, 3), np.float32), "b": [np.zeros(4, np.float32)]}}
-    fp = pareto.weights_fingerprint(w)
-    assert fp == pareto.weights_fingerprint({"weights": {"a": np.ones((2, 3), np.float32),
-                                                         "b": [np.zeros(4, np.float32)]}})
-    changed = {"weights": {"a": np.ones((2, 3), np.float32), "b": [np.array([0, 0, 1e-7, 0], np.float32)]}}
-    reshaped = {"weights": {"a": np.ones((3, 2), np.float32), "b": [np.zeros(4, np.float32)]}}
-    assert pareto.weights_fingerprint(changed) != fp and pareto.weights_fingerprint(reshaped) != fp
-    cache = {"m": {"u": 0.05, "weights_sha256": fp}, "old": {"u": 0.05}}
-    assert not pareto.stale(cache, "m", fp)
-    assert pareto.stale(cache, "m", pareto.weights_fingerprint(changed))
-    assert pareto.stale(cache, "old", fp) and pareto.stale(cache, "missing", fp)
 
 
 def test_labels_of_crowded_points_are_moved_apart_and_lone_ones_stay_beside_their_marker():
@@ -189,18 +114,39 @@ def test_labels_of_crowded_points_are_moved_apart_and_lone_ones_stay_beside_thei
     assert all(b - a >= 9.0 - 1e-9 for a, b in zip(ys, ys[1:]))
 
 
-def test_report_only_quick_reads_and_writes_the_quick_result(tmp_path, monkeypatch, capsys):
-    """--report-only --quick regenerates the quick result where the quick run writes it, and says which file
-    is missing when there is none (it used to read the full result whatever --quick said)."""
-    monkeypatch.setattr(pareto, "RUNS", tmp_path)
+def test_newton_settings_are_parsed_and_checked():
+    assert pareto.parse_newton("1x3, 2x3") == [(1, 3), (2, 3)] and pareto.parse_newton("") == []
+    for bad in ("2", "0x3", "2xa"):
+        with pytest.raises(ValueError):
+            pareto.parse_newton(bad)
+
+
+def _point(name, kind, ms, u, **extra):
+    return {"name": name, "kind": kind, "ms": ms, "u": u, "v": 2 * u, "sigma": 3 * u, "sigma_free": 3 * u,
+            "u_worst_case": 1.5 * u, "on_front": False, "on_front_uvs": False, **extra}
+
+
+def test_report_only_rewrites_the_report_and_plot_from_the_stored_result(tmp_path, capsys):
+    """--report-only reads pareto.json from --out and writes pareto.md and pareto.png beside it, the published
+    network as a reference row; it names the missing file when there is none."""
     with pytest.raises(SystemExit):
-        pareto.main(["--quick", "--report-only"])
-    assert "pareto_quick.json" in capsys.readouterr().err
-    full = Path(__file__).resolve().parents[1] / "benchmarks" / "results" / "pareto.json"
-    if not full.exists():
-        pytest.skip("no committed pareto.json")
-    (tmp_path / "quick").mkdir()
-    (tmp_path / "quick" / "pareto_quick.json").write_text(full.read_text())
-    assert pareto.main(["--quick", "--report-only"]) == 0
-    assert (tmp_path / "quick" / "pareto_quick.md").read_text().startswith("#")
-    assert (tmp_path / "quick" / "pareto_quick.png").stat().st_size > 0
+        pareto.main(["--report-only", "--out", str(tmp_path)])
+    assert "pareto.json" in capsys.readouterr().err
+    points = [_point("beam", "shipped", 1.1, 0.03), _point("beam-linear", "shipped-linear", 0.8, 0.04),
+              _point("FEM 5×2×2", "fem", 19.0, 0.2, elements=20, n_sub=743, inverted=[-1]),
+              _point("FEM Newton-CG 2×3", "fem-newton", 8.0, 0.02, newton=[2, 3])]
+    front = pareto.pareto_front([p["ms"] for p in points], [p["u"] for p in points])
+    for i in front:
+        points[i]["on_front"] = points[i]["on_front_uvs"] = True
+    result = {"machine": {"cpu": "x", "cores": 2, "jax": jax.__version__, "backend": "cpu"},
+              "load_average_start": [0, 0, 0], "load_average_after_steps": [0, 0, 0], "load_average_end": [0, 0, 0],
+              "test_sims": [9], "budget_ms": pareto.BUDGET_MS, "points": points,
+              "front": [points[i]["name"] for i in front], "front_uvs": [points[i]["name"] for i in front],
+              "published_test": {"q": 4.14e-3, "v": 1.72e-2, "sigma": 9.51e-2, "u": 7.07e-2}, "repeats": 5,
+              "quick": True, "xla_configs": ["default"], "xla_flags": ""}
+    (tmp_path / "pareto.json").write_text(json.dumps(result))
+    assert pareto.main(["--report-only", "--out", str(tmp_path)]) == 0
+    md = (tmp_path / "pareto.md").read_text()
+    assert md.startswith("# Run time against error") and "| published TIGNN (reference line) | — |" in md
+    assert "beam-linear → beam → FEM Newton-CG 2×3" in md
+    assert (tmp_path / "pareto.png").stat().st_size > 0

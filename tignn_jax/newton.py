@@ -24,9 +24,8 @@ one Newton step from it diverges (a hex bar of the beam material: at a tip defle
 `tests/test_newton.py`); from v' = 0 it does not. A rigidly turned body is left at rest: f_int and σ vanish, so
 the residual does. The input state's σ is not read: the stress is the FEM's at the new displacement.
 
-Accuracy and cost against the learned and rest-linearised steps: ``benchmarks/pareto.py``. Use it as the
-``step`` of `tignn_jax.guards.fallback_stepper`, or as a reference simulator (`fem_stepper`, ``tignn demo --model
-fem-newton``).
+Accuracy and cost against the learned and rest-linearised steps: ``benchmarks/pareto.py``. Use it as a reference
+simulator (`fem_stepper`, ``tignn demo --model fem-newton``) or as the step a loop hands a body to.
 """
 from __future__ import annotations
 
