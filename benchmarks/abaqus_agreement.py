@@ -69,10 +69,12 @@ def main(argv=None):
                "per_case_u": e["u"].mean(1).tolist(), "identification": ident}
     targets = {"u": 0.05, "v": 0.05, "sigma_free": 0.10}
     lines = ["# FEM against the Abaqus beam data", "",
-             "Mean over frames 1–20 of the relative L2 error over nodes (σ: free nodes; 'all' includes the clamped face).",
+             "Mean over frames 1–20 of the relative L2 error over nodes (σ: free nodes; 'all' includes the clamped "
+             "face).",
              "", "| split | u = q − q0 | v | σ (free nodes) | σ (all nodes) | q |", "|---|---|---|---|---|---|"]
     for split, row in table.items():
-        lines.append(f"| {split} | {row['u']:.4f} | {row['v']:.4f} | {row['sigma_free']:.4f} | {row['sigma_all']:.4f} | {row['q']:.5f} |")
+        lines.append(f"| {split} | {row['u']:.4f} | {row['v']:.4f} | {row['sigma_free']:.4f} | "
+                     f"{row['sigma_all']:.4f} | {row['q']:.5f} |")
     lines += ["", "Targets: u ≤ %.2f, v ≤ %.2f, σ (free) ≤ %.2f — %s: %s" % (
         targets["u"], targets["v"], targets["sigma_free"], next(iter(table)),
         ", ".join(f"{k} {'met' if next(iter(table.values()))[k] <= t else 'NOT met'}" for k, t in targets.items())), "",
@@ -80,7 +82,8 @@ def main(argv=None):
     if ident:
         lines += ["Identification history (train cases only; loss = mean relative L2 error of u):", "",
                   "| iter | loss | density | damping α | Prony time scale s |", "|---|---|---|---|---|"]
-        lines += [f"| {h['iter']} | {h['loss']:.4f} | {h['density']:.4g} | {h['damping']:.4g} | {h['tau_scale']:.4g} |" for h in ident]
+        lines += [f"| {h['iter']} | {h['loss']:.4f} | {h['density']:.4g} | {h['damping']:.4g} | "
+                  f"{h['tau_scale']:.4g} |" for h in ident]
     write_results(args.name, payload, "\n".join(lines) + "\n", out, echo=False)
     _plot(out / f"{args.name}.png", ours, ref_sub, e, done)
     print("\n".join(lines))

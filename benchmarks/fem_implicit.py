@@ -155,14 +155,16 @@ def report(result: dict) -> str:
              "is listed apart." + (" QUICK: one test case, its first 2 frames, the preconditioner taken from the "
                                    "shipped beam-linear model." if result.get("quick") else ""), "",
              "## Beam, Abaqus test split (errors against the Abaqus data, as in pareto.md)", "",
-             "| solver | steps per frame | ms per frame | × faster than explicit | u | v | σ | q | preconditioner [s] | Newton residual max / iterations max |",
+             "| solver | steps per frame | ms per frame | × faster than explicit | u | v | σ | q | "
+             "preconditioner [s] | Newton residual max / iterations max |",
              "|---|---|---|---|---|---|---|---|---|---|"]
     base = result["beam"][0]["ms_per_frame"]
     for r in result["beam"]:
         pre = f"{r['preconditioner_s']:.1f}" if "preconditioner_s" in r else "–"
         newton = (f"{r['newton_residual_max']:.1e} / {r['newton_iterations_max']}" if "newton_residual_max" in r
                   else "–")
-        lines.append(f"| {r['name']} | {r['steps_per_frame']} | {r['ms_per_frame']:.2f} | {base / r['ms_per_frame']:.1f} "
+        lines.append(f"| {r['name']} | {r['steps_per_frame']} | {r['ms_per_frame']:.2f} | "
+                     f"{base / r['ms_per_frame']:.1f} "
                      f"| {r['u']:.4f} | {r['v']:.4f} | {r['sigma']:.4f} | {r['q']:.2e} | {pre} | {newton} |")
     b = result.get("bunny")
     if not b:

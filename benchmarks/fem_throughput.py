@@ -197,7 +197,8 @@ def main(argv=None):
                 r[key] = r["element_substeps_per_second"] / ref[0]["element_substeps_per_second"]
     out = Path(args.out)
     payload = {"machine": describe(), "substeps": args.substeps, "repeats": args.repeats, "rows": rows}
-    lines = ["# FEM throughput (median of %d repeats after compilation, %d sub-steps per run)" % (args.repeats, args.substeps),
+    lines = ["# FEM throughput (median of %d repeats after compilation, %d sub-steps per run)"
+             % (args.repeats, args.substeps),
              "", "Machine: " + json.dumps(payload["machine"]), "",
              "Single-process rows: one core, XLA intra-op threads 1. '2 processes': two concurrent single-core copies,",
              "half of the cases each, throughputs summed (how `tignn generate --worker K/2` runs). × columns: ratio",
@@ -206,11 +207,13 @@ def main(argv=None):
              "(`XLA_FLAGS=--xla_force_host_platform_device_count=2`) hung in the XLA CPU runtime (jax 0.10.2; a",
              "trivial shard_map ran, the solver's nested checkpointed scans did not return within 120 s at 5",
              "sub-steps), so the second core is used by a second process.", "",
-             "| scene | elements | variant | processes | batch | µs / sub-step | s / simulated s | element-sub-steps / s | × vmap | × naive |",
+             "| scene | elements | variant | processes | batch | µs / sub-step | s / simulated s | "
+             "element-sub-steps / s | × vmap | × naive |",
              "|---|---|---|---|---|---|---|---|---|---|"]
     fmt = lambda v: "" if v is None else f"{v:.1f}"
     for r in rows:
-        lines.append(f"| {r['scene']} | {r['elements']} {r['cell_type']} | {r['variant']} | {r['processes']} | {r['batch']} | "
+        lines.append(f"| {r['scene']} | {r['elements']} {r['cell_type']} | {r['variant']} | {r['processes']} | "
+                     f"{r['batch']} | "
                      f"{r['seconds_per_substep'] * 1e6:.1f} | {r['seconds_per_simulated_second']:.1f} | "
                      f"{r['element_substeps_per_second'] / 1e6:.2f} M | {fmt(r.get('speedup_vs_vmap'))} | "
                      f"{fmt(r.get('speedup_vs_naive'))} |")

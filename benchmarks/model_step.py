@@ -93,7 +93,8 @@ def variants(name: str, copies: int, frames: int) -> tuple:
     a, b = np.asarray(fns["step"]()), np.asarray(fns["stepper"]())
     c = np.asarray(fns["rollout"]()[1])
     info = {"model": name, "copies": copies, "nodes": int(z.shape[0]), "class": params["model"].name,
-            "same_frame": bool(np.array_equal(a, b) and np.allclose(a, c, rtol=1e-5, atol=1e-5 * float(jnp.abs(z).max())))}
+            "same_frame": bool(np.array_equal(a, b)
+                               and np.allclose(a, c, rtol=1e-5, atol=1e-5 * float(jnp.abs(z).max())))}
     return fns, info
 
 

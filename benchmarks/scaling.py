@@ -247,7 +247,8 @@ def format_md(result: dict) -> str:
     lines = ["# Scaling: step time against mesh size" + (" (QUICK smoke run)" if result["quick"] else ""), "",
              f"Machine: {m['cpu']}, {m['cores']} cores, jax {m['jax']} ({m['backend']}); accelerator: "
              f"{m['accelerator']}; load average {m['load_average_1m']} at the start, {result['load_average_1m_end']} "
-             f"at the end (above the core count: other processes shared the CPU); XLA_FLAGS=`{m['xla_flags'] or '(unset)'}`. "
+             f"at the end (above the core count: other processes shared the CPU); "
+             f"XLA_FLAGS=`{m['xla_flags'] or '(unset)'}`. "
              f"One step = one 0.05 s frame of one body (`tignn_jax.stepper`). Times: medians of interleaved calls "
              f"after compilation, {clock} time per call ({other} time in brackets). Whole run "
              f"{result['wall_seconds'] / 60:.1f} min.", ""]
@@ -266,7 +267,8 @@ def format_md(result: dict) -> str:
                          f"{r['us_per_node']:.2f}" + (f" | {r['ainv']} | {r['operator_mb']:.1f}" if extra else "")
                          + " |")
         lines += ["", f"Fitted exponent a of time ∝ nodes^a: {_exp(f[f'{kind}_ms'], result['fit_from_nodes'])}; from "
-                  f"the {'wall' if cpu else 'CPU'}-time medians {_exp(f[f'{kind}_wall_ms' if cpu else f'{kind}_ms'], result['fit_from_nodes'])}.", ""]
+                  f"the {'wall' if cpu else 'CPU'}-time medians "
+                  f"{_exp(f[f'{kind}_wall_ms' if cpu else f'{kind}_ms'], result['fit_from_nodes'])}.", ""]
     lines += ["Build: for LinearGeneric the FEM's rest linearisation (dense Jacobian columns by `jax.jvp`, compilation "
               "included) and the dense inverse of A = K + (1 + αΔt)/Δt² M; for GenericGNN the weights' initialisation "
               "and the mesh's slot topology. LinearGeneric keeps A⁻¹ whole below 32 MB and as the upper blocks of a "

@@ -419,7 +419,8 @@ def report(result: dict) -> str:
                 f"{_fmt(run['first_step_state_flagged'], 'd')} ({run['flagged_states']}) | {_leaves_text(run)} | "
                 f"{energy} |")
     lines += ["", "The FEM reference itself (not learned; no guard):", "",
-              "| scene | loading | frames | NaN/Inf | first frame non-finite | max u | max v | wall s (compile included) |",
+              "| scene | loading | frames | NaN/Inf | first frame non-finite | max u | max v | "
+              "wall s (compile included) |",
               "|---|---|---|---|---|---|---|---|"]
     for name, r in result["scenes"].items():
         for s, ref in r["reference_runs"].items():

@@ -102,7 +102,8 @@ def test_the_shipped_verdict_names_each_front_it_is_on_or_off():
     assert pareto.shipped_verdict({"on_front": False, "on_front_uvs": True}) == (
         "does NOT lie on the (time, u) front but lies on the (time, u, v, σ) front")
     assert pareto.shipped_verdict({"on_front": True, "on_front_uvs": True}).endswith("and on the (time, u, v, σ) front")
-    assert pareto.shipped_verdict({"on_front": False, "on_front_uvs": False}).endswith("nor on the (time, u, v, σ) front")
+    assert pareto.shipped_verdict({"on_front": False, "on_front_uvs": False}).endswith(
+        "nor on the (time, u, v, σ) front")
 
 
 def test_labels_of_crowded_points_are_moved_apart_and_lone_ones_stay_beside_their_marker():

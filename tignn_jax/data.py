@@ -173,8 +173,8 @@ def normalization(data: Dataset, rows: np.ndarray, chunk: int = 8) -> dict:
     nodes of a large mesh would otherwise be scaled by the near-zero RMS over all nodes and enter the network as
     an outlier: the bunny's unit point load read as 75); f_max [1]: the largest nodal force magnitude (the
     out-of-distribution bound of ``api.force_check``); dq_std [3] and dqn_mean, dqn_std [1]: edge vector
-    q_j - q_i and its length over all frames; dv_std [3]: edge velocity difference v_j - v_i; du_std [3]: edge displacement
-    difference (q_j - q_i) - (X_j - X_i); u_std [3]: node displacement q - X; x0_mean [3], x0_std [3]: rest
+    q_j - q_i and its length over all frames; dv_std [3]: edge velocity difference v_j - v_i; du_std [3]: edge
+    displacement difference (q_j - q_i) - (X_j - X_i); u_std [3]: node displacement q - X; x0_mean [3], x0_std [3]: rest
     positions (mean and isotropic scale); dt [1]: the frame time step; z_dev_max [12] and u_max [1]:
     the training envelope (see ``envelope``).
     Vectors (q, v, their increments, f, dq) get one isotropic scale (RMS over components), so a direction

@@ -136,8 +136,9 @@ def guarded_stepper(params: dict, copies: int = 1, policy: str = "reset", tolera
 def fallback_step(params: dict, fallback: dict):
     """One body's hand-over step to a linear model.
 
-    Returns ``fn(z [N, 12], forces [N, 3], restart) -> z_next [N, 12]``, jitted: ``fallback``'s backward-Euler step (`tignn_jax.simulators.linear`) from z, where ``restart`` (a traced bool)
-    after setting the stress to the linear model's stress of the displacement, σ = S u: what a body handed over
+    Returns ``fn(z [N, 12], forces [N, 3], restart) -> z_next [N, 12]``, jitted: ``fallback``'s backward-Euler
+    step (`tignn_jax.simulators.linear`) from z, where ``restart`` (a traced bool) after setting the stress to the
+    linear model's stress of the displacement, σ = S u: what a body handed over
     from a learned model starts from (its stress is the first quantity to drift).
 
     Raises:

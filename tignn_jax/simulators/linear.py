@@ -164,7 +164,7 @@ def apply_k(arrays: dict, x):
 def apply_s(arrays: dict, x):
     """S x: [N, 3] → [N, 6], row by row in `s_rows_layout`'s groups (a gather and a contraction per group)."""
     layout = arrays["s_layout"]
-    parts = [jnp.einsum("ndij,ndj->ni", blocks.astype(x.dtype), x[cols])
+    parts = [jnp.einsum("nik,nk->ni", blocks.astype(x.dtype), x[cols].reshape(cols.shape[0], -1))
              for cols, blocks in zip(layout["cols"], layout["blocks"])]
     return jnp.concatenate(parts)[layout["order"]]
 
@@ -238,8 +238,10 @@ def s_rows_layout(stored: dict, n_nodes: int, max_groups: int = S_GROUPS, group_
     slots plus ``group_slots`` per group.
 
     Returns:
-      {"cols": [n_g, D_g] int32 per group (padding: the row's own node), "blocks": [n_g, D_g, 6, 3] per group
-      (padding zero), "order": [N] int32, each node's row in the groups' concatenated output}.
+      {"cols": [n_g, D_g] int32 per group (padding: the row's own node), "blocks": [n_g, 6, D_g·3] per group
+      (row i's blocks side by side, padding zero: one contraction with the gathered [n_g, D_g·3] displacements,
+      in the layout the contraction reads, whether the arrays are a program's constants or its arguments),
+      "order": [N] int32, each node's row in the groups' concatenated output}.
     """
     rows = np.asarray(stored["s_rows"]).astype(np.int64)
     cols = np.asarray(stored["s_cols"]).astype(np.int64)
@@ -282,6 +284,6 @@ def s_rows_layout(stored: dict, n_nodes: int, max_groups: int = S_GROUPS, group_
         g_cols[local[rows[sel]], slot[sel]] = cols[sel]
         np.add.at(g_blocks, (local[rows[sel]], slot[sel]), blocks[sel])
         out["cols"].append(g_cols)
-        out["blocks"].append(g_blocks)
+        out["blocks"].append(np.ascontiguousarray(g_blocks.transpose(0, 2, 1, 3).reshape(b - a, 6, 3 * width)))
     out["order"] = position.astype(np.int32)
     return out

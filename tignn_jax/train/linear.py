@@ -513,8 +513,8 @@ def relative_errors(u, v, sigma, target, measure: str = "snapshot"):
 def targets(z, f, q0, rows):
     """(forces [C,T,N,3], (u, v, σ) [C,T,N,·] and v0 [C,N,3]) of the cases ``rows`` of data states z
     [C,T+1,N,12], in jax's float type (float64 where enabled). The cases must start at their rest positions with
-    zero stress (to float32 round-off) (v0, the first state's velocity, is the rollouts' start: zero for solver velocities, the
-    one-sided difference for the reference data's gradient convention); ValueError otherwise."""
+    zero stress, to float32 round-off (v0, the first state's velocity, is the rollouts' start: zero for solver
+    velocities, the one-sided difference for the reference data's gradient convention); ValueError otherwise."""
     dt = np.float64 if jax.config.jax_enable_x64 else np.float32
     z = np.asarray(z[rows], np.float64)
     q0 = np.asarray(q0, np.float64)
@@ -522,7 +522,8 @@ def targets(z, f, q0, rows):
     s_scale = max(np.abs(z[:, :, :, 6:]).max(), 1e-30)
     if np.abs(z[:, 0, :, :3] - q0).max() > 1e-6 * scale or np.abs(z[:, 0, :, 6:]).max() > 1e-5 * s_scale:
         raise ValueError("the cases do not start at rest (first state's u or σ non-zero): "
-                         f"max |u0| {np.abs(z[:, 0, :, :3] - q0).max():.3g}, max |σ0| {np.abs(z[:, 0, :, 6:]).max():.3g}")
+                         f"max |u0| {np.abs(z[:, 0, :, :3] - q0).max():.3g}, "
+                         f"max |σ0| {np.abs(z[:, 0, :, 6:]).max():.3g}")
     return (np.asarray(f[rows], dt),
             tuple(x.astype(dt) for x in (z[:, 1:, :, :3] - q0, z[:, 1:, :, 3:6], z[:, 1:, :, 6:12],
                                          z[:, 0, :, 3:6])))
