@@ -96,12 +96,36 @@ def test_a_tiny_linear_model_trains_evaluates_and_rolls_out(tmp_path, tiny_data,
     (["evaluate", "--model", "no-such-model", "--data", "x.npz"], "no model named 'no-such-model'"),
     (["generate", "bunny", "--out", "x.npz", "--cases", "0"], "--cases must be positive, got 0"),
     (["generate", "bunny", "--out", "x.npz", "--worker", "3/2"], "--worker must be K/N"),
+    (["generate", "beam-reference", "--out", "x.npz", "--damping", "-1"], "--damping must be a finite number >= 0"),
+    (["generate", "beam-reference", "--out", "x.npz", "--damping", "nan"], "--damping must be a finite number >= 0"),
+    (["generate", "beam-reference", "--out", "x.npz", "--density", "0"], "--density"),
+    (["generate", "two-beams", "--out", "x.npz", "--integrator", "implicit"],
+     "--integrator implicit on two-beams: implicit dynamics does not support contact"),
+    (["generate", "bunny", "--out", "x.npz", "--loads-per-case", "0"], "--loads-per-case must be >= 1, got 0"),
+    (["generate", "bunny", "--out", "x.npz", "--exclude-loads-of", "y.npz"],
+     "--exclude-loads-of applies only with --loads-per-case > 1"),
+    (["generate", "bunny", "--out", "x.npz", "--load-nodes", "3,4", "--loads-per-case", "2"],
+     "--load-nodes cannot be combined"),
+    (["generate", "bunny", "--out", "x.npz", "--load-radius", "5", "--loads-per-case", "2"],
+     "--load-radius applies only to single-load"),
+    (["generate", "beam-reference", "--out", "x.npz", "--newton-iterations", "0", "--integrator", "implicit"],
+     "--newton-iterations must be positive, got 0"),
+    (["generate", "beam-reference", "--out", "x.npz", "--newton-iterations", "30"],
+     "--newton-iterations applies only with --integrator"),
 ])
 def test_bad_input_is_one_line_and_exit_code_2(argv, message, capsys, tmp_path, monkeypatch):
     monkeypatch.chdir(tmp_path)
     assert main(argv) == 2
     err = capsys.readouterr().err.strip()
     assert message in err and len(err.splitlines()) == 1 and "Traceback" not in err
+    assert not Path("x.npz").exists()
+
+
+def test_a_bunny_option_on_another_scene_is_not_an_option_there(capsys):
+    # each scene's subcommand has only its own options: argparse names the stray one and exits with 2
+    with pytest.raises(SystemExit) as stop:
+        main(["generate", "beam-reference", "--out", "x.npz", "--load-radius", "5"])
+    assert stop.value.code == 2 and "unrecognized arguments: --load-radius 5" in capsys.readouterr().err
 
 
 def test_a_split_the_data_lack_is_named(tiny_data, capsys):

@@ -278,27 +278,6 @@ def test_generated_data_carry_train_val_test_splits():
     assert sorted((held_out_rows(52) + 1).tolist()) == sorted(PUBLISHED_VAL + PUBLISHED_TEST)
 
 
-def test_generate_rejects_a_bad_damping_before_running(tmp_path):
-    from tignn_jax import cli
-
-    for bad in ("-1", "nan"):
-        with pytest.raises(SystemExit, match="--damping must be a finite number >= 0"):
-            cli.main(["generate", "beam-reference", "--out", str(tmp_path / "x.npz"), "--damping", bad])
-    assert not (tmp_path / "x.npz").exists()
-
-
-def test_generate_rejects_a_bad_density_and_implicit_with_contact_before_running(tmp_path):
-    from tignn_jax import cli
-
-    for bad in ("-1", "nan", "0"):
-        with pytest.raises(SystemExit, match="density"):
-            cli.main(["generate", "beam-reference", "--out", str(tmp_path / "x.npz"), "--density", bad])
-    with pytest.raises(SystemExit,
-                       match="--integrator implicit on two-beams: implicit dynamics does not support contact"):
-        cli.main(["generate", "two-beams", "--out", str(tmp_path / "x.npz"), "--integrator", "implicit"])
-    assert not (tmp_path / "x.npz").exists()
-
-
 def test_multi_point_loads_are_apart_and_avoid_held_out_positions():
     """K unit inward normal loads per case, on free surface nodes ≥ min_hops edges apart, none within
     exclude_hops edges of an excluded node; the same seed gives the same cases; impossible requests raise."""
@@ -345,22 +324,3 @@ def test_patch_load_spreads_the_unit_force_over_the_surface_near_the_position():
     for bad in (-1.0, float("nan")):
         with pytest.raises(ValueError, match="radius must be a finite number"):
             cases.point_load_forces(sc, 2, radius=bad)
-
-
-def test_generate_rejects_bunny_flags_that_would_be_ignored(tmp_path):
-    from tignn_jax import cli
-
-    out = str(tmp_path / "x.npz")
-    bad = [(["bunny", "--loads-per-case", "0"], "--loads-per-case must be >= 1, got 0"),
-           (["bunny", "--exclude-loads-of", "y.npz"], "--exclude-loads-of applies only with --loads-per-case > 1"),
-           (["bunny", "--load-nodes", "3,4", "--loads-per-case", "2"], "--load-nodes cannot be combined"),
-           (["bunny", "--load-radius", "5", "--loads-per-case", "2"], "--load-radius applies only to single-load"),
-           (["beam-reference", "--load-radius", "5"], "--load-radius applies only to the bunny scene"),
-           (["two-beams", "--loads-per-case", "3"], "--loads-per-case applies only to the bunny scene"),
-           (["beam-reference", "--newton-iterations", "0", "--integrator", "implicit"],
-            "--newton-iterations must be positive, got 0"),
-           (["beam-reference", "--newton-iterations", "30"], "--newton-iterations applies only with --integrator")]
-    for argv, message in bad:
-        with pytest.raises(SystemExit, match=message):
-            cli.main(["generate", *argv, "--out", out])
-    assert not (tmp_path / "x.npz").exists()

@@ -525,13 +525,12 @@ def build(scene: Scene):
         return tuple(out)
 
     @jax.jit
-    def step_fn(zs, forces):
+    def one_program(zs, forces):
         if scene.step is not None:
             return tuple(scene.step(zs, forces))
         return tuple(b.step_fn(z, f) for b, z, f in zip(scene.bodies, zs, forces))
 
-    if scene.devices:
-        step_fn = _concurrent_step(scene)
+    step_fn = _concurrent_step(scene) if scene.devices else one_program
 
     positions, _ = _world_mesh(scene, tuple(jnp.asarray(b.z, jnp.float32) for b in scene.bodies))
     pixels, depth = project(positions, vp, viewport)

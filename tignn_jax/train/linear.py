@@ -289,7 +289,6 @@ def operators(weights, geo: dict, h: float, config: LinearConfig, extra) -> Oper
     node_out, edge_out, scales, cell_out = _coefficients(config).apply(weights, geo)
     share = 0.5 if config.element_channels else 1.0
     share_k = 0.5 if config.cell_pressure else 1.0
-    mask = geo["mask"][..., None]
     unit = geo["dx"] / jnp.maximum(jnp.sum(geo["dx"] ** 2, -1, keepdims=True), 1e-12)
     g = consistent(geo["g_avg"] * (1.0 + edge_out[..., 0:1]) + geo["g_ls"] * edge_out[..., 1:2]
                    + unit * edge_out[..., 2:3], geo) / h
