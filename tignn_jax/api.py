@@ -270,12 +270,10 @@ def _check(params, graph, forces, seq: bool):
     want = ((shape[0] if len(shape) == 3 else -1,) if seq else ()) + (n, 3)
     if shape != want:
         raise ValueError(f"{name} has shape {list(shape)}, expected {'[T, ' if seq else '['}{n}, 3]")
-    host = np.asarray(forces) if isinstance(forces, (np.ndarray, list, tuple)) else None
-    finite = np.isfinite(host).all() if host is not None else bool(jnp.isfinite(forces).all())
-    if not finite:
+    host = np.asarray(forces)   # a jax array on the CPU: a view, no reduction dispatched to the device
+    if not np.isfinite(host).all():
         raise ValueError(f"{name} contains NaN or infinite values")
-    return (host.astype(np.float32) if host is not None and host.dtype != np.float32 else
-            (host if host is not None else forces)), k
+    return (forces if isinstance(forces, jax.Array) else host.astype(np.float32, copy=False)), k
 
 
 def _check_edges(params, graph, k: int):
