@@ -186,7 +186,7 @@ def _assert_results_equal(a, b, rtol=1e-9):
                 np.testing.assert_array_equal(x, y, err_msg=name)
 
 
-@pytest.mark.parametrize("cell_type", CELL_TYPES)
+@pytest.mark.parametrize("cell_type", ["hexahedron", pytest.param("tetra", marks=pytest.mark.long)])
 def test_simulate_batch_equals_vmap_of_simulate_with_prony_damping_and_pressure(cell_type):
     """The batched run keeps the cases on the trailing axis for speed; it must be the same computation as vmap."""
     mat = fem.mooney_rivlin(**ELASTIC, **PRONY)
@@ -207,6 +207,7 @@ def test_simulate_batch_equals_vmap_of_simulate_with_prony_damping_and_pressure(
     _assert_results_equal(new, _vmapped(prob, mat, loads))
 
 
+@pytest.mark.long
 def test_simulate_batch_equals_vmap_of_simulate_with_contact():
     """Contact search and forces are per case in the batched run too (different loads, different pairs)."""
     pts, cells = fem.box_hex_mesh((1.0, 1.0, 1.0), (2, 2, 2))

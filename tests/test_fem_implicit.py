@@ -36,7 +36,7 @@ def tip_load(pts, n_frames, total):
     return f
 
 
-@pytest.mark.parametrize("cell_type", CELL_TYPES)
+@pytest.mark.parametrize("cell_type", ["hexahedron", pytest.param("tetra", marks=pytest.mark.long)])
 def test_small_loads_follow_the_linear_backward_euler_recurrence(cell_type):
     """With loads small enough for the linear regime, every frame equals the recurrence
     (c M + K₀) uₙ₊₁ = fₙ₊₁ + c M uₙ + M vₙ / h, c = (1 + αh)/h², built from the dense rest operator."""
@@ -60,7 +60,7 @@ def test_small_loads_follow_the_linear_backward_euler_recurrence(cell_type):
     assert np.all(np.asarray(diag.residual) <= 1e-6)   # float64 floor ~1e-8 here: J − 1 ~ 1e-7 loses digits
 
 
-@pytest.mark.parametrize("cell_type", CELL_TYPES)
+@pytest.mark.parametrize("cell_type", ["hexahedron", pytest.param("tetra", marks=pytest.mark.long)])
 def test_held_load_settles_to_static_equilibrium(cell_type):
     """A held tip load with damping: the run comes to rest at f_int(u) = f_ext (a finite-strain static
     solution), and the non-viscous dissipation (Rayleigh + numerical) is never negative."""
@@ -121,6 +121,7 @@ def test_scope_is_checked():
         implicit.simulate_implicit(prob, m, fem.Loads(nodal=jnp.zeros((3, len(pts), 3))))
 
 
+@pytest.mark.long
 def test_batch_matches_single_runs_and_generation_keeps_residuals(tmp_path):
     """The vmapped batch equals one-case runs; `run_cases(integrator='implicit')` writes them with each case's
     Newton residuals and iterations."""

@@ -4,7 +4,6 @@ converged FEM on a small hex bar of the beam's nearly incompressible material, o
 
 The checks marked ``long`` compile the Newton step several times (its conjugate-gradient iterations are unrolled:
 30–80 s per compilation on two shared cores) and run only with ``TIGNN_LONG_TESTS=1``."""
-import os
 
 import jax
 import jax.numpy as jnp
@@ -19,8 +18,7 @@ from tignn_jax.simulators import LinearGeneric
 from tignn_jax.simulators import linear as LG
 
 H = 0.05
-long = pytest.mark.skipif(os.environ.get("TIGNN_LONG_TESTS") != "1",
-                          reason="compiles the Newton step several times (minutes): set TIGNN_LONG_TESTS=1")
+long = pytest.mark.long
 
 
 @pytest.fixture(scope="module")
@@ -112,6 +110,7 @@ def test_bad_arguments_are_named():
             newton.newton_cg({}, None, np.zeros((1, 3)), None, None, None, **kw)
 
 
+@pytest.mark.long
 def test_fallback_step_for_the_shipped_beam_fallback():
     # beam-linear with the FEM's beam scene: in the linear range (a small tip load from rest) the Newton step lands
     # where the rest-linearised step does, to the float32 conditioning of the solve (measured 1.2 % apart in v

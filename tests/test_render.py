@@ -240,6 +240,7 @@ def test_fused_simulation_frames_match_the_stages_run_one_by_one():
     assert t.learned.shape == (7,) and t.learned.all() and t.summary()["learned_frames"] == 7
 
 
+@pytest.mark.long
 def test_bodies_on_their_own_devices_step_as_in_one_program():
     # Scene.devices: each body steps on its own (virtual CPU) device, concurrently; the states are those of the
     # serial loop, and the scene with a step over all bodies as well as devices is refused.

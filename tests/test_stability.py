@@ -16,6 +16,7 @@ def beam_runs():
     return stability.scene_runs("beam", steps=24, reference_steps=24, log=lambda *a: None)
 
 
+@pytest.mark.long
 def test_short_rollouts_stay_finite_and_near_the_fem(beam_runs):
     runs = beam_runs["runs"]
     assert beam_runs["reference"] == "fem_stepper(beam-linear)"

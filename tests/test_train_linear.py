@@ -201,7 +201,7 @@ def test_training_fits_a_hidden_linear_model_and_resumes_to_the_same_result(tmp_
     assert one["val_loss"] < records[0]["val_loss"]
 
 
-@pytest.mark.parametrize("kind", ["tet", "hex"])
+@pytest.mark.parametrize("kind", [pytest.param("tet", marks=pytest.mark.long), "hex"])
 def test_packed_model_steps_like_the_learned_operators(tmp_path, kind):
     # the linear model class carries the learned K, S, masses and α: the public rollout of the saved and loaded
     # model reproduces the training rollout (on hexes with the cells' pressures, whose stress reaches the nodes
