@@ -14,9 +14,11 @@ arguments: one compiled program per model class, configuration and mesh size, sh
 A model (what `tignn_jax.load_pretrained` returns as ``params``) is a plain dict::
 
     {"model": <model class instance>, "arrays": {...}, "mesh": {"q0", "senders", "receivers", "node_type"},
-     "envelope": {"z_mean", "z_std", "z_dev_max", "u_max", "f_max"}, "info": {...}}
+     "edges": (senders, receivers) on the device, "envelope": {"z_mean", "z_std", "z_dev_max", "u_max", "f_max"},
+     "info": {...}}
 
-``envelope`` holds the training data's range, which the guards (`tignn_jax.guards`) compare states and forces
+(`tignn_jax.make_params` builds it). ``edges`` are the arrays of the rest graph `tignn_jax.rest_graph` returns, so
+`tignn_jax.step` recognises the model's own graph without comparing its edges. ``envelope`` holds the training data's range, which the guards (`tignn_jax.guards`) compare states and forces
 with; ``info`` is provenance (data, recipe, errors) written to the model file as JSON.
 """
 from __future__ import annotations
