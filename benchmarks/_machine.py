@@ -32,14 +32,17 @@ def describe() -> dict:
 def interleaved_ms(fns: dict, repeats: int) -> dict:
     """Milliseconds per call of each zero-argument function, ``repeats`` samples each ({name: [ms]}): each is
     called once first (to compile), then the functions are called in turn, so a change of the machine's load
-    hits all variants alike. A function's result is awaited with ``jax.block_until_ready``."""
+    hits all variants alike; the order rotates every round, so no variant always follows the same one (whose
+    memory traffic would otherwise cost it alone). A function's result is awaited with ``jax.block_until_ready``."""
     import jax
 
     for fn in fns.values():
         jax.block_until_ready(fn())
     times = {k: [] for k in fns}
-    for _ in range(repeats):
-        for k, fn in fns.items():
+    names = list(fns)
+    for r in range(repeats):
+        for k in names[r % len(names):] + names[:r % len(names)]:
+            fn = fns[k]
             t0 = time.perf_counter()
             jax.block_until_ready(fn())
             times[k].append(1e3 * (time.perf_counter() - t0))
