@@ -18,8 +18,9 @@ A model (what `tignn_jax.load_pretrained` returns as ``params``) is a plain dict
      "info": {...}}
 
 (`tignn_jax.make_params` builds it). ``edges`` are the arrays of the rest graph `tignn_jax.rest_graph` returns, so
-`tignn_jax.step` recognises the model's own graph without comparing its edges. ``envelope`` holds the training data's range, which the guards (`tignn_jax.guards`) compare states and forces
-with; ``info`` is provenance (data, recipe, errors) written to the model file as JSON.
+`tignn_jax.step` recognises the model's own graph without comparing its edges. ``envelope`` holds the training
+data's range, which the guards (`tignn_jax.guards`) compare states and forces with; ``info`` is provenance (data,
+recipe, errors) written to the model file as JSON.
 """
 from __future__ import annotations
 
