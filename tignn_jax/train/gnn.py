@@ -42,10 +42,10 @@ import optax
 from jax.sharding import Mesh, NamedSharding, PartitionSpec as P
 
 from tignn_jax import data as D
+from tignn_jax.api import ENVELOPE, make_params
 from tignn_jax.simulators.generic_gnn import STATE_DIM, GenericGNN, GNNConfig, prescribed, state_scale
 
 VARIABLES = ("q", "v", "sigma", "u")
-ENVELOPE = ("z_mean", "z_std", "z_dev_max", "u_max", "f_max")
 
 
 class TrainConfig(NamedTuple):
@@ -267,16 +267,7 @@ def to_params(model: GenericGNN, stored: dict, mesh: dict, envelope: dict, info:
     Raises:
       ValueError: a mesh or envelope entry is missing (or `GenericGNN.prepare`'s errors).
     """
-    missing = [k for k in ("q0", "senders", "receivers", "node_type") if k not in mesh]
-    missing += [k for k in ENVELOPE if k not in envelope]
-    if missing:
-        raise ValueError(f"a model needs the mesh and envelope entries {missing}")
-    mesh = {"q0": np.asarray(mesh["q0"], np.float32), "senders": np.asarray(mesh["senders"], np.int32),
-            "receivers": np.asarray(mesh["receivers"], np.int32),
-            "node_type": np.asarray(mesh["node_type"], np.int32)}
-    return {"model": model, "arrays": model.prepare(stored, mesh), "mesh": mesh,
-            "edges": (jnp.asarray(mesh["senders"]), jnp.asarray(mesh["receivers"])),
-            "envelope": {k: np.asarray(envelope[k], np.float32) for k in ENVELOPE}, "info": dict(info)}
+    return make_params(model, stored, mesh, envelope, info)
 
 
 def train(data_path, config: TrainConfig, run_dir, split=("train", "val"), progress: bool = True, *,
