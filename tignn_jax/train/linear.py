@@ -794,8 +794,9 @@ def fem_problem(path):
     material = mooney_rivlin(mat["c10"], mat["c01"], mat["d1"], mat["density"], mat.get("g", ()), mat.get("tau", ()))
     extra = {"tet_formulation": meta["tet_formulation"]} if "tet_formulation" in meta else {}
     cells = np.asarray(geo.cells)
+    cell_type = "tetra" if cells.shape[1] == 4 else "hexahedron"     # meshio's names, as fem.solver.setup takes
     problem = setup(data.q0, cells, material=material, frame_dt=float(data.dt), n_frames=1,
-                    clamped=np.where(data.node_type != 0)[0], cell_type="tet4" if cells.shape[1] == 4 else "hex8",
+                    clamped=np.where(data.node_type != 0)[0], cell_type=cell_type,
                     damping=float(meta["damping"]), n_sub=1, **extra)
     return problem, material
 
