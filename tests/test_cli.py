@@ -6,14 +6,10 @@ import sys
 from pathlib import Path
 
 import jax
-import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from fem.mesh import box_hex_mesh
-from fem.meshes import mesh_edges
 from tignn_jax.cli import build_parser, main
-from tignn_jax.train import linear as LG
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -40,36 +36,16 @@ def test_every_subcommand_has_a_description_and_every_option_a_help_line():
 
 @pytest.fixture(scope="module")
 def tiny_data(tmp_path_factory):
-    """A data file of a 4×1×1 hex bar clamped at x = 0, made by a hidden linear GENERIC model under tip loads,
-    with train / val / test splits."""
+    """A data file of a 4×1×1 hex bar clamped at x = 0, made by a hidden linear GENERIC model under tip loads
+    (`test_train_linear.synthetic`), with train / val / test splits."""
+    from test_train_linear import bar, synthetic
+
     jax.config.update("jax_enable_x64", True)
     try:
-        pts, hexes = box_hex_mesh(size=(4.0, 1.0, 1.0), divisions=(4, 1, 1))
-        edges = mesh_edges(hexes)
-        edges = np.unique(np.concatenate([edges, edges[::-1]], axis=1), axis=1)
-        node_type = (pts[:, 0] < 1e-9).astype(np.int32)
-        geo = LG.geometry(pts, edges, hexes, node_type)
-        truth = LG.LinearConfig(hidden=8, mu=2.0, kappa=30.0, density=1.5, alpha=3.0)
-        tp = LG.init(truth, geo, seed=7)
-        ops = LG.operators(tp["net"], LG.geometry_arrays(geo), geo.h, truth, tp)
-        cases, frames = 6, 5
-        rng = np.random.default_rng(0)
-        forces = np.zeros((cases, frames, len(pts), 3))
-        tip = np.where(pts[:, 0] > 3.9)[0]
-        for c in range(cases):
-            forces[c, :, tip] = rng.normal(size=3) * 0.2 * np.linspace(0.2, 1.0, frames)[None, :, None]
-        u, v, s = LG.rollout(ops, LG.geometry_arrays(geo), geo.h, jnp.asarray(forces), 0.05)
+        return synthetic(tmp_path_factory.mktemp("data"), *bar("hex"), cases=6,
+                         splits={"train": [1, 2, 3, 4], "val": [5], "test": [6]})
     finally:
         jax.config.update("jax_enable_x64", False)
-    z = np.concatenate([pts + np.asarray(u), np.asarray(v), np.asarray(s)], -1)
-    z0 = np.concatenate([np.broadcast_to(pts, (cases, 1) + pts.shape), np.zeros((cases, 1, len(pts), 9))], -1)
-    path = tmp_path_factory.mktemp("data") / "bar.npz"
-    np.savez(path, z=np.concatenate([z0, z], 1).astype(np.float32), f=forces.astype(np.float32), q0=pts,
-             edges=edges, node_type=node_type.astype(np.int8), dt=np.array(0.05), cells=hexes,
-             cell_type=np.array("hexahedron"), sim_id=np.arange(1, cases + 1),
-             split_train=np.array([1, 2, 3, 4]), split_val=np.array([5]), split_test=np.array([6]),
-             metadata=np.array(json.dumps({"scene": "synthetic bar"})))
-    return path
 
 
 def test_a_tiny_linear_model_trains_evaluates_and_rolls_out(tmp_path, tiny_data, capsys):

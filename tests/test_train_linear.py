@@ -162,8 +162,9 @@ def test_relative_errors_over_the_snapshot_or_the_case_peak():
         LG.relative_errors(p, p, p, (t, t, t), "max")
 
 
-def synthetic(tmp_path, pts, edges, cells, node_type, cases=4, frames=5):
-    """A data file made by a hidden linear GENERIC model (other moduli than the fit's start) under tip loads."""
+def synthetic(tmp_path, pts, edges, cells, node_type, cases=4, frames=5, splits=None):
+    """A data file made by a hidden linear GENERIC model (other moduli than the fit's start) under tip loads;
+    ``splits`` {name: sim ids} are stored as the file's split keys."""
     geo = LG.geometry(pts, edges, cells, node_type)
     truth = LG.LinearConfig(hidden=8, mu=2.0, kappa=30.0, density=1.5, alpha=3.0)
     tp = LG.init(truth, geo, seed=7)
@@ -178,9 +179,11 @@ def synthetic(tmp_path, pts, edges, cells, node_type, cases=4, frames=5):
     z = np.concatenate([np.concatenate([np.broadcast_to(pts, (cases, 1) + pts.shape),
                                         np.zeros((cases, 1, len(pts), 9))], -1), z], axis=1)
     path = tmp_path / "lin.npz"
+    cell_type = "tetra" if np.shape(cells)[1] == 4 else "hexahedron"
     np.savez(path, z=z.astype(np.float32), f=forces.astype(np.float32), q0=pts, edges=edges,
-             node_type=node_type.astype(np.int8), dt=np.array(0.05), cells=cells, cell_type=np.array("tetra"),
-             sim_id=np.arange(1, cases + 1), metadata=np.array(json.dumps({"scene": "synthetic"})))
+             node_type=node_type.astype(np.int8), dt=np.array(0.05), cells=cells, cell_type=np.array(cell_type),
+             sim_id=np.arange(1, cases + 1), metadata=np.array(json.dumps({"scene": "synthetic"})),
+             **{f"split_{k}": np.asarray(v) for k, v in (splits or {}).items()})
     return path
 
 
