@@ -14,7 +14,8 @@ if not os.environ.get("TIGNN_NO_JAX_CACHE"):
 
 def pytest_configure(config):
     config.addinivalue_line("markers", "long: a heavier variant of a check the default run already makes (another "
-                                       "cell type, a batched or multi-device form); runs with TIGNN_LONG_TESTS=1")
+                                       "cell type, a batched or multi-device form, a benchmark's smoke run whose "
+                                       "functions other tests call); runs with TIGNN_LONG_TESTS=1")
 
 
 def pytest_collection_modifyitems(config, items):

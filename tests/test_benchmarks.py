@@ -54,6 +54,7 @@ def test_model_step_quick_reports_step_against_stepper(tmp_path):
     assert "| beam | 1 | 756 |" in md and "| beam | 2 | 1512 |" in md and "checks overhead" in md
 
 
+@pytest.mark.long
 def test_stability_quick_runs_every_loading_with_and_without_guards(tmp_path):
     _bench("stability", "--quick", "--out", str(tmp_path))
     result, md = _results(tmp_path, "stability", png=True)
@@ -79,6 +80,7 @@ def test_pareto_quick_places_the_shipped_models_against_the_fem(tmp_path):
     assert "| published TIGNN (reference line) | — |" in md and "| beam |" in md
 
 
+@pytest.mark.long
 def test_scaling_quick_fits_the_growth_of_both_model_classes(tmp_path):
     _bench("scaling", "--quick", "--linear", "5x2x2", "--gnn", "5x2x2,10x3x3", "--out", str(tmp_path))
     stem = json.loads(next(tmp_path.glob("scaling*.json")).read_text())["machine"]["backend"]
@@ -89,6 +91,7 @@ def test_scaling_quick_fits_the_growth_of_both_model_classes(tmp_path):
     assert "| 5×2×2 | 54 |" in md and "| 10×3×3 | 176 |" in md and "Fitted exponent" in md
 
 
+@pytest.mark.long
 @needs_reference
 def test_fem_implicit_quick_compares_both_solvers_on_a_test_case(tmp_path):
     _bench("fem_implicit", "--quick", "--out", str(tmp_path))
@@ -98,6 +101,7 @@ def test_fem_implicit_quick_compares_both_solvers_on_a_test_case(tmp_path):
     assert "| explicit (stable sub-step) |" in md and "QUICK" in md
 
 
+@pytest.mark.long
 def test_fem_throughput_small_run_times_each_variant(tmp_path):
     _bench("fem_throughput", "--scenes", "beam", "--substeps", "3", "--repeats", "1", "--batches", "2",
            "--naive-batches", "1", "--two-process-batches", "", "--out", str(tmp_path))

@@ -76,6 +76,7 @@ def test_render_quick_writes_the_beam_row(tmp_path):
     assert r["draw_jax"]["p50_ms"] > 0 and "| beam_hex8 | 756 | 900 |" in md
 
 
+@pytest.mark.long
 def test_ar_contact_quick_writes_the_beam_row(tmp_path):
     done = _bench("ar_contact", tmp_path, "--cases", "beams")
     assert done.returncode == 0, done.stderr[-3000:]

@@ -282,6 +282,7 @@ TET_MEASURED = ("tet4 'nodal' (α = 0.3) on the 80×2×2 grid (1920 tets): tip d
                 "−1.1 % vs Timoshenko; 'anp' (constant-strain isochoric part): −31.8 % / +14.7 % (bending locking)")
 
 
+@pytest.mark.long
 def test_tet4_cantilever_matches_timoshenko_beam_at_paper_material():
     """The same beam and criterion with tet4 (six per hex of the same grid): the nodally averaged F of the
     default 'nodal' formulation removes the bending locking of the constant-strain tetrahedron (TET_MEASURED)."""
