@@ -24,9 +24,11 @@ recipe, errors) written to the model file as JSON.
 """
 from __future__ import annotations
 
+from tignn_jax.simulators.corotational import CorotationalConfig, CorotationalGeneric
 from tignn_jax.simulators.generic_gnn import GenericGNN, GNNConfig
 from tignn_jax.simulators.linear import LinearConfig, LinearGeneric
 
-CLASSES = {cls.name: cls for cls in (GenericGNN, LinearGeneric)}
+CLASSES = {cls.name: cls for cls in (GenericGNN, LinearGeneric, CorotationalGeneric)}
 
-__all__ = ["CLASSES", "GenericGNN", "GNNConfig", "LinearConfig", "LinearGeneric"]
+__all__ = ["CLASSES", "CorotationalConfig", "CorotationalGeneric", "GenericGNN", "GNNConfig", "LinearConfig",
+           "LinearGeneric"]

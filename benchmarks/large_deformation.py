@@ -1,0 +1,187 @@
+"""Large deformations: the beam's models against the converged FEM at loads past the training range.
+
+Loads: the reference tip load of test case 9 (a 20-frame ramp) scaled by 1, 2 and 3, then held, and the 2× load
+released. Reference: the FEM's backward Euler on the same frame step, Newton iterated to convergence
+(`fem.implicit.simulate_implicit`, up to 25 iterations a frame). Models: the shipped learned linear ``beam``, the
+FEM's rest linearisation ``beam-linear`` and the corotational GENERIC model made from the FEM's element operators
+(`tignn_jax.simulators.corotational.from_fem`), each through `tignn_jax.stepper`.
+
+Per model and load: the mean over frames of the L2 errors of u and σ relative to the case's peak (over frames)
+of the FEM's norm; the largest volume change of the model and of the FEM (hex volumes split into tets); the
+largest difference of the beam's length (its centre line, the mean of the four inner node lines) from the FEM's;
+frames whose energy rose by more than the forces' work (the model's ``diagnostics``: D < −1e-6 · E). Then the
+step time of each model (p50 of ``--repeats`` interleaved calls after compilation, one process) and its ratio to
+the learned linear beam's, measured in the same run.
+
+    python benchmarks/large_deformation.py              # 60 frames a case
+    python benchmarks/large_deformation.py --quick --out /tmp/ld   # smoke run: 24 frames, 1× and 3× only
+"""
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+from _machine import RESULTS_DIR, describe, interleaved_ms, write_results  # noqa: E402
+
+CASE = 9
+LOADS = (("1x hold", 1.0, "hold"), ("2x hold", 2.0, "hold"), ("3x hold", 3.0, "hold"), ("2x release", 2.0, "release"))
+QUICK_LOADS = ("1x hold", "3x hold")
+
+
+def centre_line(q0):
+    """[stations, 4] node ids: at each x, the four nodes (y, z) ∈ {4, 6}² around the beam's axis."""
+    out = []
+    for x in np.unique(q0[:, 0]):
+        at = [np.where(np.all(np.abs(q0 - [x, y, z]) < 1e-6, axis=1))[0] for y in (4, 6) for z in (4, 6)]
+        out.append([a[0] for a in at])
+    return np.array(out)
+
+
+def length(q, line):
+    p = q[..., line, :].mean(axis=-2)
+    return np.linalg.norm(np.diff(p, axis=-2), axis=-1).sum(axis=-1)
+
+
+def models():
+    import tignn_jax
+    from fem import scenes
+    from tignn_jax.simulators import corotational as C
+
+    scene = scenes.beam_scene()
+    beam, _ = tignn_jax.load_pretrained("beam")
+    linear, _ = tignn_jax.load_pretrained("beam-linear")
+    stored = C.from_fem(scenes.setup_scene(scene._replace(n_frames=1)), scene.material)
+    corot = tignn_jax.make_params(C.CorotationalGeneric(), stored, linear["mesh"], linear["envelope"],
+                                  {"kind": "the FEM's element operators, corotated (not learned)"})
+    return {"beam (learned linear)": beam, "beam-linear (FEM rest linearisation)": linear,
+            "corotational (FEM element operators)": corot}
+
+
+def reference(forces):
+    from fem import implicit, scenes
+    from fem import solver as sv
+
+    scene = scenes.beam_scene()
+    problem = scenes.setup_scene(scene._replace(n_frames=len(forces)))
+    res, diag = implicit.simulate_implicit(problem, scene.material, sv.Loads(nodal=jnp.asarray(forces, jnp.float32)),
+                                           max_newton=25)
+    return np.asarray(res.q[1:], np.float64), np.asarray(res.sigma[1:], np.float64)
+
+
+def run_model(params, forces):
+    import tignn_jax
+
+    step = tignn_jax.stepper(params)
+    diag = jax.jit(lambda z, f, z1: params["model"].diagnostics(params["arrays"], z, f, z1))
+    q0 = np.asarray(params["mesh"]["q0"], np.float32)
+    z = jnp.asarray(np.concatenate([q0, np.zeros((len(q0), 9), np.float32)], axis=1))
+    zs, created = [], 0
+    for f in forces:
+        f = jnp.asarray(f, jnp.float32)
+        z1 = step(z, f)
+        d = diag(z, f, z1)
+        created += int(float(d["dissipation"]) < -1e-6 * max(abs(float(d["energy"])), 1.0))
+        zs.append(np.asarray(z1, np.float64))
+        z = z1
+    return np.array(zs), created
+
+
+def metrics(zs, q_ref, s_ref, q0, cells, line) -> dict:
+    from fem.meshes import cell_volumes
+
+    u, u_ref = zs[..., :3] - q0, q_ref - q0
+    finite = bool(np.all(np.isfinite(zs)))
+    vol0 = cell_volumes(q0, cells).sum()
+    vol = lambda qs: np.array([cell_volumes(q, cells).sum() for q in qs]) / vol0 - 1.0
+    return {"finite": finite,
+            "u_error": float(np.linalg.norm(u - u_ref, axis=(1, 2)).mean() / np.linalg.norm(u_ref, axis=(1, 2)).max()),
+            "sigma_error": float(np.linalg.norm(zs[..., 6:] - s_ref, axis=(1, 2)).mean()
+                                 / np.linalg.norm(s_ref, axis=(1, 2)).max()),
+            "volume_change_max": float(np.abs(vol(zs[..., :3])).max()) if finite else None,
+            "fem_volume_change_max": float(np.abs(vol(q_ref)).max()),
+            "length_difference_max": float(np.abs(length(zs[..., :3], line) - length(q_ref, line)).max()
+                                           / length(q0, line)) if finite else None,
+            "tip_drop": float(-u[-1, line[-1]].mean(axis=0)[1]),
+            "fem_tip_drop": float(-u_ref[-1, line[-1]].mean(axis=0)[1])}
+
+
+def report(result) -> str:
+    m = result["machine"]
+    lines = ["# Large deformations: the beam's models against the converged FEM", "",
+             f"Test case {CASE}'s tip load scaled, {result['frames']} frames (20-frame ramp, then held or released); "
+             "u and σ errors relative to each case's peak; volume and length changes as fractions"
+             + (" — QUICK smoke run" if result["quick"] else "") + ".", "",
+             "| model | load | u error | σ error | max volume change (FEM) | max length difference | tip drop (FEM) "
+             "| energy-creating frames |", "|---|---|---|---|---|---|---|---|"]
+    for r in result["rows"]:
+        vc = "non-finite" if r["volume_change_max"] is None else f"{100 * r['volume_change_max']:.2f} %"
+        ld = "—" if r["length_difference_max"] is None else f"{100 * r['length_difference_max']:.2f} %"
+        lines.append(f"| {r['model']} | {r['load']} | {r['u_error']:.4f} | {r['sigma_error']:.4f} | {vc} "
+                     f"({100 * r['fem_volume_change_max']:.3f} %) | {ld} | {r['tip_drop']:.2f} "
+                     f"({r['fem_tip_drop']:.2f}) "
+                     f"| {r['energy_creating_frames']} |")
+    lines += ["", "Step time (`tignn_jax.stepper`, one body, p50 of interleaved calls after compilation, not pinned):",
+              "",
+              "| model | p50 ms | ratio to the learned linear beam |", "|---|---|---|"]
+    for name, t in result["step_ms"].items():
+        lines.append(f"| {name} | {t['p50']:.2f} | {t['ratio']:.2f} |")
+    lines += ["", f"Machine: {m['cpu']}, {m['cores']} cores, jax {m['jax']} ({m['backend']}), load average "
+              f"{m['load_average_1m']} at the start. FEM reference: {result['reference']}."]
+    return "\n".join(lines) + "\n"
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0],
+                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--frames", type=int, default=60, help="frames per case, ≥ 21 (default %(default)s; --quick: 24)")
+    ap.add_argument("--repeats", type=int, default=100, help="timed calls per model (default %(default)s)")
+    ap.add_argument("--quick", action="store_true", help="smoke run: 24 frames, loads 1x and 3x hold, 10 repeats")
+    ap.add_argument("--out", default=str(RESULTS_DIR),
+                    help="folder of large_deformation.{json,md} (default %(default)s)")
+    args = ap.parse_args(argv)
+    frames = 24 if args.quick else args.frames
+    repeats = 10 if args.quick else args.repeats
+    if frames < 21 or repeats < 1:
+        raise SystemExit(f"--frames must be at least 21 and --repeats positive, got {frames} and {repeats}")
+    from fem import scenes
+
+    machine = describe()
+    scene = scenes.beam_scene()
+    q0, cells, line = np.asarray(scene.points, np.float64), np.asarray(scene.cells), centre_line(scene.points)
+    params = models()
+    rows = []
+    for label, scale, mode in LOADS:
+        if args.quick and label not in QUICK_LOADS:
+            continue
+        forces = scale * scenes.beam_reference_forces(scene, [CASE], after=frames - 20, mode=mode)[0]
+        t = time.perf_counter()
+        q_ref, s_ref = reference(forces)
+        print(f"{label}: FEM reference {time.perf_counter() - t:.0f} s", flush=True)
+        for name, p in params.items():
+            zs, created = run_model(p, forces)
+            rows.append({"model": name, "load": label, **metrics(zs, q_ref, s_ref, q0, cells, line),
+                         "energy_creating_frames": created})
+    import tignn_jax
+
+    z = jnp.asarray(np.concatenate([q0, np.zeros((len(q0), 9))], axis=1), jnp.float32)
+    f = jnp.asarray(2.0 * scenes.beam_reference_forces(scene, [CASE])[0][10], jnp.float32)
+    steppers = {name: tignn_jax.stepper(p) for name, p in params.items()}
+    times = interleaved_ms({name: (lambda s=s: s(z, f)) for name, s in steppers.items()}, repeats)
+    base = float(np.median(times["beam (learned linear)"]))
+    step_ms = {name: {"p50": float(np.median(t)), "ratio": float(np.median(t)) / base} for name, t in times.items()}
+    result = {"machine": machine, "quick": args.quick, "frames": frames, "case": CASE, "rows": rows,
+              "step_ms": step_ms, "reference": "fem.implicit.simulate_implicit, max_newton=25"}
+    write_results("large_deformation", result, report(result), Path(args.out))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

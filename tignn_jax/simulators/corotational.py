@@ -1,0 +1,364 @@
+"""The corotational GENERIC model: a hyperelastic energy that is exact under rotation, stepped by backward Euler.
+
+A body of hex8 elements e with rest nodal coordinates X_e (centred on the element, [8, 3]), volume V_e, uniform
+shape-function gradients b_e [8, 3] and the stiffness K_e of its deviatoric response at rest. At the state
+z = (q, v, σ) with u = q − X::
+
+    F_e = I + Σ_a u_a ⊗ b_a,   F_e = R_e U_e (polar),   J_e = det F_e,   ũ_e = R_eᵀ x̄_e − X_e
+    E(z) = ½ vᵀ M v + Σ_e [½ ũ_eᵀ K_e ũ_e + ½ κ V_e (J_e − 1)²],   dissipation α vᵀ M v ≥ 0,
+
+with x̄_e the element's current nodal coordinates centred on the element, M = diag(m_i) lumped masses, κ the bulk
+modulus and α the mass damping. The deviatoric energy is the linear one in the element's rotated frame (the
+corotational formulation: a rigidly turned body stores no energy and feels no force, however far it turns); the
+volumetric energy is Abaqus's Mooney–Rivlin one, (J − 1)²/D1 with κ = 2/D1, exact at any strain, so a nearly
+incompressible body keeps its volume. At a fixed temperature GENERIC's L∇E + M∇S reduces to
+M v̇ = f − ∂E/∂q − α M v (L the canonical coupling of q and v, M ≥ 0 the mass damping).
+
+One frame Δt = h is one linearised backward-Euler step for v' (the element rotations held at the frame's start,
+the volumetric term by its Gauss–Newton tangent V κ g gᵀ with g = cof(F) b)::
+
+    [(1 + αh)/h² M + K_R + K_J] v' = M v / h² + (f − f_int(q)) / h,   q' = q + h v',
+
+solved by ``cg_iterations`` conjugate-gradient iterations from v' = v, preconditioned with the rest operator
+turned with the body, R A₀⁻¹ Rᵀ (R each node's rotation, the polar factor of the mean of its elements' R_e;
+A₀ = (1 + αh)/h² M + K₀ the FEM's rest operator, inverted once when the model is prepared). The stress
+observable σ' = R_e (S_e ũ_e) R_eᵀ + κ (J_e − 1 + g_e · Δu_e) I, averaged to the nodes by volume (S_e the
+element's deviatoric stress at rest): the pressure is the step's own linearised one. Taken from J_e(q') it would carry
+the O(Δθ²) volume change a linearised step makes when the body turns by Δθ, which times the bulk modulus of a
+nearly incompressible solid is of the size of the stress itself (see docs/research_log.md).
+
+Energy never created, by construction: with W = f · (q' − q) the work of the frame's forces, the step keeps
+E(z') ≤ E(z) + W. Where the linearised solve's potential energy alone would exceed it (a sudden release from a
+large deformation), the step is shortened to the longest of θ h v', θ ∈ {1, ½, ¼, 0}, that fits; v' is then
+scaled down to the budget left (an extra dissipation: M ≥ 0 still). θ = 0 always fits. Clamped nodes
+(node_type ≠ 0) keep q and v.
+
+Made from the FEM's own element operators (`from_fem`): not learned. Accuracy against the FEM at loads past the
+training range: ``benchmarks/large_deformation.py``.
+"""
+from __future__ import annotations
+
+import dataclasses
+from typing import ClassVar, NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from tignn_jax.simulators import linear as LG
+
+STORED = ("cells", "ke", "se", "b", "volume", "kappa", "mass", "alpha", "dt")
+BACKTRACK = (1.0, 0.5, 0.25, 0.0)   # the step lengths tried, longest first, when the energy budget is exceeded
+POLAR_ITERATIONS = 5   # Higham's iteration R ← (R + R⁻ᵀ)/2: quadratic, exact at once for a rigid motion
+_VOIGT = ((0, 0), (1, 1), (2, 2), (0, 1), (0, 2), (1, 2))   # the data's stress order S11 S22 S33 S12 S13 S23
+
+
+class CorotationalConfig(NamedTuple):
+    """How the corotational step solves its frame.
+
+    Attributes:
+      cg_iterations: conjugate-gradient iterations of the frame's linear solve (preconditioned by the turned rest
+        operator; from rest one iteration is exact).
+    """
+    cg_iterations: int = 3
+
+
+@dataclasses.dataclass(frozen=True)
+class CorotationalGeneric:
+    """The corotational GENERIC model class (module docstring).
+
+    Stored arrays (``stored``): ``cells`` [K, 8] int32; ``ke`` [K, 24, 24] (deviatoric element stiffness at rest,
+    force per length, rows and columns 3a + i for node a, component i); ``se`` [K, 6, 24] (deviatoric element
+    stress per displacement at rest); ``b`` [K, 8, 3] (uniform shape-function gradients, 1/length); ``volume`` [K];
+    ``kappa`` [1] (bulk modulus, stress); ``mass`` [N]; ``alpha`` [1] (1/time); ``dt`` [1] (the frame step).
+    """
+    config: CorotationalConfig = CorotationalConfig()
+    name: ClassVar[str] = "corotational"
+
+    def prepare(self, stored: dict, mesh: dict) -> dict:
+        """The arrays the step reads: the stored ones, the centred rest element coordinates ``x0e`` [K, 8, 3], the
+        stress averaging weights ``wnode`` [K, 8], the rest operator's inverse (``ainv``, or ``ainv_blocks``
+        when large, as `tignn_jax.simulators.linear`), ``q0`` and the free-node mask ``free`` [N, 1].
+
+        Raises:
+          ValueError: an array is missing or sized for another mesh, or the iteration count is not positive.
+        """
+        if not (isinstance(self.config.cg_iterations, (int, np.integer)) and self.config.cg_iterations >= 1):
+            raise ValueError(f"cg_iterations must be a positive integer, got {self.config.cg_iterations!r}")
+        missing = [k for k in STORED if k not in stored]
+        if missing:
+            raise ValueError(f"a corotational model needs the arrays {list(STORED)}, missing {missing}")
+        out = {k: np.asarray(stored[k]) for k in STORED}
+        out["cells"] = out["cells"].astype(np.int32)
+        node_type = np.asarray(mesh["node_type"])
+        q0 = np.asarray(mesh["q0"], np.float64)
+        n, (k, per) = len(node_type), out["cells"].shape
+        if out["mass"].shape != (n,):
+            raise ValueError(f"the operators are for {out['mass'].shape[0]} nodes, the mesh has {n}")
+        if out["cells"].max() >= n or out["ke"].shape != (k, 3 * per, 3 * per) or out["b"].shape != (k, per, 3):
+            raise ValueError(f"cells, ke and b do not describe {k} elements of {per} nodes on {n} nodes")
+        xe = q0[out["cells"]]
+        out["x0e"] = (xe - xe.mean(axis=1, keepdims=True)).astype(np.float32)
+        share = np.repeat(out["volume"], per)
+        total = np.bincount(out["cells"].reshape(-1), share, minlength=n)
+        out["wnode"] = (share / total[out["cells"].reshape(-1)]).reshape(k, per).astype(np.float32)
+        ainv = np.linalg.inv(rest_operator(out, node_type)).astype(np.float32)
+        blocks = LG.ainv_blocks(ainv, n) if 4 * ainv.size >= LG.AINV_BLOCK_BYTES else {}
+        out["ainv_blocks" if blocks else "ainv"] = blocks or ainv
+        out["q0"] = q0.astype(np.float32)
+        out["free"] = (node_type == 0)[:, None].astype(np.float32)
+        for key in ("ke", "se", "b", "volume", "kappa", "mass", "alpha", "dt"):
+            out[key] = out[key].astype(np.float32)
+        return jax.tree_util.tree_map(jnp.asarray, out)
+
+    def stored(self, arrays: dict) -> dict:
+        """The arrays a model file keeps (``STORED``); the rest operator's inverse is derived when loading."""
+        return {k: np.asarray(arrays[k]) for k in STORED}
+
+    def step_state(self, arrays: dict, z, f):
+        """One frame of one body: z [N, 12], f [N, 3] (force, constant over the frame) → z' [N, 12]."""
+        return frame(arrays, z, f.astype(z.dtype), int(self.config.cg_iterations))
+
+    def diagnostics(self, arrays: dict, z, f, z_next) -> dict:
+        """The energy balance of one frame z → z_next under f: {"energy": E(z_next), "work": W = f · Δq over the
+        free nodes, "dissipation": D = W − (E(z_next) − E(z))}, work units; D ≥ 0 by construction."""
+        free = arrays["free"].astype(z.dtype)
+        work = jnp.sum(f.astype(z.dtype) * (z_next[:, :3] - z[:, :3]) * free)
+        e0, e1 = energy(arrays, z), energy(arrays, z_next)
+        return {"energy": e1, "work": work, "dissipation": work - (e1 - e0)}
+
+
+def from_fem(problem, material, frame_dt: float | None = None) -> dict:
+    """Stored arrays (`CorotationalGeneric.stored`) of an elastic hex8 FEM scene: each element's deviatoric
+    stiffness and stress at rest (the FEM's own, hourglass control included, by forward differentiation of its
+    internal force and stress, all elements at once), shape-function gradients and volumes, the bulk modulus
+    2/D1, the lumped masses and mass damping of ``problem``.
+
+    Args:
+      problem: a `fem.solver.Problem` (hex8; its clamps, masses and damping are the model's).
+      material: its `fem.material.Material` (elastic: no Prony terms).
+      frame_dt: the frame step Δt (default: the problem's frame).
+
+    Raises:
+      ValueError: the mesh is not hex8, or the material is viscoelastic.
+    """
+    from fem import elements as el
+    from fem import implicit
+    from fem import solver as sv
+
+    cfg = problem.config
+    if cfg.cell_type != "hexahedron":
+        raise ValueError(f"the corotational model takes hex8 meshes, got {cfg.cell_type!r} (a tet4 mesh's "
+                         "nodal-averaged FEM has no element stiffness to turn)")
+    if material.n_prony:
+        raise ValueError("the corotational model is elastic: the material has Prony terms")
+    points = np.asarray(problem.arrays.points, np.float64)
+    cells = np.asarray(problem.arrays.cells)
+    k, per = cells.shape
+    # every element on its own nodes: one forward derivative per element degree of freedom gives that column of
+    # every element's stiffness at once
+    alone = sv.setup(points[cells].reshape(-1, 3), np.arange(k * per).reshape(k, per), material=material,
+                     frame_dt=cfg.frame_dt, n_frames=1, cell_type="hexahedron")
+    force, _ = implicit.force_and_stress(alone, material)
+    stress = lambda u: sv._element_stress(alone.arrays, material, u, (), alone.config)
+    u0 = jnp.zeros((k * per, 3), alone.arrays.points.dtype)
+    column = jax.jit(lambda d: jax.jvp(lambda u: (force(u), stress(u)), (u0,), (d,))[1])
+    kc, sc = [], []
+    for a in range(per):
+        for i in range(3):
+            d = np.zeros((k, per, 3))
+            d[:, a, i] = 1.0
+            fk, sk = column(jnp.asarray(d.reshape(-1, 3), u0.dtype))
+            kc.append(np.asarray(fk, np.float64).reshape(k, 3 * per))
+            sc.append(np.asarray(sk, np.float64))
+    ke, se = np.stack(kc, -1), np.stack(sc, -1)
+    ke = 0.5 * (ke + ke.transpose(0, 2, 1))
+    geo = el.hex_geometry(points, cells)
+    kappa = 2.0 / float(material.d1)
+    bf = geo.b.reshape(k, -1)
+    ke -= (kappa * geo.volume)[:, None, None] * bf[:, :, None] * bf[:, None, :]   # the volumetric part is in J
+    se[:, :3] -= se[:, :3].mean(axis=1, keepdims=True)                          # the pressure too
+    mass = np.asarray(sv.lumped_mass(problem, material), np.float64)
+    h = float(cfg.frame_dt if frame_dt is None else frame_dt)
+    return {"cells": cells.astype(np.int32), "ke": ke.astype(np.float32), "se": se.astype(np.float32),
+            "b": geo.b.astype(np.float32), "volume": geo.volume.astype(np.float32),
+            "kappa": np.array([kappa], np.float32), "mass": mass.astype(np.float32),
+            "alpha": np.array([float(problem.arrays.damping_alpha)], np.float32), "dt": np.array([h], np.float32)}
+
+
+def rest_operator(stored: dict, node_type) -> np.ndarray:
+    """A₀ = (1 + αΔt)/Δt² M + K₀ [3N, 3N] float64, K₀ = Σ_e K_e + κ V_e b_e b_eᵀ (the model's stiffness at
+    rest),
+    identity on the clamped nodes' rows and columns."""
+    cells = np.asarray(stored["cells"]).astype(np.int64)
+    n = len(np.asarray(node_type))
+    k, per = cells.shape
+    b = np.asarray(stored["b"], np.float64).reshape(k, -1)
+    kappa = float(np.asarray(stored["kappa"]).reshape(-1)[0])
+    ke = np.asarray(stored["ke"], np.float64) + (kappa * np.asarray(stored["volume"], np.float64))[:, None, None] \
+        * b[:, :, None] * b[:, None, :]
+    dof = (3 * cells[:, :, None] + np.arange(3)).reshape(k, -1)
+    A = np.zeros((3 * n, 3 * n))
+    np.add.at(A, (dof[:, :, None], dof[:, None, :]), ke)
+    h = float(np.asarray(stored["dt"]).reshape(-1)[0])
+    alpha = float(np.asarray(stored["alpha"]).reshape(-1)[0])
+    A[np.diag_indices(3 * n)] += (1.0 + alpha * h) / h ** 2 * np.repeat(np.asarray(stored["mass"], np.float64), 3)
+    free = np.repeat(np.asarray(node_type) == 0, 3)
+    A[~free, :] = 0.0
+    A[:, ~free] = 0.0
+    A[~free, ~free] = 1.0
+    return A
+
+
+def polar(F, iterations: int = POLAR_ITERATIONS):
+    """The rotation R of F = R U, F [..., 3, 3] (Higham's iteration from R = F)."""
+    R = F
+    for _ in range(iterations):
+        c = cofactor(R)
+        R = 0.5 * (R + c / jnp.sum(R[..., :, 0] * c[..., :, 0], axis=-1)[..., None, None])
+    return R
+
+
+def cofactor(F):
+    """cof F = det(F) F⁻ᵀ [..., 3, 3] (columns: cross products of F's columns)."""
+    c0, c1, c2 = F[..., :, 0], F[..., :, 1], F[..., :, 2]
+    return jnp.stack([jnp.cross(c1, c2), jnp.cross(c2, c0), jnp.cross(c0, c1)], axis=-1)
+
+
+class _Kinematics(NamedTuple):
+    F: jax.Array      # [K, 3, 3]
+    R: jax.Array      # [K, 3, 3]
+    J: jax.Array      # [K]
+    jm1: jax.Array    # [K]: J − 1 from ∇u's invariants (1 + tiny − 1 in float32 would lose it)
+    g: jax.Array      # [K, 8, 3]: ∂J/∂x_a = cof(F) b_a
+    local: jax.Array  # [K, 24]: ũ = Rᵀ x̄ − X
+
+
+def kinematics(arrays: dict, u) -> _Kinematics:
+    """Each element's F, R, J, ∂J/∂x and corotated displacement at the displacements u [N, 3]."""
+    ue = u[arrays["cells"]]
+    b = arrays["b"].astype(u.dtype)
+    H = jnp.einsum("kai,kaj->kij", ue, b)
+    F = jnp.eye(3, dtype=u.dtype) + H
+    R = polar(F)
+    tr = jnp.trace(H, axis1=1, axis2=2)
+    jm1 = tr + 0.5 * (tr * tr - jnp.einsum("kij,kji->k", H, H)) + jnp.linalg.det(H)
+    x0e = arrays["x0e"].astype(u.dtype)
+    xe = x0e + ue - ue.mean(axis=1, keepdims=True)
+    local = (jnp.einsum("kji,kaj->kai", R, xe) - x0e).reshape(ue.shape[0], -1)
+    return _Kinematics(F, R, 1.0 + jm1, jm1, jnp.einsum("kij,kaj->kai", cofactor(F), b), local)
+
+
+def potential(arrays: dict, kin: _Kinematics):
+    """Σ_e ½ ũᵀ K_e ũ + ½ κ V_e (J_e − 1)² (work units)."""
+    dt = kin.local.dtype
+    kappa = arrays["kappa"].reshape(-1)[0].astype(dt)
+    dev = 0.5 * jnp.sum(kin.local * jnp.einsum("kij,kj->ki", arrays["ke"].astype(dt), kin.local))
+    return dev + 0.5 * kappa * jnp.sum(arrays["volume"].astype(dt) * kin.jm1 ** 2)
+
+
+def energy(arrays: dict, z):
+    """E(z) = ½ vᵀ M v + the potential (module docstring), z [N, 12] → [] (work units)."""
+    free = arrays["free"].astype(z.dtype)
+    u, v = (z[:, :3] - arrays["q0"].astype(z.dtype)) * free, z[:, 3:6] * free
+    m = arrays["mass"].astype(z.dtype)[:, None]
+    return 0.5 * jnp.sum(m * v * v) + potential(arrays, kinematics(arrays, u))
+
+
+def _assemble(arrays, fe, n: int):
+    return jax.ops.segment_sum(fe.reshape(-1, fe.shape[-1]), arrays["cells"].reshape(-1), n)
+
+
+def internal_force(arrays: dict, kin: _Kinematics, n: int):
+    """∂(potential)/∂q [N, 3] at fixed rotations: Σ_e R_e K_e ũ_e + κ V_e (J_e − 1) g_e."""
+    dt = kin.local.dtype
+    k = kin.local.shape[0]
+    kappa = arrays["kappa"].reshape(-1)[0].astype(dt)
+    fl = jnp.einsum("kij,kj->ki", arrays["ke"].astype(dt), kin.local).reshape(k, -1, 3)
+    fe = jnp.einsum("kij,kaj->kai", kin.R, fl) + kin.g * (kappa * arrays["volume"].astype(dt) * kin.jm1)[:, None,
+                                                                                                                None]
+    return _assemble(arrays, fe, n)
+
+
+def tangent(arrays: dict, kin: _Kinematics, w):
+    """(K_R + K_J) w [N, 3]: Σ_e R_e K_e R_eᵀ w_e + κ V_e g_e (g_e · w_e), the frame's stiffness."""
+    dt = w.dtype
+    k = kin.local.shape[0]
+    kappa = arrays["kappa"].reshape(-1)[0].astype(dt)
+    we = w[arrays["cells"]]
+    wl = jnp.einsum("kji,kaj->kai", kin.R, we).reshape(k, -1)
+    fl = jnp.einsum("kij,kj->ki", arrays["ke"].astype(dt), wl).reshape(k, -1, 3)
+    gw = jnp.sum(kin.g * we, axis=(1, 2)) * kappa * arrays["volume"].astype(dt)
+    return _assemble(arrays, jnp.einsum("kij,kaj->kai", kin.R, fl) + kin.g * gw[:, None, None], w.shape[0])
+
+
+def node_rotations(arrays: dict, R, n: int):
+    """Each node's rotation [N, 3, 3]: the polar factor of the mean of its elements' rotations."""
+    per = arrays["cells"].shape[1]
+    total = jax.ops.segment_sum(jnp.repeat(R, per, axis=0), arrays["cells"].reshape(-1), n)
+    count = jax.ops.segment_sum(jnp.ones(arrays["cells"].size, R.dtype), arrays["cells"].reshape(-1), n)
+    lonely = (count == 0)[:, None, None] * jnp.eye(3, dtype=R.dtype)   # a node of no element: no turn
+    return polar(total / jnp.maximum(count, 1.0)[:, None, None] + lonely)
+
+
+def stress(arrays: dict, kin: _Kinematics, volume_change, n: int):
+    """Nodal Cauchy stress [N, 6]: R_e (S_e ũ_e) R_eᵀ + κ (J_e − 1) I with J_e − 1 given as ``volume_change``
+    [K], averaged over each node's elements by volume."""
+    dt = kin.local.dtype
+    s = jnp.einsum("kij,kj->ki", arrays["se"].astype(dt), kin.local)
+    S = jnp.stack([jnp.stack([s[:, 0], s[:, 3], s[:, 4]], -1), jnp.stack([s[:, 3], s[:, 1], s[:, 5]], -1),
+                   jnp.stack([s[:, 4], s[:, 5], s[:, 2]], -1)], -2)
+    S = jnp.einsum("kij,kjl,kml->kim", kin.R, S, kin.R)
+    p = arrays["kappa"].reshape(-1)[0].astype(dt) * volume_change
+    sig = jnp.stack([S[:, a, c] + (p if a == c else 0.0) for a, c in _VOIGT], axis=-1)
+    return _assemble(arrays, sig[:, None, :] * arrays["wnode"].astype(dt)[:, :, None], n)
+
+
+def frame(arrays: dict, z, f, iterations: int):
+    """z' [N, 12] of one frame (module docstring), ``iterations`` preconditioned CG iterations."""
+    h, alpha, free, m = LG._constants(arrays, z.dtype)
+    n = z.shape[0]
+    c = (1.0 + alpha * h) / h ** 2
+    u, v = (z[:, :3] - arrays["q0"].astype(z.dtype)) * free, z[:, 3:6] * free
+    kin = kinematics(arrays, u)
+    rn = node_rotations(arrays, kin.R, n)
+
+    def apply_a(w):
+        return (c * m * w + tangent(arrays, kin, w * free)) * free
+
+    def precondition(r):
+        back = jnp.einsum("nji,nj->ni", rn, r * free).reshape(-1)
+        return jnp.einsum("nij,nj->ni", rn, LG.apply_ainv(arrays, back).reshape(n, 3)) * free
+
+    rhs = (m * v / h ** 2 + (f - internal_force(arrays, kin, n)) / h) * free
+    x, r = v, rhs - apply_a(v)
+    p = precondition(r)
+    d, rz = p, jnp.vdot(r, p)
+    for i in range(iterations):   # unrolled: a few iterations, the last one needs no new direction
+        ad = apply_a(d)
+        dad = jnp.vdot(d, ad)
+        step = jnp.where(dad > 0, rz / jnp.where(dad > 0, dad, 1.0), 0.0)
+        x, r = x + step * d, r - step * ad
+        if i + 1 < iterations:
+            p = precondition(r)
+            rz_new = jnp.vdot(r, p)
+            d, rz = p + jnp.where(rz > 0, rz_new / jnp.where(rz > 0, rz, 1.0), 0.0) * d, rz_new
+    v1 = x * free
+    # energy never created, E(z') ≤ E(z) + W: the longest of the steps θ h v' (θ in BACKTRACK) whose potential
+    # fits the budget, then the velocity scaled to what the budget leaves (θ = 0 always fits)
+    e0 = 0.5 * jnp.sum(m * v * v) + potential(arrays, kin)
+    thetas = jnp.asarray(BACKTRACK, z.dtype)
+    work = jnp.sum(f * h * v1 * free)
+    trial = jax.vmap(lambda t: potential(arrays, kinematics(arrays, u + t * h * v1)))(thetas)
+    fits = trial <= e0 + thetas * work
+    theta = thetas[jnp.argmax(fits)]      # the first that fits: thetas decrease to 0, which always fits
+    v1 = theta * v1
+    u1 = u + h * v1
+    kin1 = kinematics(arrays, u1)
+    budget = e0 + theta * work - potential(arrays, kin1)
+    kinetic = 0.5 * jnp.sum(m * v1 * v1)
+    v1 = v1 * jnp.where(kinetic > budget, jnp.sqrt(jnp.maximum(budget, 0.0) / jnp.maximum(kinetic, 1e-30)), 1.0)
+    change = kin.jm1 + jnp.sum(kin.g * (u1 - u)[arrays["cells"]], axis=(1, 2))
+    q1 = arrays["q0"].astype(z.dtype) + u1
+    q1 = jnp.where(free > 0, q1, z[:, :3])
+    return jnp.concatenate([q1, v1 + (1.0 - free) * z[:, 3:6], stress(arrays, kin1, change, n)], axis=1)
