@@ -13,7 +13,7 @@ import pytest
 ROOT = Path(__file__).resolve().parents[1]
 BENCHMARKS = ROOT / "benchmarks"
 REFERENCE = ROOT.parent / "shared" / "data" / "abaqus_beam.npz"
-QUICK = ("model_step", "stability", "pareto", "scaling", "fem_implicit")
+QUICK = ("model_step", "stability", "pareto", "scaling", "fem_implicit", "large_deformation")
 SCRIPTS = QUICK + ("fem_throughput", "abaqus_agreement", "datasets")
 needs_reference = pytest.mark.skipif(not REFERENCE.exists(), reason="reference data ../shared/data/abaqus_beam.npz "
                                                                     "not present")
