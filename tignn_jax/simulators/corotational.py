@@ -28,9 +28,10 @@ the O(Δθ²) volume change a linearised step makes when the body turns by Δθ,
 nearly incompressible solid is of the size of the stress itself (see docs/research_log.md).
 
 Energy never created, by construction: with W = f · (q' − q) the work of the frame's forces, the step keeps
-E(z') ≤ E(z) + W. Where the linearised solve's potential energy alone would exceed it (a sudden release from a
-large deformation), the step is shortened to the longest of θ h v', θ ∈ {1, ½, ¼, 0}, that fits; v' is then
-scaled down to the budget left (an extra dissipation: M ≥ 0 still). θ = 0 always fits. Clamped nodes
+E(z') ≤ E(z) + W. The frame's displacement is taken as θ h v' with θ the longest of 1, ½, …, 1/32, 0 whose
+potential energy fits that budget (θ = 1 unless the body turns fast, e.g. released from a large deformation: a
+linearised step moves nodes along straight lines, which stretches turning elements); v' is then scaled down to
+the budget left (an extra dissipation: M ≥ 0 still). θ = 0 always fits. Clamped nodes
 (node_type ≠ 0) keep q and v.
 
 Made from the FEM's own element operators (`from_fem`): not learned. Accuracy against the FEM at loads past the
@@ -45,10 +46,11 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from fem.material import cofactor3, det3, matmul3, trace3, transpose3
 from tignn_jax.simulators import linear as LG
 
 STORED = ("cells", "ke", "se", "b", "volume", "kappa", "mass", "alpha", "dt")
-BACKTRACK = (1.0, 0.5, 0.25, 0.0)   # the step lengths tried, longest first, when the energy budget is exceeded
+BACKTRACK = (1.0, 0.5, 0.25, 0.125, 0.0625, 0.03125, 0.0)   # the step lengths of the frame's line search
 POLAR_ITERATIONS = 5   # Higham's iteration R ← (R + R⁻ᵀ)/2: quadratic, exact at once for a rigid motion
 _VOIGT = ((0, 0), (1, 1), (2, 2), (0, 1), (0, 2), (1, 2))   # the data's stress order S11 S22 S33 S12 S13 S23
 
@@ -102,6 +104,7 @@ class CorotationalGeneric:
         share = np.repeat(out["volume"], per)
         total = np.bincount(out["cells"].reshape(-1), share, minlength=n)
         out["wnode"] = (share / total[out["cells"].reshape(-1)]).reshape(k, per).astype(np.float32)
+        out.update(element_last(out, n))
         ainv = np.linalg.inv(rest_operator(out, node_type)).astype(np.float32)
         blocks = LG.ainv_blocks(ainv, n) if 4 * ainv.size >= LG.AINV_BLOCK_BYTES else {}
         out["ainv_blocks" if blocks else "ainv"] = blocks or ainv
@@ -186,6 +189,24 @@ def from_fem(problem, material, frame_dt: float | None = None) -> dict:
             "alpha": np.array([float(problem.arrays.damping_alpha)], np.float32), "dt": np.array([h], np.float32)}
 
 
+def element_last(stored: dict, n: int) -> dict:
+    """The step's layouts of the element arrays, components first and elements last: ``cells_t`` [8, K],
+    ``incidence`` [N, w] (`fem.elements.incidence_table`), ``b_t`` and ``x0e_t`` [3, 8, K], ``ke_t`` [24, 24, K]
+    and ``se_t`` [6, 24, K] with rows and columns 8 i + a (component i of node a), ``wnode_t`` [8, K]."""
+    from fem.elements import incidence_table
+
+    cells = np.asarray(stored["cells"]).astype(np.int32)
+    k, per = cells.shape
+    ke = np.asarray(stored["ke"], np.float32).reshape(k, per, 3, per, 3).transpose(2, 1, 4, 3, 0)
+    se = np.asarray(stored["se"], np.float32).reshape(k, 6, per, 3).transpose(1, 3, 2, 0)
+    return {"cells_t": np.ascontiguousarray(cells.T), "incidence": incidence_table(cells, n),
+            "b_t": np.ascontiguousarray(np.asarray(stored["b"], np.float32).transpose(2, 1, 0)),
+            "x0e_t": np.ascontiguousarray(np.asarray(stored["x0e"], np.float32).transpose(2, 1, 0)),
+            "ke_t": np.ascontiguousarray(ke.reshape(3 * per, 3 * per, k)),
+            "se_t": np.ascontiguousarray(se.reshape(6, 3 * per, k)),
+            "wnode_t": np.ascontiguousarray(np.asarray(stored["wnode"], np.float32).T)}
+
+
 def rest_operator(stored: dict, node_type) -> np.ndarray:
     """A₀ = (1 + αΔt)/Δt² M + K₀ [3N, 3N] float64, K₀ = Σ_e K_e + κ V_e b_e b_eᵀ (the model's stiffness at
     rest),
@@ -211,49 +232,75 @@ def rest_operator(stored: dict, node_type) -> np.ndarray:
 
 
 def polar(F, iterations: int = POLAR_ITERATIONS):
-    """The rotation R of F = R U, F [..., 3, 3] (Higham's iteration from R = F)."""
+    """The rotation R of F = R U, F [3, 3, ...] (Higham's iteration from R = F, written out per component)."""
     R = F
     for _ in range(iterations):
-        c = cofactor(R)
-        R = 0.5 * (R + c / jnp.sum(R[..., :, 0] * c[..., :, 0], axis=-1)[..., None, None])
+        c = cofactor3(R)
+        R = 0.5 * (R + c / (R[0, 0] * c[0, 0] + R[0, 1] * c[0, 1] + R[0, 2] * c[0, 2]))
     return R
 
 
-def cofactor(F):
-    """cof F = det(F) F⁻ᵀ [..., 3, 3] (columns: cross products of F's columns)."""
-    c0, c1, c2 = F[..., :, 0], F[..., :, 1], F[..., :, 2]
-    return jnp.stack([jnp.cross(c1, c2), jnp.cross(c2, c0), jnp.cross(c0, c1)], axis=-1)
+def _sum(term, n: int):
+    out = term(0)
+    for i in range(1, n):
+        out = out + term(i)
+    return out
 
 
 class _Kinematics(NamedTuple):
-    F: jax.Array      # [K, 3, 3]
-    R: jax.Array      # [K, 3, 3]
-    J: jax.Array      # [K]
+    """Per element, components first and elements last (XLA on CPU vectorises the last axis)."""
+    R: jax.Array      # [3, 3, K]
     jm1: jax.Array    # [K]: J − 1 from ∇u's invariants (1 + tiny − 1 in float32 would lose it)
-    g: jax.Array      # [K, 8, 3]: ∂J/∂x_a = cof(F) b_a
-    local: jax.Array  # [K, 24]: ũ = Rᵀ x̄ − X
+    g: jax.Array      # [3, 8, K]: ∂J/∂x_a = cof(F) b_a
+    local: jax.Array  # [24, K]: ũ = Rᵀ x̄ − X, row 8 i + a for component i of node a
+
+
+def _gather(arrays, u):
+    """[3, 8, K] element nodal values of u [N, 3]."""
+    return u.T[:, arrays["cells_t"]]
+
+
+def _assemble(arrays, fe, n: int):
+    """Nodal sums [N, C] of element nodal values fe [C, 8, K] (gathered through the incidence table)."""
+    flat = fe.reshape(fe.shape[0], -1).T
+    return jnp.concatenate([flat, jnp.zeros((1, flat.shape[1]), flat.dtype)])[arrays["incidence"]].sum(axis=1)
+
+
+def _rotate(R, x, transpose: bool = False):
+    """R x (or Rᵀ x) for R [3, 3, K] and x [3, 8, K]."""
+    if transpose:
+        return jnp.stack([_sum(lambda j: R[j, i][None] * x[j], 3) for i in range(3)])
+    return jnp.stack([_sum(lambda j: R[i, j][None] * x[j], 3) for i in range(3)])
+
+
+def _apply_ke(arrays, x):
+    """K_e x for x [24, K] (the elements' deviatoric stiffness, element-last)."""
+    ke = arrays["ke_t"].astype(x.dtype)
+    return _sum(lambda c: ke[:, c] * x[c][None], ke.shape[1])
 
 
 def kinematics(arrays: dict, u) -> _Kinematics:
-    """Each element's F, R, J, ∂J/∂x and corotated displacement at the displacements u [N, 3]."""
-    ue = u[arrays["cells"]]
-    b = arrays["b"].astype(u.dtype)
-    H = jnp.einsum("kai,kaj->kij", ue, b)
-    F = jnp.eye(3, dtype=u.dtype) + H
+    """Each element's rotation, volume change, ∂J/∂x and corotated displacement at the displacements u [N, 3]."""
+    ue = _gather(arrays, u)
+    b = arrays["b_t"].astype(u.dtype)                                  # [3, 8, K]
+    H = _sum(lambda a: ue[:, None, a] * b[None, :, a], 8)              # [3, 3, K]
+    F = H + jnp.eye(3, dtype=u.dtype)[:, :, None]
     R = polar(F)
-    tr = jnp.trace(H, axis1=1, axis2=2)
-    jm1 = tr + 0.5 * (tr * tr - jnp.einsum("kij,kji->k", H, H)) + jnp.linalg.det(H)
-    x0e = arrays["x0e"].astype(u.dtype)
+    tr = trace3(H)
+    jm1 = tr + 0.5 * (tr * tr - _sum(lambda i: _sum(lambda j: H[i, j] * H[j, i], 3), 3)) + det3(H)
+    cof = cofactor3(F)
+    g = jnp.stack([_sum(lambda j: cof[i, j][None] * b[j], 3) for i in range(3)])
+    x0e = arrays["x0e_t"].astype(u.dtype)
     xe = x0e + ue - ue.mean(axis=1, keepdims=True)
-    local = (jnp.einsum("kji,kaj->kai", R, xe) - x0e).reshape(ue.shape[0], -1)
-    return _Kinematics(F, R, 1.0 + jm1, jm1, jnp.einsum("kij,kaj->kai", cofactor(F), b), local)
+    local = (_rotate(R, xe, transpose=True) - x0e).reshape(24, -1)
+    return _Kinematics(R, jm1, g, local)
 
 
 def potential(arrays: dict, kin: _Kinematics):
     """Σ_e ½ ũᵀ K_e ũ + ½ κ V_e (J_e − 1)² (work units)."""
     dt = kin.local.dtype
     kappa = arrays["kappa"].reshape(-1)[0].astype(dt)
-    dev = 0.5 * jnp.sum(kin.local * jnp.einsum("kij,kj->ki", arrays["ke"].astype(dt), kin.local))
+    dev = 0.5 * jnp.sum(kin.local * _apply_ke(arrays, kin.local))
     return dev + 0.5 * kappa * jnp.sum(arrays["volume"].astype(dt) * kin.jm1 ** 2)
 
 
@@ -265,53 +312,45 @@ def energy(arrays: dict, z):
     return 0.5 * jnp.sum(m * v * v) + potential(arrays, kinematics(arrays, u))
 
 
-def _assemble(arrays, fe, n: int):
-    return jax.ops.segment_sum(fe.reshape(-1, fe.shape[-1]), arrays["cells"].reshape(-1), n)
-
-
 def internal_force(arrays: dict, kin: _Kinematics, n: int):
     """∂(potential)/∂q [N, 3] at fixed rotations: Σ_e R_e K_e ũ_e + κ V_e (J_e − 1) g_e."""
     dt = kin.local.dtype
-    k = kin.local.shape[0]
     kappa = arrays["kappa"].reshape(-1)[0].astype(dt)
-    fl = jnp.einsum("kij,kj->ki", arrays["ke"].astype(dt), kin.local).reshape(k, -1, 3)
-    fe = jnp.einsum("kij,kaj->kai", kin.R, fl) + kin.g * (kappa * arrays["volume"].astype(dt) * kin.jm1)[:, None,
-                                                                                                                None]
+    fl = _apply_ke(arrays, kin.local).reshape(3, 8, -1)
+    fe = _rotate(kin.R, fl) + kin.g * (kappa * arrays["volume"].astype(dt) * kin.jm1)[None, None]
     return _assemble(arrays, fe, n)
 
 
 def tangent(arrays: dict, kin: _Kinematics, w):
     """(K_R + K_J) w [N, 3]: Σ_e R_e K_e R_eᵀ w_e + κ V_e g_e (g_e · w_e), the frame's stiffness."""
     dt = w.dtype
-    k = kin.local.shape[0]
     kappa = arrays["kappa"].reshape(-1)[0].astype(dt)
-    we = w[arrays["cells"]]
-    wl = jnp.einsum("kji,kaj->kai", kin.R, we).reshape(k, -1)
-    fl = jnp.einsum("kij,kj->ki", arrays["ke"].astype(dt), wl).reshape(k, -1, 3)
-    gw = jnp.sum(kin.g * we, axis=(1, 2)) * kappa * arrays["volume"].astype(dt)
-    return _assemble(arrays, jnp.einsum("kij,kaj->kai", kin.R, fl) + kin.g * gw[:, None, None], w.shape[0])
+    we = _gather(arrays, w)
+    fl = _apply_ke(arrays, _rotate(kin.R, we, transpose=True).reshape(24, -1)).reshape(3, 8, -1)
+    gw = jnp.sum(kin.g * we, axis=(0, 1)) * kappa * arrays["volume"].astype(dt)
+    return _assemble(arrays, _rotate(kin.R, fl) + kin.g * gw[None, None], w.shape[0])
 
 
 def node_rotations(arrays: dict, R, n: int):
-    """Each node's rotation [N, 3, 3]: the polar factor of the mean of its elements' rotations."""
-    per = arrays["cells"].shape[1]
-    total = jax.ops.segment_sum(jnp.repeat(R, per, axis=0), arrays["cells"].reshape(-1), n)
-    count = jax.ops.segment_sum(jnp.ones(arrays["cells"].size, R.dtype), arrays["cells"].reshape(-1), n)
-    lonely = (count == 0)[:, None, None] * jnp.eye(3, dtype=R.dtype)   # a node of no element: no turn
-    return polar(total / jnp.maximum(count, 1.0)[:, None, None] + lonely)
+    """Each node's rotation [3, 3, N]: the polar factor of the mean of its elements' rotations."""
+    k = R.shape[-1]
+    total = _assemble(arrays, jnp.broadcast_to(R.reshape(9, 1, k), (9, 8, k)), n)       # [N, 9]
+    count = _assemble(arrays, jnp.ones((1, 8, k), R.dtype), n)                           # [N, 1]
+    lonely = (count == 0) * jnp.eye(3, dtype=R.dtype).reshape(1, 9)   # a node of no element: no turn
+    return polar((total / jnp.maximum(count, 1.0) + lonely).T.reshape(3, 3, n))
 
 
 def stress(arrays: dict, kin: _Kinematics, volume_change, n: int):
     """Nodal Cauchy stress [N, 6]: R_e (S_e ũ_e) R_eᵀ + κ (J_e − 1) I with J_e − 1 given as ``volume_change``
     [K], averaged over each node's elements by volume."""
     dt = kin.local.dtype
-    s = jnp.einsum("kij,kj->ki", arrays["se"].astype(dt), kin.local)
-    S = jnp.stack([jnp.stack([s[:, 0], s[:, 3], s[:, 4]], -1), jnp.stack([s[:, 3], s[:, 1], s[:, 5]], -1),
-                   jnp.stack([s[:, 4], s[:, 5], s[:, 2]], -1)], -2)
-    S = jnp.einsum("kij,kjl,kml->kim", kin.R, S, kin.R)
+    se = arrays["se_t"].astype(dt)
+    s = _sum(lambda c: se[:, c] * kin.local[c][None], se.shape[1])                    # [6, K]
+    S = jnp.stack([jnp.stack([s[0], s[3], s[4]]), jnp.stack([s[3], s[1], s[5]]), jnp.stack([s[4], s[5], s[2]])])
+    S = matmul3(matmul3(kin.R, S), transpose3(kin.R))
     p = arrays["kappa"].reshape(-1)[0].astype(dt) * volume_change
-    sig = jnp.stack([S[:, a, c] + (p if a == c else 0.0) for a, c in _VOIGT], axis=-1)
-    return _assemble(arrays, sig[:, None, :] * arrays["wnode"].astype(dt)[:, :, None], n)
+    sig = jnp.stack([S[a, c] + (p if a == c else 0.0) for a, c in _VOIGT])           # [6, K]
+    return _assemble(arrays, sig[:, None, :] * arrays["wnode_t"].astype(dt)[None], n)
 
 
 def frame(arrays: dict, z, f, iterations: int):
@@ -327,8 +366,8 @@ def frame(arrays: dict, z, f, iterations: int):
         return (c * m * w + tangent(arrays, kin, w * free)) * free
 
     def precondition(r):
-        back = jnp.einsum("nji,nj->ni", rn, r * free).reshape(-1)
-        return jnp.einsum("nij,nj->ni", rn, LG.apply_ainv(arrays, back).reshape(n, 3)) * free
+        back = _rotate(rn, (r * free).T[:, None], transpose=True)[:, 0].T.reshape(-1)
+        return _rotate(rn, LG.apply_ainv(arrays, back).reshape(n, 3).T[:, None])[:, 0].T * free
 
     rhs = (m * v / h ** 2 + (f - internal_force(arrays, kin, n)) / h) * free
     x, r = v, rhs - apply_a(v)
@@ -345,20 +384,24 @@ def frame(arrays: dict, z, f, iterations: int):
             d, rz = p + jnp.where(rz > 0, rz_new / jnp.where(rz > 0, rz, 1.0), 0.0) * d, rz_new
     v1 = x * free
     # energy never created, E(z') ≤ E(z) + W: the longest of the steps θ h v' (θ in BACKTRACK) whose potential
-    # fits the budget, then the velocity scaled to what the budget leaves (θ = 0 always fits)
+    # fits the budget, P(u + θ h v') ≤ E(z) + θ W with W = f · h v' (θ = 0 always fits)
     e0 = 0.5 * jnp.sum(m * v * v) + potential(arrays, kin)
-    thetas = jnp.asarray(BACKTRACK, z.dtype)
     work = jnp.sum(f * h * v1 * free)
-    trial = jax.vmap(lambda t: potential(arrays, kinematics(arrays, u + t * h * v1)))(thetas)
-    fits = trial <= e0 + thetas * work
-    theta = thetas[jnp.argmax(fits)]      # the first that fits: thetas decrease to 0, which always fits
+    full = kinematics(arrays, u + h * v1)
+
+    def shorten(_):
+        thetas = jnp.asarray(BACKTRACK[1:], z.dtype)
+        trial = jax.vmap(lambda t: potential(arrays, kinematics(arrays, u + t * h * v1)))(thetas)
+        return thetas[jnp.argmax(trial <= e0 + thetas * work)]   # the first that fits: thetas decrease to 0
+
+    theta = jax.lax.cond(potential(arrays, full) <= e0 + work, lambda _: jnp.ones((), z.dtype), shorten, None)
     v1 = theta * v1
     u1 = u + h * v1
-    kin1 = kinematics(arrays, u1)
+    kin1 = jax.lax.cond(theta == 1.0, lambda _: full, lambda _: kinematics(arrays, u1), None)
     budget = e0 + theta * work - potential(arrays, kin1)
     kinetic = 0.5 * jnp.sum(m * v1 * v1)
     v1 = v1 * jnp.where(kinetic > budget, jnp.sqrt(jnp.maximum(budget, 0.0) / jnp.maximum(kinetic, 1e-30)), 1.0)
-    change = kin.jm1 + jnp.sum(kin.g * (u1 - u)[arrays["cells"]], axis=(1, 2))
+    change = kin.jm1 + jnp.sum(kin.g * _gather(arrays, u1 - u), axis=(0, 1))
     q1 = arrays["q0"].astype(z.dtype) + u1
     q1 = jnp.where(free > 0, q1, z[:, :3])
     return jnp.concatenate([q1, v1 + (1.0 - free) * z[:, 3:6], stress(arrays, kin1, change, n)], axis=1)
