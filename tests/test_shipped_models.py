@@ -5,8 +5,11 @@ import pytest
 
 import tignn_jax as T
 
-# name: mean u and σ error against the FEM, relative to the FEM's peak (measured: beam u 0.083, σ 0.128)
-SHIPPED = {"beam": (0.10, 0.15), "beam-linear": (0.10, 0.15), "bunny": (0.05, 0.25), "bunny-linear": (0.05, 0.25)}
+# name: mean u and σ error against the FEM, relative to the FEM's peak (measured: beam u 0.083, σ 0.128). The
+# reference is the FEM's 2 × 3 Newton–CG step, whose σ = σ(J(q')) carries its unconverged volume change as pressure:
+# beam-corot's σ is 0.22 from it, 0.018–0.094 from the converged FEM (benchmarks/results/large_deformation.md)
+SHIPPED = {"beam": (0.10, 0.15), "beam-linear": (0.10, 0.15), "beam-corot": (0.05, 0.25), "bunny": (0.05, 0.25),
+           "bunny-linear": (0.05, 0.25)}
 
 
 def test_the_shipped_models_are_the_documented_ones():

@@ -4,6 +4,8 @@
   single steps with noise, Adam and a cosine schedule.
 * `tignn_jax.train.linear`: the linear GENERIC model (`tignn_jax.simulators.LinearGeneric`), by whole rollouts
   through its backward-Euler solve.
+* `tignn_jax.train.corotational`: the corotational GENERIC model
+  (`tignn_jax.simulators.CorotationalGeneric`), built from the FEM of the data's scene (nothing fitted).
 
 `tignn train --config FILE` runs either from a recipe in ``configs/`` (`load_recipe`).
 """
@@ -12,7 +14,8 @@ from __future__ import annotations
 import runpy
 from pathlib import Path
 
-TRAINERS = {"generic_gnn": "tignn_jax.train.gnn", "linear": "tignn_jax.train.linear"}
+TRAINERS = {"generic_gnn": "tignn_jax.train.gnn", "linear": "tignn_jax.train.linear",
+            "corotational": "tignn_jax.train.corotational"}
 
 
 def load_recipe(path: str | Path):

@@ -1,0 +1,65 @@
+"""The corotational GENERIC model (`tignn_jax.simulators.CorotationalGeneric`) of a data file's FEM scene.
+
+Nothing is fitted: the element operators are the FEM's own (`tignn_jax.simulators.corotational.from_fem`) on the
+scene the data were generated from (`tignn_jax.train.linear.fem_problem`: its mesh, clamps, material, density and
+damping). The data give the mesh, the frame step and the envelope the guards compare states and forces with.
+"""
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import NamedTuple
+
+from tignn_jax.simulators.corotational import CorotationalConfig
+
+
+class TrainConfig(NamedTuple):
+    """A recipe for the corotational model.
+
+    Attributes:
+      model: the step's options (`CorotationalConfig`).
+      train_split: the data's split (a name, or sim ids) whose range is the model's envelope.
+    """
+    model: CorotationalConfig = CorotationalConfig()
+    train_split: str | tuple = "train"
+
+
+def run(data_paths, config: TrainConfig, run_dir, progress: bool = True) -> dict:
+    """Build the model of the data's scene and write it to ``run_dir``/model/model.npz.
+
+    Args:
+      data_paths: a data file or a list of files on the same mesh (the first one's scene is the FEM's).
+      config: the recipe.
+      run_dir: folder for config.json and the model.
+      progress: unused (the build takes seconds).
+
+    Returns:
+      The model (`tignn_jax.api.load_model` of the written file).
+
+    Raises:
+      ValueError: an unknown split, a tet4 mesh or a viscoelastic material (`from_fem`).
+    """
+    import numpy as np
+
+    from tignn_jax import api
+    from tignn_jax import data as D
+    from tignn_jax.simulators.corotational import CorotationalGeneric, from_fem
+    from tignn_jax.train.linear import data_metadata, fem_problem
+
+    paths = [data_paths] if isinstance(data_paths, (str, Path)) else list(data_paths)
+    data = D.concatenate(*(D.load(p) for p in paths))
+    split = list(config.train_split) if isinstance(config.train_split, (tuple, list)) else config.train_split
+    rows = D.split_rows(data, split)
+    run_dir = Path(run_dir)
+    run_dir.mkdir(parents=True, exist_ok=True)
+    recipe = {"model": config.model._asdict(), "train_split": split}
+    (run_dir / "config.json").write_text(json.dumps({"recipe": recipe, "data": [str(p) for p in paths]}, indent=1))
+    problem, material = fem_problem(paths[0])
+    stored = from_fem(problem, material, float(data.dt))
+    meta = data_metadata(paths[0])
+    info = {"kind": "the FEM's element operators, corotated (not learned)", "data": [str(p) for p in paths],
+            "recipe": recipe, "fem_density": meta["material"]["density"], "fem_damping": meta["damping"]}
+    mesh = {"q0": np.asarray(data.q0), "senders": data.edges[0], "receivers": data.edges[1],
+            "node_type": data.node_type}
+    model = api.make_params(CorotationalGeneric(config.model), stored, mesh, D.normalization(data, rows), info)
+    return api.load_model(api.save_model(model, run_dir / "model" / "model.npz"))
