@@ -2,10 +2,10 @@
 
 Loads: the reference tip load of test case 9 (a 20-frame ramp) scaled by 1, 2 and 3, then held, and the 2× load
 released. Reference: the FEM's backward Euler on the same frame step, Newton iterated to convergence
-(`fem.implicit.simulate_implicit`, up to 25 iterations a frame; after a release the frame split into
-``RELEASE_SUBSTEPS`` backward-Euler steps, since in one its Newton iteration diverges). Models: the shipped learned linear ``beam``, the
-FEM's rest linearisation ``beam-linear`` and the corotational GENERIC model made from the FEM's element operators
-(`tignn_jax.simulators.corotational.from_fem`), each through `tignn_jax.stepper`.
+(`fem.implicit.simulate_implicit`, up to 25 iterations a frame; for the release case each frame split into
+``RELEASE_SUBSTEPS`` backward-Euler steps, since in one its Newton iteration diverges). Models: the shipped learned
+linear ``beam``, the FEM's rest linearisation ``beam-linear`` and the corotational GENERIC model made from the
+FEM's element operators (`tignn_jax.simulators.corotational.from_fem`), each through `tignn_jax.stepper`.
 
 Per model and load: the mean over frames of the L2 errors of u and σ relative to the case's peak (over frames)
 of the FEM's norm; the largest volume change of the model and of the FEM (hex volumes split into tets); the
