@@ -365,9 +365,11 @@ def frame(arrays: dict, z, f, iterations: int):
     def apply_a(w):
         return (c * m * w + tangent(arrays, kin, w * free)) * free
 
+    rn = jnp.moveaxis(rn, -1, 0)                                    # [N, 3, 3]: the products below stay in
+                                                                    # the [N, 3] layout the dense one reads
     def precondition(r):
-        back = _rotate(rn, (r * free).T[:, None], transpose=True)[:, 0].T.reshape(-1)
-        return _rotate(rn, LG.apply_ainv(arrays, back).reshape(n, 3).T[:, None])[:, 0].T * free
+        back = jnp.einsum("nji,nj->ni", rn, r * free).reshape(-1)
+        return jnp.einsum("nij,nj->ni", rn, LG.apply_ainv(arrays, back).reshape(n, 3)) * free
 
     rhs = (m * v / h ** 2 + (f - internal_force(arrays, kin, n)) / h) * free
     x, r = v, rhs - apply_a(v)
