@@ -2,15 +2,17 @@
 
 Loads: the reference tip load of test case 9 (a 20-frame ramp) scaled by 1, 2 and 3, then held, and the 2× load
 released. Reference: the FEM's backward Euler on the same frame step, Newton iterated to convergence
-(`fem.implicit.simulate_implicit`, up to 25 iterations a frame; for the release case each frame split into
-``RELEASE_SUBSTEPS`` backward-Euler steps, since in one its Newton iteration diverges). Models: the shipped learned
+(`fem.implicit.simulate_implicit`, up to 25 iterations a frame); for the release, whose first frame the implicit
+FEM's Newton iteration does not survive, the explicit FEM (`fem.simulate`, every wave resolved: it rings where
+backward Euler damps, so part of every model's error there is the time step's). Models: the shipped learned
 linear ``beam``, the FEM's rest linearisation ``beam-linear`` and the corotational GENERIC model made from the
 FEM's element operators (`tignn_jax.simulators.corotational.from_fem`), each through `tignn_jax.stepper`.
 
 Per model and load: the mean over frames of the L2 errors of u and σ relative to the case's peak (over frames)
 of the FEM's norm; the largest volume change of the model and of the FEM (hex volumes split into tets); the
 largest difference of the beam's length (its centre line, the mean of the four inner node lines) from the FEM's;
-frames whose energy rose by more than the forces' work (the model's ``diagnostics``: D < −1e-6 · E). Then the
+frames whose energy rose by more than the forces' work (the model's ``diagnostics``: D < −1e-4 · E, above the
+float32 rounding of the energies). Then the
 step time of each model (p50 of ``--repeats`` interleaved calls after compilation, one process) and its ratio to
 the learned linear beam's, measured in the same run.
 
@@ -35,7 +37,6 @@ from _machine import RESULTS_DIR, describe, interleaved_ms, write_results  # noq
 CASE = 9
 LOADS = (("1x hold", 1.0, "hold"), ("2x hold", 2.0, "hold"), ("3x hold", 3.0, "hold"), ("2x release", 2.0, "release"))
 QUICK_LOADS = ("1x hold", "3x hold")
-RELEASE_SUBSTEPS = 4   # the FEM's frame step split in four after a release (in one step its Newton iteration diverges)
 
 
 def centre_line(q0):
@@ -67,14 +68,17 @@ def models():
             "corotational (FEM element operators)": corot}
 
 
-def reference(forces, n_sub: int = 1):
+def reference(forces, explicit: bool = False):
     from fem import implicit, scenes
     from fem import solver as sv
 
     scene = scenes.beam_scene()
     problem = scenes.setup_scene(scene._replace(n_frames=len(forces)))
-    res, diag = implicit.simulate_implicit(problem, scene.material, sv.Loads(nodal=jnp.asarray(forces, jnp.float32)),
-                                           n_sub=n_sub, max_newton=25)
+    loads = sv.Loads(nodal=jnp.asarray(forces, jnp.float32))
+    if explicit:
+        res = sv.simulate(problem, scene.material, loads)
+    else:
+        res, _ = implicit.simulate_implicit(problem, scene.material, loads, max_newton=25)
     return np.asarray(res.q[1:], np.float64), np.asarray(res.sigma[1:], np.float64)
 
 
@@ -90,7 +94,7 @@ def run_model(params, forces):
         f = jnp.asarray(f, jnp.float32)
         z1 = step(z, f)
         d = diag(z, f, z1)
-        created += int(float(d["dissipation"]) < -1e-6 * max(abs(float(d["energy"])), 1.0))
+        created += int(float(d["dissipation"]) < -1e-4 * max(abs(float(d["energy"])), 1.0))
         zs.append(np.asarray(z1, np.float64))
         z = z1
     return np.array(zs), created
@@ -165,7 +169,7 @@ def main(argv=None) -> int:
             continue
         forces = scale * scenes.beam_reference_forces(scene, [CASE], after=frames - 20, mode=mode)[0]
         t = time.perf_counter()
-        q_ref, s_ref = reference(forces, RELEASE_SUBSTEPS if mode == "release" else 1)
+        q_ref, s_ref = reference(forces, explicit=mode == "release")
         print(f"{label}: FEM reference {time.perf_counter() - t:.0f} s", flush=True)
         for name, p in params.items():
             zs, created = run_model(p, forces)
@@ -180,8 +184,8 @@ def main(argv=None) -> int:
     base = float(np.median(times["beam (learned linear)"]))
     step_ms = {name: {"p50": float(np.median(t)), "ratio": float(np.median(t)) / base} for name, t in times.items()}
     result = {"machine": machine, "quick": args.quick, "frames": frames, "case": CASE, "rows": rows,
-              "step_ms": step_ms, "reference": f"fem.implicit.simulate_implicit, max_newton=25 (release: n_sub="
-                                               f"{RELEASE_SUBSTEPS})"}
+              "step_ms": step_ms,
+              "reference": "fem.implicit.simulate_implicit, max_newton=25 (release: the explicit fem.simulate)"}
     write_results("large_deformation", result, report(result), Path(args.out))
     return 0
 

@@ -31,7 +31,8 @@ Energy never created, by construction: with W = f · (q' − q) the work of the 
 E(z') ≤ E(z) + W. The frame's displacement is taken as θ h v' with θ the longest of 1, ½, …, 1/32, 0 whose
 potential energy fits that budget (θ = 1 unless the body turns fast, e.g. released from a large deformation: a
 linearised step moves nodes along straight lines, which stretches turning elements); v' is then scaled down to
-the budget left (an extra dissipation: M ≥ 0 still). θ = 0 always fits. Clamped nodes
+the budget left (an extra dissipation: M ≥ 0 still). θ = 0 always fits. A frame whose step had to be shortened
+is stepped again from its start as four steps of Δt/4, each kept within its own budget (`frame`). Clamped nodes
 (node_type ≠ 0) keep q and v.
 
 Made from the FEM's own element operators (`from_fem`): not learned. Accuracy against the FEM at loads past the
@@ -51,6 +52,7 @@ from tignn_jax.simulators import linear as LG
 
 STORED = ("cells", "ke", "se", "b", "volume", "kappa", "mass", "alpha", "dt")
 BACKTRACK = (1.0, 0.5, 0.25, 0.125, 0.0625, 0.03125, 0.0)   # the step lengths of the frame's line search
+SPLIT = 4   # steps a frame is split into where one step would have to be shortened (`frame`)
 POLAR_ITERATIONS = 5   # Higham's iteration R ← (R + R⁻ᵀ)/2: quadratic, exact at once for a rigid motion
 _VOIGT = ((0, 0), (1, 1), (2, 2), (0, 1), (0, 2), (1, 2))   # the data's stress order S11 S22 S33 S12 S13 S23
 
@@ -354,8 +356,21 @@ def stress(arrays: dict, kin: _Kinematics, volume_change, n: int):
 
 
 def frame(arrays: dict, z, f, iterations: int):
-    """z' [N, 12] of one frame (module docstring), ``iterations`` preconditioned CG iterations."""
-    h, alpha, free, m = LG._constants(arrays, z.dtype)
+    """z' [N, 12] of one frame (module docstring), ``iterations`` preconditioned CG iterations. Where the frame's
+    step would have to be shortened to keep the energy budget (θ < 1), the frame is stepped instead as ``SPLIT``
+    steps of Δt / ``SPLIT`` (each with its own budget), so a fast turn is followed rather than damped."""
+    h = arrays["dt"].reshape(-1)[0].astype(z.dtype)
+    z1, theta = _step(arrays, z, f, iterations, h)
+
+    def split(_):
+        return jax.lax.fori_loop(0, SPLIT, lambda _, zz: _step(arrays, zz, f, iterations, h / SPLIT)[0], z)
+
+    return jax.lax.cond(theta == 1.0, lambda _: z1, split, None)
+
+
+def _step(arrays: dict, z, f, iterations: int, h):
+    """(z' after a step h, the step length θ the energy budget allowed)."""
+    _, alpha, free, m = LG._constants(arrays, z.dtype)
     n = z.shape[0]
     c = (1.0 + alpha * h) / h ** 2
     u, v = (z[:, :3] - arrays["q0"].astype(z.dtype)) * free, z[:, 3:6] * free
@@ -406,4 +421,4 @@ def frame(arrays: dict, z, f, iterations: int):
     change = kin.jm1 + jnp.sum(kin.g * _gather(arrays, u1 - u), axis=(0, 1))
     q1 = arrays["q0"].astype(z.dtype) + u1
     q1 = jnp.where(free > 0, q1, z[:, :3])
-    return jnp.concatenate([q1, v1 + (1.0 - free) * z[:, 3:6], stress(arrays, kin1, change, n)], axis=1)
+    return jnp.concatenate([q1, v1 + (1.0 - free) * z[:, 3:6], stress(arrays, kin1, change, n)], axis=1), theta
