@@ -332,10 +332,10 @@ def _check_model(model: str | None, stand_in: bool) -> None:
 def _dynamics(model_name: str, q0, linear_name: str):
     """A model's step for the scene's bodies.
 
-    A linear model (`tignn_jax.simulators.LinearGeneric`: a linear system with a PSD energy stepped by backward
-    Euler, stable by construction) is guarded for finiteness only; any other by its training envelope
-    (`tignn_jax.guards.state_guard`), with the scene's rest-linearised model ``linear_name`` as the fallback of a
-    flagged body where that is on the model's mesh (`tignn_jax.guards.fallback_step`).
+    A model of a class that is stable by construction (``stable_by_construction``: the linear and the
+    corotational GENERIC models, whose steps never create energy) is guarded for finiteness only; any other by its
+    training envelope (`tignn_jax.guards.state_guard`), with the scene's rest-linearised model ``linear_name`` as
+    the fallback of a flagged body where that is on the model's mesh (`tignn_jax.guards.fallback_step`).
 
     Returns:
       (step ``(z, forces) -> z`` with the attribute ``guard`` (``Body.guard``) and, where there is one,
@@ -347,7 +347,6 @@ def _dynamics(model_name: str, q0, linear_name: str):
     import numpy as np
 
     from tignn_jax import api, guards
-    from tignn_jax.simulators import LinearGeneric
 
     params, _ = api.load_pretrained(model_name)
     mesh_q0, units = _model_units(params, q0)
@@ -360,7 +359,7 @@ def _dynamics(model_name: str, q0, linear_name: str):
         return fn(z, forces)
 
     described = f"model {model_name}"
-    if isinstance(params["model"], LinearGeneric):
+    if getattr(params["model"], "stable_by_construction", False):
         step.guard = _finite_guard
     else:
         step.guard = guards.state_guard(params, tolerance=1.5)

@@ -6,6 +6,9 @@ A *model class* is a frozen, hashable object (its configuration) with three meth
     stored = model.stored(arrays)               # the arrays a model file keeps (derived ones dropped)
     z_next = model.step_state(arrays, z, f)     # one body: z [N, 12], f [N, 3] -> z_next [N, 12]; pure, jittable
 
+and, optionally, a class attribute ``stable_by_construction = True`` where no step can create energy whatever the
+state and force (the demo then guards the class's bodies for finiteness only, not by the training envelope).
+
 ``step_state`` advances the state z = (q, v, σ) [N, 12] of one body of the model's mesh by one frame Δt under the
 external nodal forces f [N, 3] (constant during the frame). It is pure and traceable, so `tignn_jax.step`,
 `tignn_jax.rollout` and `tignn_jax.stepper` jit it with the model object as a static argument and the arrays as

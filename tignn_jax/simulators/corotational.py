@@ -78,6 +78,7 @@ class CorotationalGeneric:
     """
     config: CorotationalConfig = CorotationalConfig()
     name: ClassVar[str] = "corotational"
+    stable_by_construction: ClassVar[bool] = True   # no step creates energy: guard for finiteness only
 
     def prepare(self, stored: dict, mesh: dict) -> dict:
         """The arrays the step reads: the stored ones, the centred rest element coordinates ``x0e`` [K, 8, 3], the

@@ -73,6 +73,7 @@ class LinearGeneric:
     """
     config: LinearConfig = LinearConfig()
     name: ClassVar[str] = "linear"
+    stable_by_construction: ClassVar[bool] = True   # no step creates energy: guard for finiteness only
 
     def prepare(self, stored: dict, mesh: dict) -> dict:
         """The arrays the step reads: the stored operators, A⁻¹ (dense, or its upper blocks when large), S's rows
