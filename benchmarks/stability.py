@@ -471,6 +471,9 @@ def main(argv=None) -> int:
                     help="skip the explicit FEM's stability-limit runs (about 40 s; --quick skips them)")
     ap.add_argument("--quick", action="store_true",
                     help="smoke run: the beam, 40 frames, the rest-linearised reference, no stability-limit runs")
+    ap.add_argument("--model", default=None,
+                    help="a shipped model on the scene's mesh instead of the scene's default (one scene only; e.g. "
+                         "--scenes beam --model beam-corot)")
     ap.add_argument("--out", default=str(RESULTS_DIR), help="folder of stability.{json,md,png} (default %(default)s)")
     args = ap.parse_args(argv)
     steps = 40 if args.quick else args.steps
@@ -482,13 +485,16 @@ def main(argv=None) -> int:
     unknown = [s for s in scenes_ if s not in MODELS]
     if unknown or not scenes_:
         raise SystemExit(f"--scenes: unknown {unknown}; choose from {sorted(MODELS)}")
+    if args.model and len(scenes_) != 1:
+        raise SystemExit(f"--model {args.model} needs exactly one scene, got --scenes {','.join(scenes_)}")
     machine = describe()
     result = {"machine": machine, "steps": steps, "reference_steps": reference_steps, "reference": reference,
               "seed": args.seed,
               "quick": args.quick, "tolerance": TOLERANCE, "scenes": {}}
     for name in scenes_:
         print(f"{name} ...", flush=True)
-        result["scenes"][name] = scene_runs(name, steps, reference_steps, args.seed, reference=reference)
+        result["scenes"][name] = scene_runs(name, steps, reference_steps, args.seed, model=args.model,
+                                            reference=reference)
     if not (args.no_fem_limit or args.quick):
         print("FEM stability limit ...", flush=True)
         result["fem_limit"] = fem_limit()
