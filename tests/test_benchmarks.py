@@ -68,6 +68,7 @@ def test_stability_quick_runs_every_loading_with_and_without_guards(tmp_path):
     assert "| beam | noise | fallback |" in md
 
 
+@pytest.mark.long
 @needs_reference
 def test_pareto_quick_places_the_shipped_models_against_the_fem(tmp_path):
     _bench("pareto", "--quick", "--out", str(tmp_path))

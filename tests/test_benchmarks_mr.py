@@ -54,6 +54,7 @@ def test_realtime_quick_writes_the_loop_and_the_public_step_against_the_stepper(
     assert md.count("| two-beams |") == 2 and "QUICK RUN" in md   # the loop's table and the step's
 
 
+@pytest.mark.long
 @pytest.mark.skipif(not hasattr(os, "sched_setaffinity"), reason="pinning needs os.sched_setaffinity")
 def test_pinning_quick_writes_the_pinned_configuration(tmp_path):
     done = _bench("pinning", tmp_path, "--rows", "beam", "--configs", "1")
