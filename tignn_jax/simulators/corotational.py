@@ -31,11 +31,9 @@ Energy never created, by construction: with W = f · (q' − q) the work of the 
 E(z') ≤ E(z) + W. The frame's displacement is taken as θ h v' with θ the longest of 1, ½, …, 1/32, 0 whose
 potential energy fits that budget (θ = 1 unless the body turns fast, e.g. released from a large deformation: a
 linearised step moves nodes along straight lines, which stretches turning elements); v' is then scaled down to
-the budget left (an extra dissipation: M ≥ 0 still). θ = 0 always fits; where only it does (a rough state, e.g.
-under state noise), the body takes instead the longest descent step of its potential P − f·u along −R A₀⁻¹ Rᵀ ∇
-that lowers it and stops (v' = 0), so such energy is dissipated rather than kept. A frame whose step had to be
-shortened is stepped again from its start as four steps of Δt/4, each kept within its own budget (`frame`).
-Clamped nodes (node_type ≠ 0) keep q and v.
+the budget left (an extra dissipation: M ≥ 0 still). θ = 0 always fits. A frame whose step had to be shortened
+is stepped again from its start as four steps of Δt/4, each kept within its own budget (`frame`). Clamped nodes
+(node_type ≠ 0) keep q and v.
 
 Made from the FEM's own element operators (`from_fem`): not learned. Accuracy against the FEM at loads past the
 training range: ``benchmarks/large_deformation.py``.
@@ -54,7 +52,6 @@ from tignn_jax.simulators import linear as LG
 
 STORED = ("cells", "ke", "se", "b", "volume", "kappa", "mass", "alpha", "dt")
 BACKTRACK = (1.0, 0.5, 0.25, 0.125, 0.0625, 0.03125, 0.0)   # the step lengths of the frame's line search
-RELAX = (1.0, 0.25, 0.0625, 0.015625, 0.0)   # the descent step lengths tried where no step length fits
 SPLIT = 4   # steps a frame is split into where one step would have to be shortened (`frame`)
 POLAR_ITERATIONS = 5   # Higham's iteration R ← (R + R⁻ᵀ)/2: quadratic, exact at once for a rigid motion
 _VOIGT = ((0, 0), (1, 1), (2, 2), (0, 1), (0, 2), (1, 2))   # the data's stress order S11 S22 S33 S12 S13 S23
@@ -417,19 +414,9 @@ def _step(arrays: dict, z, f, iterations: int, h):
 
     theta = jax.lax.cond(potential(arrays, full) <= e0 + work, lambda _: jnp.ones((), z.dtype), shorten, None)
     v1 = theta * v1
-
-    def relax(_):   # no step length fits (a rough state, e.g. noise): a preconditioned descent step of P − f·u,
-        g = (internal_force(arrays, kin, n) - f) * free     # the body at rest after it (see RELAX)
-        d = -precondition(g)                                   # ≈ −(cM + K)⁻¹ g: a damped Newton step
-        steps = jnp.asarray(RELAX, z.dtype)
-        p0 = potential(arrays, kin)
-        trial = jax.vmap(lambda a: potential(arrays, kinematics(arrays, u + a * d)) - a * jnp.sum(f * d * free))(steps)
-        return steps[jnp.argmax(trial <= p0)] * d
-
-    move = jax.lax.cond(theta > 0, lambda _: h * v1, relax, None)
-    u1 = u + move
+    u1 = u + h * v1
     kin1 = jax.lax.cond(theta == 1.0, lambda _: full, lambda _: kinematics(arrays, u1), None)
-    budget = e0 + jnp.sum(f * move * free) - potential(arrays, kin1)
+    budget = e0 + theta * work - potential(arrays, kin1)
     kinetic = 0.5 * jnp.sum(m * v1 * v1)
     v1 = v1 * jnp.where(kinetic > budget, jnp.sqrt(jnp.maximum(budget, 0.0) / jnp.maximum(kinetic, 1e-30)), 1.0)
     change = kin.jm1 + jnp.sum(kin.g * _gather(arrays, u1 - u), axis=(0, 1))
