@@ -222,16 +222,9 @@ def rest_operator(stored: dict, node_type) -> np.ndarray:
     ke = np.asarray(stored["ke"], np.float64) + (kappa * np.asarray(stored["volume"], np.float64))[:, None, None] \
         * b[:, :, None] * b[:, None, :]
     dof = (3 * cells[:, :, None] + np.arange(3)).reshape(k, -1)
-    A = np.zeros((3 * n, 3 * n))
-    np.add.at(A, (dof[:, :, None], dof[:, None, :]), ke)
-    h = float(np.asarray(stored["dt"]).reshape(-1)[0])
-    alpha = float(np.asarray(stored["alpha"]).reshape(-1)[0])
-    A[np.diag_indices(3 * n)] += (1.0 + alpha * h) / h ** 2 * np.repeat(np.asarray(stored["mass"], np.float64), 3)
-    free = np.repeat(np.asarray(node_type) == 0, 3)
-    A[~free, :] = 0.0
-    A[:, ~free] = 0.0
-    A[~free, ~free] = 1.0
-    return A
+    K = np.zeros((3 * n, 3 * n))
+    np.add.at(K, (dof[:, :, None], dof[:, None, :]), ke)
+    return LG.with_mass_and_clamps(K, stored, node_type)
 
 
 def polar(F, iterations: int = POLAR_ITERATIONS):

@@ -200,12 +200,18 @@ def _constants(arrays, dtype):
 def operator(stored: dict, node_type) -> np.ndarray:
     """A = K + (1 + αΔt)/Δt² M [3N, 3N] float64, dense, identity on the clamped nodes' rows and columns."""
     n = len(np.asarray(node_type))
-    h = float(np.asarray(stored["dt"]).reshape(-1)[0])
-    alpha = float(np.asarray(stored["alpha"]).reshape(-1)[0])
     K = np.zeros((n, n, 3, 3))
     K[np.asarray(stored["k_rows"], np.int64), np.asarray(stored["k_cols"], np.int64)] = np.asarray(stored["k"])
-    A = K.transpose(0, 2, 1, 3).reshape(3 * n, 3 * n)
-    A[np.diag_indices(3 * n)] += (1.0 + alpha * h) / h ** 2 * np.repeat(np.asarray(stored["mass"], np.float64), 3)
+    return with_mass_and_clamps(K.transpose(0, 2, 1, 3).reshape(3 * n, 3 * n), stored, node_type)
+
+
+def with_mass_and_clamps(K, stored: dict, node_type) -> np.ndarray:
+    """K + (1 + αΔt)/Δt² M for a dense stiffness K [3N, 3N] (changed in place) and the stored masses, α and Δt,
+    made the identity on the clamped nodes' rows and columns."""
+    h = float(np.asarray(stored["dt"]).reshape(-1)[0])
+    alpha = float(np.asarray(stored["alpha"]).reshape(-1)[0])
+    A = K
+    A[np.diag_indices(A.shape[0])] += (1.0 + alpha * h) / h ** 2 * np.repeat(np.asarray(stored["mass"], np.float64), 3)
     free = np.repeat(np.asarray(node_type) == 0, 3)
     A[~free, :] = 0.0
     A[:, ~free] = 0.0
