@@ -81,9 +81,10 @@ class CorotationalGeneric:
     stable_by_construction: ClassVar[bool] = True   # no step creates energy: guard for finiteness only
 
     def prepare(self, stored: dict, mesh: dict) -> dict:
-        """The arrays the step reads: the stored ones, the centred rest element coordinates ``x0e`` [K, 8, 3], the
-        stress averaging weights ``wnode`` [K, 8], the rest operator's inverse (``ainv``, or ``ainv_blocks``
-        when large, as `tignn_jax.simulators.linear`), ``q0`` and the free-node mask ``free`` [N, 1].
+        """The arrays the step reads: the stored ones; the centred rest element coordinates ``x0e`` [K, 8, 3] and
+        the stress averaging weights ``wnode`` [K, 8], and all element arrays again in the step's element-last
+        layout (`element_last`); the rest operator's inverse (``ainv``, or ``ainv_blocks`` when large, as
+        `tignn_jax.simulators.linear`), ``q0`` and the free-node mask ``free`` [N, 1].
 
         Raises:
           ValueError: an array is missing or sized for another mesh, or the iteration count is not positive.
