@@ -6,8 +6,9 @@ The public API::
     graph = tignn_jax.step(params, graph, forces)          # one frame under forces [N, 3]
     states = tignn_jax.rollout(params, graph, forces_seq)  # [T + 1, N, 12]
 
-Model classes (`tignn_jax.simulators`): `GenericGNN`, the paper's thermodynamics-informed graph network, and
-`LinearGeneric`, the learned linear GENERIC model. Training: `train`, with a recipe from ``configs/``.
+Model classes (`tignn_jax.simulators`): `GenericGNN`, the paper's thermodynamics-informed graph network,
+`LinearGeneric`, the learned linear GENERIC model, and `CorotationalGeneric`, the corotational GENERIC model for
+large deformations. Training: `train`, with a recipe from ``configs/``.
 """
 from tignn_jax.api import (load_model, load_pretrained, make_params, rest_graph, rollout, save_model,
                            shipped_models, step, stepper)
@@ -15,7 +16,8 @@ from tignn_jax.evaluation import evaluate
 from tignn_jax.guards import (fallback_step, fallback_stepper, force_check, guarded_stepper, state_check,
                               state_guard)
 from tignn_jax.newton import fem_stepper
-from tignn_jax.simulators import GenericGNN, GNNConfig, LinearConfig, LinearGeneric
+from tignn_jax.simulators import (CorotationalConfig, CorotationalGeneric, GenericGNN, GNNConfig, LinearConfig,
+                                  LinearGeneric)
 from tignn_jax.train import train
 
 __version__ = "0.2.0"
@@ -25,6 +27,6 @@ __all__ = [
     "step", "rollout", "stepper",
     "force_check", "state_check", "state_guard", "guarded_stepper", "fallback_step", "fallback_stepper",
     "fem_stepper",
-    "GenericGNN", "GNNConfig", "LinearGeneric", "LinearConfig",
+    "GenericGNN", "GNNConfig", "LinearGeneric", "LinearConfig", "CorotationalGeneric", "CorotationalConfig",
     "train", "evaluate",
 ]
