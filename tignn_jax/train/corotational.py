@@ -39,16 +39,13 @@ def run(data_paths, config: TrainConfig, run_dir, progress: bool = True) -> dict
     Raises:
       ValueError: an unknown split, a tet4 mesh or a viscoelastic material (`from_fem`).
     """
-    import numpy as np
-
-    from tignn_jax import api
     from tignn_jax import data as D
     from tignn_jax.simulators.corotational import CorotationalGeneric, from_fem
-    from tignn_jax.train.linear import data_metadata, fem_problem
+    from tignn_jax.train.linear import _split, fem_problem, save_run
 
     paths = [data_paths] if isinstance(data_paths, (str, Path)) else list(data_paths)
     data = D.concatenate(*(D.load(p) for p in paths))
-    split = list(config.train_split) if isinstance(config.train_split, (tuple, list)) else config.train_split
+    split = _split(config.train_split)
     rows = D.split_rows(data, split)
     run_dir = Path(run_dir)
     run_dir.mkdir(parents=True, exist_ok=True)
@@ -56,10 +53,5 @@ def run(data_paths, config: TrainConfig, run_dir, progress: bool = True) -> dict
     (run_dir / "config.json").write_text(json.dumps({"recipe": recipe, "data": [str(p) for p in paths]}, indent=1))
     problem, material = fem_problem(paths[0])
     stored = from_fem(problem, material, float(data.dt))
-    meta = data_metadata(paths[0])
-    info = {"kind": "the FEM's element operators, corotated (not learned)", "data": [str(p) for p in paths],
-            "recipe": recipe, "fem_density": meta["material"]["density"], "fem_damping": meta["damping"]}
-    mesh = {"q0": np.asarray(data.q0), "senders": data.edges[0], "receivers": data.edges[1],
-            "node_type": data.node_type}
-    model = api.make_params(CorotationalGeneric(config.model), stored, mesh, D.normalization(data, rows), info)
-    return api.load_model(api.save_model(model, run_dir / "model" / "model.npz"))
+    return save_run(run_dir, paths, data, rows, CorotationalGeneric(config.model), stored, recipe,
+                    {"kind": "the FEM's element operators, corotated (not learned)"})

@@ -710,7 +710,7 @@ def run(data_paths, config: TrainConfig, run_dir, progress: bool = True, until: 
       ValueError: bad options, an unknown split, or data that do not start at rest.
     """
     from tignn_jax import data as D
-    from tignn_jax.simulators.linear import from_rest_linearization
+    from tignn_jax.simulators.linear import LinearGeneric, from_rest_linearization
 
     if config.measure not in MEASURES:
         raise ValueError(f"measure must be one of {MEASURES}, got {config.measure!r}")
@@ -731,8 +731,9 @@ def run(data_paths, config: TrainConfig, run_dir, progress: bool = True, until: 
                                                         indent=1))
         prior = fem_prior(run_dir, paths[0]) if config.model.prior else None
         if config.steps == 0:
-            return _save(run_dir, paths, data, rows_tr, config, from_rest_linearization(prior, float(data.dt)),
-                         {"kind": "the FEM's rest linearisation (not learned)"})
+            return save_run(run_dir, paths, data, rows_tr, LinearGeneric(config.model),
+                            from_rest_linearization(prior, float(data.dt)), _jsonable(config),
+                            {"kind": "the FEM's rest linearisation (not learned)"})
         best = train(paths, rows_tr, rows_va, run_dir, config.model, steps=config.steps, lr=config.lr,
                      seed=config.seed, val_every=config.val_every, progress=progress, until=until,
                      batch=config.batch, measure=config.measure, prior=prior, weights=tuple(config.weights))
@@ -744,26 +745,36 @@ def run(data_paths, config: TrainConfig, run_dir, progress: bool = True, until: 
         params = serialization.from_bytes(init(config.model, geo), (run_dir / "best.msgpack").read_bytes())
 
         stored = from_rest_linearization(to_rest_linearization(params, geo, config.model), float(data.dt))
-        return _save(run_dir, paths, data, rows_tr, config, stored,
-                     {"kind": "learned linear GENERIC model", "best_step": best["step"], "val": best["val"],
-                      "learned": {"density": best["density"], "alpha": best["alpha"]}})
+        return save_run(run_dir, paths, data, rows_tr, LinearGeneric(config.model), stored, _jsonable(config),
+                        {"kind": "learned linear GENERIC model", "best_step": best["step"], "val": best["val"],
+                         "learned": {"density": best["density"], "alpha": best["alpha"]}})
     finally:
         jax.config.update("jax_enable_x64", previous)
 
 
-def _save(run_dir, paths, data, rows_tr, config, stored, info) -> dict:
+def save_run(run_dir, paths, data, rows, model, stored: dict, recipe: dict, info: dict) -> dict:
+    """Write a model built from data files to ``run_dir``/model/model.npz and load it back.
+
+    Args:
+      run_dir: the run's folder.
+      paths: the data files; ``data`` their concatenation, ``rows`` the rows whose range is the envelope.
+      model: the model class instance; ``stored`` its arrays.
+      recipe: the recipe as JSON, recorded in ``info`` with the data files and, where the first file records it,
+        the FEM scene's density and damping (the Newton step and the demo rebuild the scene from them).
+
+    Returns:
+      The model (`tignn_jax.api.load_model` of the written file).
+    """
     from tignn_jax import api
     from tignn_jax import data as D
-    from tignn_jax.simulators.linear import LinearGeneric
 
     meta = data_metadata(paths[0])
-    info = {**info, "data": [str(p) for p in paths], "recipe": _jsonable(config)}
-    if "material" in meta and "damping" in meta:   # the FEM scene of the data (the Newton step rebuilds it)
+    info = {**info, "data": [str(p) for p in paths], "recipe": recipe}
+    if "material" in meta and "damping" in meta:
         info.update(fem_density=meta["material"]["density"], fem_damping=meta["damping"])
     mesh = {"q0": data.q0, "senders": data.edges[0], "receivers": data.edges[1], "node_type": data.node_type}
-    model = api.make_params(LinearGeneric(config.model), stored, mesh, D.normalization(data, rows_tr), info)
-    path = api.save_model(model, Path(run_dir) / "model" / "model.npz")
-    return api.load_model(path)
+    params = api.make_params(model, stored, mesh, D.normalization(data, rows), info)
+    return api.load_model(api.save_model(params, Path(run_dir) / "model" / "model.npz"))
 
 
 def fem_prior(run_dir, data_path):
