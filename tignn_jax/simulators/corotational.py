@@ -48,6 +48,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from fem.material import cofactor3, det3, matmul3, trace3, transpose3
+from fem.solver import _polar_rotation as polar
+from fem.solver import _sum_over as _sum
 from tignn_jax.simulators import linear as LG
 
 STORED = ("cells", "ke", "se", "b", "volume", "kappa", "mass", "alpha", "dt")
@@ -213,8 +215,7 @@ def element_last(stored: dict, n: int) -> dict:
 
 def rest_operator(stored: dict, node_type) -> np.ndarray:
     """A₀ = (1 + αΔt)/Δt² M + K₀ [3N, 3N] float64, K₀ = Σ_e K_e + κ V_e b_e b_eᵀ (the model's stiffness at
-    rest),
-    identity on the clamped nodes' rows and columns."""
+    rest), identity on the clamped nodes' rows and columns."""
     cells = np.asarray(stored["cells"]).astype(np.int64)
     n = len(np.asarray(node_type))
     k, per = cells.shape
@@ -226,22 +227,6 @@ def rest_operator(stored: dict, node_type) -> np.ndarray:
     K = np.zeros((3 * n, 3 * n))
     np.add.at(K, (dof[:, :, None], dof[:, None, :]), ke)
     return LG.with_mass_and_clamps(K, stored, node_type)
-
-
-def polar(F, iterations: int = POLAR_ITERATIONS):
-    """The rotation R of F = R U, F [3, 3, ...] (Higham's iteration from R = F, written out per component)."""
-    R = F
-    for _ in range(iterations):
-        c = cofactor3(R)
-        R = 0.5 * (R + c / (R[0, 0] * c[0, 0] + R[0, 1] * c[0, 1] + R[0, 2] * c[0, 2]))
-    return R
-
-
-def _sum(term, n: int):
-    out = term(0)
-    for i in range(1, n):
-        out = out + term(i)
-    return out
 
 
 class _Kinematics(NamedTuple):
@@ -282,7 +267,7 @@ def kinematics(arrays: dict, u) -> _Kinematics:
     b = arrays["b_t"].astype(u.dtype)                                  # [3, 8, K]
     H = _sum(lambda a: ue[:, None, a] * b[None, :, a], 8)              # [3, 3, K]
     F = H + jnp.eye(3, dtype=u.dtype)[:, :, None]
-    R = polar(F)
+    R = polar(F, POLAR_ITERATIONS)
     tr = trace3(H)
     jm1 = tr + 0.5 * (tr * tr - _sum(lambda i: _sum(lambda j: H[i, j] * H[j, i], 3), 3)) + det3(H)
     cof = cofactor3(F)
@@ -334,7 +319,7 @@ def node_rotations(arrays: dict, R, n: int):
     total = _assemble(arrays, jnp.broadcast_to(R.reshape(9, 1, k), (9, 8, k)), n)       # [N, 9]
     count = _assemble(arrays, jnp.ones((1, 8, k), R.dtype), n)                           # [N, 1]
     lonely = (count == 0) * jnp.eye(3, dtype=R.dtype).reshape(1, 9)   # a node of no element: no turn
-    return polar((total / jnp.maximum(count, 1.0) + lonely).T.reshape(3, 3, n))
+    return polar((total / jnp.maximum(count, 1.0) + lonely).T.reshape(3, 3, n), POLAR_ITERATIONS)
 
 
 def stress(arrays: dict, kin: _Kinematics, volume_change, n: int):
