@@ -131,10 +131,7 @@ class CorotationalGeneric:
     def diagnostics(self, arrays: dict, z, f, z_next) -> dict:
         """The energy balance of one frame z → z_next under f: {"energy": E(z_next), "work": W = f · Δq over the
         free nodes, "dissipation": D = W − (E(z_next) − E(z))}, work units; D ≥ 0 by construction."""
-        free = arrays["free"].astype(z.dtype)
-        work = jnp.sum(f.astype(z.dtype) * (z_next[:, :3] - z[:, :3]) * free)
-        e0, e1 = energy(arrays, z), energy(arrays, z_next)
-        return {"energy": e1, "work": work, "dissipation": work - (e1 - e0)}
+        return LG.energy_balance(energy, arrays, z, f, z_next)
 
 
 def from_fem(problem, material, frame_dt: float | None = None) -> dict:

@@ -112,10 +112,7 @@ class LinearGeneric:
         """The energy balance of one frame z → z_next under f: {"energy": E(z_next), "work": W = f · Δu over the
         free nodes, "dissipation": D = W − (E(z_next) − E(z))}, work units. D ≥ 0 for a backward-Euler step of a
         PSD K with α ≥ 0: the model never creates energy."""
-        free = arrays["free"].astype(z.dtype)
-        work = jnp.sum(f.astype(z.dtype) * (z_next[:, :3] - z[:, :3]) * free)
-        e0, e1 = energy(arrays, z), energy(arrays, z_next)
-        return {"energy": e1, "work": work, "dissipation": work - (e1 - e0)}
+        return energy_balance(energy, arrays, z, f, z_next)
 
 
 def from_rest_linearization(lin, frame_dt: float) -> dict:
@@ -141,6 +138,15 @@ def increment(arrays: dict, z, f):
     rhs = ((f - alpha * m * v) / h + (c / h) * m * w) * free
     dv = (apply_ainv(arrays, rhs.reshape(-1)).reshape(-1, 3) - w / h) * free
     return jnp.concatenate([h * v + h * dv, dv, h * apply_s(arrays, v + dv)], axis=1)
+
+
+def energy_balance(energy_fn, arrays: dict, z, f, z_next) -> dict:
+    """{"energy": E(z_next), "work": W = f · Δq over the free nodes, "dissipation": W − (E(z_next) − E(z))} of one
+    frame z → z_next [N, 12] under f [N, 3], with E = ``energy_fn(arrays, z)`` (a model class's ``diagnostics``)."""
+    free = arrays["free"].astype(z.dtype)
+    work = jnp.sum(f.astype(z.dtype) * (z_next[:, :3] - z[:, :3]) * free)
+    e0, e1 = energy_fn(arrays, z), energy_fn(arrays, z_next)
+    return {"energy": e1, "work": work, "dissipation": work - (e1 - e0)}
 
 
 def stress_of(arrays: dict, u):
