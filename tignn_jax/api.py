@@ -103,7 +103,8 @@ def load_pretrained(name: str = DEFAULT_MODEL):
     """A shipped model by name, or a model folder or file, with the rest graph of its mesh.
 
     Args:
-      name: a folder of ``tignn_jax/pretrained`` (`shipped_models`), or a path to a model folder or ``.npz``.
+      name: a folder of ``tignn_jax/pretrained`` (`shipped_models`), or a path to a model folder, a run folder of
+        ``tignn train`` (its ``model/model.npz``) or a model ``.npz``.
 
     Returns:
       (params, graph): the model and the graph of its mesh at rest (q = q0, v = 0, σ = 0).
@@ -114,6 +115,8 @@ def load_pretrained(name: str = DEFAULT_MODEL):
     path = Path(name)
     if not path.exists():
         path = PRETRAINED_DIR / name
+    if path.is_dir() and not (path / "model.npz").exists() and (path / "model" / "model.npz").exists():
+        path = path / "model"          # a run folder of `tignn train`
     if path.is_dir():
         path = path / "model.npz"
     if not path.exists():
@@ -152,7 +155,8 @@ def make_params(model, stored: dict, mesh: dict, envelope: dict, info: dict | No
     Args:
       model: an instance of a class of `tignn_jax.simulators`.
       stored: the arrays ``model.stored`` keeps.
-      mesh: {"q0" [N, 3], "senders" [E], "receivers" [E], "node_type" [N]} (0 free, 1 clamped).
+      mesh: {"q0" [N, 3], "senders" [E], "receivers" [E], "node_type" [N]} (0 free, 1 clamped), and optionally
+        "cells" [K, 4|8] (tet4 or hex8 node ids, VTK order), which the viewers draw the surface from.
       envelope: the training data's {"z_mean" [12], "z_std" [12], "z_dev_max" [12], "u_max" [1], "f_max" [1]}.
       info: provenance, written as JSON.
 
@@ -165,9 +169,15 @@ def make_params(model, stored: dict, mesh: dict, envelope: dict, info: dict | No
     missing += [k for k in ENVELOPE if k not in envelope]
     if missing:
         raise ValueError(f"a model needs the mesh and envelope entries {missing}")
+    cells = mesh.get("cells")
     mesh = {"q0": np.asarray(mesh["q0"], np.float32), "senders": np.asarray(mesh["senders"], np.int32),
             "receivers": np.asarray(mesh["receivers"], np.int32),
             "node_type": np.asarray(mesh["node_type"], np.int32)}
+    if cells is not None:      # the mesh's cells, for drawing its surface (`tignn_jax.mr.surface_triangles`)
+        cells = np.asarray(cells, np.int32)
+        if cells.ndim != 2 or cells.shape[1] not in (4, 8) or cells.min() < 0 or cells.max() >= len(mesh["q0"]):
+            raise ValueError(f"mesh cells must be [K, 4|8] node ids below {len(mesh['q0'])}, got {cells.shape}")
+        mesh["cells"] = cells
     return {"model": model, "arrays": model.prepare(stored, mesh), "mesh": mesh,
             "edges": (jnp.asarray(mesh["senders"]), jnp.asarray(mesh["receivers"])),
             "envelope": {k: np.asarray(envelope[k], np.float32) for k in ENVELOPE}, "info": dict(info or {})}

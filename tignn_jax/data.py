@@ -38,6 +38,23 @@ def reference_path() -> Path:
     return Path(__file__).resolve().parents[1].parent / "shared" / "data" / "abaqus_beam.npz"
 
 
+def cells(path: str | Path):
+    """The cells [K, 4|8] int32 of a data file's mesh: its ``cells`` entry, or the reference beam's hexes for the
+    Abaqus reference data (which store nodes and edges only); None where neither applies (or for a folder)."""
+    if Path(path).is_dir():
+        return None
+    with np.load(path, allow_pickle=False) as raw:
+        if "cells" in raw.files:
+            return np.asarray(raw["cells"], np.int32)
+        q0 = raw["q0"] if "q0" in raw.files else None
+    from fem import meshes
+
+    ref, ref_cells, _ = meshes.beam_mesh()
+    if q0 is not None and np.shape(q0) == ref.shape and np.allclose(q0, ref, atol=1e-5):
+        return np.asarray(ref_cells, np.int32)
+    return None
+
+
 def load(path: str | Path) -> Dataset:
     """Read a data set from an ``.npz`` file or a folder of per-case ``.npz`` files.
 

@@ -12,6 +12,11 @@ Scenes:
 * ``beam``: beam A alone, pressed down at its free end.
 * ``bunny``: the Stanford bunny (10 cm tall) standing on the table, base clamped, pushed on the top of its head
   with about the unit point load of the training cases.
+* ``own``: the mesh of the ``--model`` (a model trained with ``tignn train`` on a mesh of your own, which keeps its
+  cells), 20 cm across, its model z axis up, standing on the table; the camera is framed from the mesh's extent
+  and the fingertip presses the free surface node farthest from the clamps among those facing the camera, with
+  half the largest nodal force of the model's training data (`own_scene`). The default scene of a ``--model``
+  path whose mesh is not one of the paper's.
 
 Dynamics (``--model``): a shipped model (`tignn_jax.api.shipped_models`; default per scene: ``beam`` for the beams,
 ``bunny`` for the bunny, both learned linear GENERIC models stepped by backward Euler, guarded for finiteness
@@ -39,7 +44,7 @@ FEM_NEWTON = "fem-newton"
 # each scene's rest-linearised FEM (a linear model): the mesh of ``fem-newton`` and the fallback of a non-linear
 # learned model's body when it leaves the model's training envelope
 LINEAR_OF_SCENE = {"two-beams": "beam-linear", "beam": "beam-linear", "bunny": "bunny-linear"}
-SCENES = ("two-beams", "beam", "bunny")
+SCENES = ("two-beams", "beam", "bunny", "own")
 SIZE = (640, 480)           # the default image size (pixels)
 FOCAL = 540.0               # the camera's focal length (pixels) at the default width
 STAND_IN = "STAND-IN spring dynamics (not the learned model)"
@@ -51,9 +56,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                        description="Mixed reality: a fingertip in a (synthetic) camera image pushes virtual solids "
                                    "simulated by a learned model; writes a GIF, the fingertip track (JSON lines) "
                                    "and per-stage timings (p50/p99).")
-    p.add_argument("--scene", choices=SCENES, default="two-beams",
-                   help="two cantilevers pushed into each other, one beam, or the bunny on a table "
-                        "(default: %(default)s)")
+    p.add_argument("--scene", choices=SCENES, default=None,
+                   help="two cantilevers pushed into each other, one beam, the bunny on a table, or the --model's "
+                        "own mesh (default: own for a --model path on another mesh, else two-beams)")
     p.add_argument("--out", default="out/demo", help="output folder (default: %(default)s)")
     p.add_argument("--frames", type=int, default=120, help="frames to play, at least 2 (default: %(default)s)")
     p.add_argument("--size", default=f"{SIZE[0]}x{SIZE[1]}", metavar="WxH",
@@ -95,6 +100,9 @@ def run(args) -> int:
         raise UsageError(f"--cores must be at least 1, got {args.cores}")
     size = _parse_size(args.size)
     _check_model(args.model, args.stand_in)
+    args.scene = args.scene or default_scene(args.model)
+    if args.scene == "own" and (args.model is None or args.model == FEM_NEWTON or args.stand_in):
+        raise UsageError("--scene own shows a --model's own mesh: give --model DIR (a model trained on your mesh)")
     if args.track and not Path(args.track).is_file():
         raise UsageError(f"--track {args.track!r}: no such file")
 
@@ -178,6 +186,8 @@ def build_scene(name: str, frames: int, model: str | None = None, stand_in: bool
     from tignn_jax import mr
 
     width, height = (int(s) for s in size)
+    if name == "own":
+        return own_scene(model, frames, size)
     if name in ("two-beams", "beam"):
         q0, cells, edges = beam_mesh()
         clamped = np.zeros(len(q0), bool)
@@ -240,6 +250,104 @@ def build_scene(name: str, frames: int, model: str | None = None, stand_in: bool
         scene = scene._replace(devices=tuple(devices))
         dynamics += f" (bodies on {min(len(devices), len(bodies))} cores)"
     return scene, dynamics
+
+
+def default_scene(model: str | None) -> str:
+    """``own`` where ``model`` is a model path whose mesh is none of the paper's scenes', else ``two-beams``."""
+    if model is None or model == FEM_NEWTON or not Path(model).exists():
+        return "two-beams"
+    import numpy as np
+
+    from fem.meshes import beam_mesh, bunny_mesh
+
+    path = Path(model)      # read with numpy alone: JAX must not start before the cores are pinned
+    if path.is_dir():
+        path = path / "model.npz" if (path / "model.npz").exists() else path / "model" / "model.npz"
+    try:
+        with np.load(path, allow_pickle=False) as raw:
+            params = {"mesh": {"q0": np.asarray(raw["mesh/q0"], np.float64)}}
+    except (OSError, KeyError, ValueError):
+        raise UsageError(f"--model {model}: not a model file or folder (no {path})") from None
+    for mesh, scene in ((beam_mesh, "two-beams"), (bunny_mesh, "bunny")):
+        if _model_units(params, np.asarray(mesh()[0], np.float64))[1] > 0:
+            return scene
+    return "own"
+
+
+def own_scene(model: str, frames: int, size: tuple = SIZE):
+    """The demo scene of a model on its own mesh (module docstring, ``own``).
+
+    Args:
+      model: a model folder, run folder or file whose mesh keeps its cells.
+      frames: the track's length.
+      size: (width, height) of the image in pixels.
+
+    Returns:
+      (the `tignn_jax.mr.Scene`, a one-line description of its dynamics).
+
+    Raises:
+      ValueError: a model without cells (written before models kept them), or a mesh without free surface nodes.
+    """
+    import jax.numpy as jnp
+    import numpy as np
+
+    from fem.meshes import surface_nodes_and_normals
+    from tignn_jax import api, mr
+
+    params, _ = api.load_pretrained(model)
+    mesh = params["mesh"]
+    if "cells" not in mesh:
+        raise ValueError(f"model {model!r} keeps no cells to draw its surface from: retrain it with tignn train")
+    q0 = np.asarray(mesh["q0"], np.float64)
+    cells = np.asarray(mesh["cells"])
+    step_fn, dynamics, q0_model, _ = _dynamics(model, q0.astype(np.float32), "")
+    lo, hi = q0.min(axis=0), q0.max(axis=0)
+    extent = float(np.max(hi - lo))
+    scale = 0.2 / extent                                   # the body is 20 cm across
+    up = np.asarray(mr.rotation_matrix([1.0, 0.0, 0.0], -np.pi / 2))   # model z -> world y (up)
+    centre = 0.5 * (lo + hi)
+    translation = -up @ (scale * np.array([centre[0], centre[1], lo[2]]))   # the bottom centre at the origin
+    pose = np.asarray(mr.model_matrix(translation, up, scale))
+    world = q0 @ (scale * up).T + translation
+    w_lo, w_hi = world.min(axis=0), world.max(axis=0)
+    target = 0.5 * (w_lo + w_hi)
+    radius = 0.5 * float(np.linalg.norm(w_hi - w_lo))
+    width, height = (int(v) for v in size)
+    focal = FOCAL * width / SIZE[0]
+    half_fov = np.arctan(0.5 * min(width, height) / focal)
+    direction = np.array([0.55, 0.6, 0.58]) / np.linalg.norm([0.55, 0.6, 0.58])
+    eye = target + direction * 1.15 * radius / np.sin(half_fov)
+    view = np.asarray(mr.look_at(eye, target, [0.0, 1.0, 0.0]))
+    cam = mr.Camera(fx=focal, fy=focal, cx=width / 2, cy=height / 2, width=width, height=height,
+                    near=0.02 * radius, far=10.0 * (radius + float(np.linalg.norm(eye - target))), view=view)
+    nodes, normals = surface_nodes_and_normals(q0, cells)
+    free = np.asarray(mesh["node_type"])[nodes] == 0
+    nodes, normals = nodes[free], normals[free]
+    if not len(nodes):
+        raise ValueError(f"model {model!r}: its mesh has no free surface node to press")
+    clamped = np.where(np.asarray(mesh["node_type"]) != 0)[0]
+    far = (np.min(np.linalg.norm(q0[nodes][:, None] - q0[clamped][None], axis=-1), axis=1) if len(clamped)
+           else np.zeros(len(nodes)))
+    world_normals = normals @ up.T
+    to_eye = eye - world[nodes]
+    facing = np.sum(world_normals * to_eye, axis=1) / np.linalg.norm(to_eye, axis=1)   # cosine towards the eye
+    score = np.where(facing > 0.3, far, -np.inf)
+    pick = int(np.argmax(score)) if np.isfinite(score).any() else int(np.argmax(far))
+    edges = np.linalg.norm(q0[mesh["senders"]] - q0[mesh["receivers"]], axis=1)
+    tip_radius = 1.5 * float(np.median(edges))
+    tip_force = 0.5 * float(np.asarray(params["envelope"]["f_max"]).ravel()[0])
+    sigma_scale = float(np.max(np.asarray(params["envelope"]["z_dev_max"])[6:9]))
+    triangles = mr.surface_triangles(cells, q0_model)
+    z0 = np.concatenate([q0_model, np.zeros((len(q0_model), 9), np.float32)], axis=1)
+    body = mr.Body(q0=q0_model, triangles=triangles, model=pose, z=z0, step_fn=step_fn, tip_radius=tip_radius,
+                   tip_force=tip_force, vmax=max(sigma_scale, 1e-12), guard=getattr(step_fn, "guard", None))
+    point = np.asarray(mr.transform_points(pose, jnp.asarray([q0[nodes[pick]]], jnp.float32)))[0]
+    track = mr.press_track(cam, point, world_normals[pick], frames, approach=0.15 * 0.2, press=0.05 * 0.2)
+    fallback = getattr(step_fn, "fallback", None)
+    scene = mr.Scene(bodies=(body,), camera=cam, background=mr.table_background(cam), track=track,
+                     contact_radius=0.0, fallback=(fallback,) if fallback is not None else (),
+                     handover="next-frame")
+    return scene, dynamics + f" on its own mesh ({len(q0)} nodes)"
 
 
 def stand_in_step(q0, cells, clamped, stiffness=5.0e4, damping=0.03, dt=0.05, substeps=8, modulus=9.3e5):
@@ -363,10 +471,11 @@ def _dynamics(model_name: str, q0, linear_name: str):
         step.guard = _finite_guard
     else:
         step.guard = guards.state_guard(params, tolerance=1.5)
-        linear, _ = api.load_pretrained(linear_name)
         try:
-            step.fallback = guards.fallback_step(params, linear)
-            described += f" (fallback {linear_name})"
+            linear, _ = api.load_pretrained(linear_name) if linear_name else (None, None)
+            if linear is not None:
+                step.fallback = guards.fallback_step(params, linear)
+                described += f" (fallback {linear_name})"
         except ValueError:   # not on the linear model's mesh: a flagged body is reset to rest
             pass
     return step, described, mesh_q0.astype(np.float32), units

@@ -1,11 +1,14 @@
-"""``tignn generate SCENE``: FEM data sets of the paper's scenes, resumable, in the documented data format.
+"""``tignn generate SCENE``: FEM data sets of the paper's scenes or of your own mesh, resumable, in the documented
+data format.
 
 Each scene is a subcommand with only its own options (``tignn generate bunny --help``); the options every scene
-shares (output, workers, material overrides, integrator) are listed under "common options". The file format is
-``docs/data_format.md``.
+shares (output, workers, material overrides, integrator) are listed under "common options". ``tignn generate mesh
+--mesh FILE`` runs any tet4 or hex8 mesh meshio reads, with the material, clamps and loads given on the command
+line (`fem.user_mesh`). The file format is ``docs/data_format.md``.
 """
 from __future__ import annotations
 
+from pathlib import Path
 
 from tignn_jax.cli import UsageError
 
@@ -15,6 +18,7 @@ SCENES = {
     "bunny": "point or fingertip-sized patch loads on the Stanford bunny",
     "bunny-interactions": "fingertip-like patch loads on the bunny that ramp, hold, move and release",
     "two-beams": "the upper of two crossed beams pushed down onto the lower one through contact",
+    "mesh": "your own tet4 or hex8 mesh (any file meshio reads): material, clamps and loads from the options",
 }
 # the value of every scene-specific option where a scene does not have it
 DEFAULTS = {"cases": None, "seed": 0, "load_nodes": None, "rise_frames": 10, "loads_per_case": 1,
@@ -22,15 +26,20 @@ DEFAULTS = {"cases": None, "seed": 0, "load_nodes": None, "rise_frames": 10, "lo
 
 
 def register(sub) -> None:
-    p = sub.add_parser("generate", help="generate FEM data sets of the paper's scenes (resumable)",
+    p = sub.add_parser("generate", help="generate FEM data sets of the paper's scenes or your mesh (resumable)",
                        description="Generate a data set with the FEM. Resumable: finished cases are kept in "
                                    "OUT.parts/ and skipped when the command is run again. One subcommand per scene; "
                                    "see `tignn generate SCENE --help` for its options.")
     scenes = p.add_subparsers(dest="scene", metavar="SCENE", required=True)
     for name, what in SCENES.items():
         s = scenes.add_parser(name, help=what, description=f"{what[0].upper()}{what[1:]}.")
-        s.set_defaults(func=run, **DEFAULTS)
         own = s.add_argument_group(f"{name} options")
+        if name == "mesh":
+            s.set_defaults(func=run_mesh)
+            _mesh_options(own)
+            _common_options(s.add_argument_group("common options"), name)
+            continue
+        s.set_defaults(func=run, **DEFAULTS)
         if name != "beam-reference":
             default = {"two-beams": 6, "bunny": 100}.get(name, 64)
             own.add_argument("--cases", type=int, default=None, help=f"number of cases (default: {default})")
@@ -59,12 +68,46 @@ def _bunny_options(g) -> None:
                    help="total force of each load instead of 1 (the paper's unit load)")
 
 
+def _mesh_options(g) -> None:
+    g.add_argument("--mesh", required=True, metavar="FILE",
+                   help="a tet4 or hex8 mesh in any format meshio reads (.msh, .vtu, .vtk, .inp, .med, ...)")
+    g.add_argument("--c10", type=float, required=True, help="Mooney-Rivlin C10 (stress units)")
+    g.add_argument("--c01", type=float, default=0.0, help="Mooney-Rivlin C01 (default: %(default)s)")
+    g.add_argument("--d1", type=float, required=True, help="Mooney-Rivlin D1: bulk modulus 2/D1 (1/stress units)")
+    g.add_argument("--prony", action="append", default=[], metavar="G:TAU",
+                   help="a Prony term: relative modulus g and relaxation time tau (repeat for more; default: none)")
+    g.add_argument("--clamp", action="append", default=[], metavar="EXPR",
+                   help="clamped nodes: a plane x=0, a half-space z<=0.5, an extreme z=min, a box "
+                        "box:x0,y0,z0,x1,y1,z1, or a file of node ids; repeat for a union (required)")
+    g.add_argument("--load", default="fingertip", metavar="KINDS",
+                   help="comma-separated load kinds, cycled over the cases: fingertip (patches that ramp, hold, "
+                        "move, release), point (a press that rises and holds), pressure (a patch of pressure) "
+                        "(default: %(default)s)")
+    g.add_argument("--force", type=float, default=None, metavar="F",
+                   help="largest total force of a fingertip or point case; each case's peak is uniform in "
+                        "[0.1, 1] x F (required with those kinds)")
+    g.add_argument("--pressure", type=float, default=None, metavar="P",
+                   help="largest pressure of a pressure case, peaks uniform in [0.1, 1] x P (required with it)")
+    g.add_argument("--radius", type=float, default=0.0, metavar="R",
+                   help="spread of a point load over the surface within R, and the radius of a pressure patch "
+                        "(default: a point; a pressure patch of two edge lengths)")
+    g.add_argument("--rise-frames", type=int, default=10,
+                   help="frames over which point and pressure loads rise, then hold (default: %(default)s)")
+    g.add_argument("--frames", type=int, default=20, help="frames per case (default: %(default)s)")
+    g.add_argument("--frame-dt", type=float, default=0.05, help="time between frames (default: %(default)s)")
+    g.add_argument("--cases", type=int, default=32, help="number of cases (default: %(default)s)")
+    g.add_argument("--seed", type=int, default=0, help="random seed of the load cases (default: 0)")
+
+
 def _common_options(g, scene: str) -> None:
     g.add_argument("--out", required=True, help="output .npz path")
+    own = scene == "mesh"
     g.add_argument("--damping", type=float, default=None, metavar="ALPHA",
-                   help="mass-proportional damping [1/time] instead of the scene's (beam 18.17, bunny 2.0)")
-    g.add_argument("--density", type=float, default=None, metavar="RHO",
-                   help="mass density instead of the scene's (beam 7.135e-3, bunny 1e-5)")
+                   help="mass-proportional damping [1/time] " + ("(default: 0)" if own else
+                                                                 "instead of the scene's (beam 18.17, bunny 2.0)"))
+    g.add_argument("--density", type=float, default=None, metavar="RHO", required=own,
+                   help="mass density" + (" (required)" if own else " instead of the scene's (beam 7.135e-3, "
+                                                                    "bunny 1e-5)"))
     g.add_argument("--integrator", choices=("explicit", "implicit"), default="explicit",
                    help="explicit central differences (default) or backward Euler at the frame step (elastic "
                         "scenes without contact)")
@@ -200,6 +243,111 @@ def run(args) -> int:
                     worker=worker, integrator=args.integrator, newton_iterations=args.newton_iterations)
     print(f"wrote {out}" if out is not None else f"worker {args.worker} done; the last worker writes {args.out}")
     return 0
+
+
+def run_mesh(args) -> int:
+    """``tignn generate mesh``: check the mesh, material, clamps and loads, then run the cases (resumable)."""
+    import numpy as np
+
+    from fem import user_mesh as um
+    from fem.generate import run_cases
+    from fem.material import mooney_rivlin
+    from fem.scenes import setup_scene
+
+    _check_run_options(args)
+    for name in ("cases", "frames", "batch"):
+        if getattr(args, name) < 1:
+            raise UsageError(f"--{name} must be positive, got {getattr(args, name)}")
+    if not 0 <= args.rise_frames <= args.frames:
+        raise UsageError(f"--rise-frames must be in 0..{args.frames}, got {args.rise_frames}")
+    for name in ("frame_dt", "density"):
+        value = getattr(args, name)
+        if not (np.isfinite(value) and value > 0):
+            raise UsageError(f"--{name.replace('_', '-')} must be a positive number, got {value}")
+    try:
+        g, tau = zip(*(_prony(t) for t in args.prony)) if args.prony else ((), ())
+        material = mooney_rivlin(args.c10, args.c01, args.d1, density=args.density, g=g, tau=tau)
+    except ValueError as e:
+        raise UsageError(f"material: {e}")
+    kinds = [k.strip() for k in args.load.split(",") if k.strip()]
+    bad = [k for k in kinds if k not in um.LOAD_KINDS]
+    if not kinds or bad:
+        raise UsageError(f"--load {args.load!r}: kinds must be among {', '.join(um.LOAD_KINDS)}")
+    for flag, value, needs in (("--force", args.force, ("fingertip", "point")), ("--pressure", args.pressure,
+                                                                                   ("pressure",))):
+        if any(k in kinds for k in needs) and value is None:
+            raise UsageError(f"{flag} is required with --load {','.join(k for k in kinds if k in needs)}")
+        if value is not None and not (np.isfinite(value) and value > 0):
+            raise UsageError(f"{flag} must be a positive number, got {value}")
+    if not (np.isfinite(args.radius) and args.radius >= 0):
+        raise UsageError(f"--radius must be a finite number >= 0, got {args.radius}")
+    if args.damping is not None and not (np.isfinite(args.damping) and args.damping >= 0):
+        raise UsageError(f"--damping must be a finite number >= 0, got {args.damping}")
+    try:
+        mesh = um.read_volume_mesh(args.mesh)
+    except ValueError as e:
+        raise UsageError(str(e))
+    try:
+        clamped = um.clamp_nodes(mesh.points, args.clamp, mesh.file_ids)
+    except ValueError as e:
+        raise UsageError(f"--clamp: {e}")
+    try:
+        um.check_surface(mesh.points, mesh.cells)
+    except ValueError as e:
+        raise UsageError(f"--mesh {args.mesh}: {e}")
+    scene = um.mesh_scene(mesh, material, clamped, frame_dt=args.frame_dt, n_frames=args.frames,
+                          damping=args.damping or 0.0, name=Path(args.mesh).stem)
+    try:
+        forces, described = um.mesh_forces(scene, kinds, args.cases, args.seed, force=args.force,
+                                           pressure=args.pressure, radius=args.radius,
+                                           rise_frames=args.rise_frames)
+    except ValueError as e:
+        raise UsageError(str(e))
+    problem = setup_scene(scene)
+    if args.integrator == "implicit":
+        from fem.implicit import check_scope
+
+        try:
+            check_scope(problem, scene.material)
+        except ValueError as e:
+            raise UsageError(f"--integrator implicit on {args.mesh}: {e}")
+    meta = {"seed": args.seed, "command": "tignn generate mesh", "mesh_file": str(args.mesh),
+            "clamp": list(args.clamp), "clamped_nodes": int(len(clamped)), "loads": kinds,
+            "force": args.force, "pressure": args.pressure, "cases": described}
+    steps = "1 backward-Euler step" if args.integrator == "implicit" else f"{problem.config.n_sub} sub-steps"
+    print(f"{scene.name}: {len(forces)} cases, {len(scene.points)} nodes ({len(clamped)} clamped), "
+          f"{len(scene.cells)} {scene.cell_type} cells, {problem.config.n_frames} frames x {steps}")
+    worker = _worker(args.worker)
+    out = run_cases(scene, problem, forces, args.out, batch_size=args.batch, progress=not args.no_progress,
+                    xdmf=args.xdmf, metadata=meta, velocity=args.velocity or "solver", worker=worker,
+                    integrator=args.integrator, newton_iterations=args.newton_iterations)
+    print(f"wrote {out}" if out is not None else f"worker {args.worker} done; the last worker writes {args.out}")
+    return 0
+
+
+def _prony(text: str):
+    try:
+        g, tau = (float(t) for t in text.split(":"))
+    except ValueError:
+        raise UsageError(f"--prony {text!r}: a term is G:TAU, e.g. 0.3:0.2") from None
+    return g, tau
+
+
+def _check_run_options(args) -> None:
+    if args.newton_iterations < 1:
+        raise UsageError(f"--newton-iterations must be positive, got {args.newton_iterations}")
+    if args.newton_iterations != 12 and args.integrator != "implicit":
+        raise UsageError("--newton-iterations applies only with --integrator implicit")
+
+
+def _worker(text: str) -> tuple:
+    try:
+        worker = tuple(int(t) for t in text.split("/"))
+        if len(worker) != 2 or not 0 <= worker[0] < worker[1]:
+            raise ValueError
+    except ValueError:
+        raise UsageError(f"--worker must be K/N with 0 <= K < N, got {text!r}") from None
+    return worker
 
 
 def _held_out_load_nodes(path) -> list:

@@ -319,10 +319,14 @@ def train(data_path, config: TrainConfig, run_dir, split=("train", "val"), progr
         norm_np.update(parent["stored"]["norm"])
     mesh = {"q0": np.asarray(data.q0, np.float32), "senders": data.edges[0], "receivers": data.edges[1],
             "node_type": data.node_type}
+    first = data_path if isinstance(data_path, (str, Path)) else list(data_path)[0]
+    cells = D.cells(first)
     stored = model.init(jax.random.PRNGKey(cfg.seed), norm_np, mesh)
     if parent is not None:
         stored["weights"] = parent["stored"]["weights"]
     arrays = model.prepare(stored, mesh)
+    if cells is not None:      # kept with the model, for drawing its surface
+        mesh = {**mesh, "cells": cells}
     envelope = {k: norm_np[k] for k in ENVELOPE}
     info = {"train_config": cfg.as_dict(), "data": _describe(data_path)}
     if parent is not None:

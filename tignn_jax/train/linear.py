@@ -772,7 +772,8 @@ def save_run(run_dir, paths, data, rows, model, stored: dict, recipe: dict, info
     info = {**info, "data": [str(p) for p in paths], "recipe": recipe}
     if "material" in meta and "damping" in meta:
         info.update(fem_density=meta["material"]["density"], fem_damping=meta["damping"])
-    mesh = {"q0": data.q0, "senders": data.edges[0], "receivers": data.edges[1], "node_type": data.node_type}
+    mesh = {"q0": data.q0, "senders": data.edges[0], "receivers": data.edges[1], "node_type": data.node_type,
+            "cells": D.cells(paths[0])}
     params = api.make_params(model, stored, mesh, D.normalization(data, rows), info)
     return api.load_model(api.save_model(params, Path(run_dir) / "model" / "model.npz"))
 
