@@ -17,6 +17,8 @@ is the largest load of the data set. Every check raises ``ValueError`` with one 
 """
 from __future__ import annotations
 
+import contextlib
+import io
 import re
 from pathlib import Path
 from typing import NamedTuple
@@ -62,10 +64,12 @@ def read_volume_mesh(path) -> VolumeMesh:
     path = Path(path)
     if not path.is_file():
         raise ValueError(f"mesh {path}: no such file")
+    said = io.StringIO()
     try:
-        m = meshio.read(path)
-    except Exception as err:   # meshio raises many types (ReadError, KeyError, ...) for a file it cannot parse
-        text = str(err).splitlines()[0] if str(err) else type(err).__name__
+        with contextlib.redirect_stderr(said), contextlib.redirect_stdout(said):
+            m = meshio.read(path)
+    except (Exception, SystemExit) as err:   # meshio raises many types, or exits, on a file it cannot parse
+        text = (said.getvalue().strip() or str(err) or type(err).__name__).splitlines()[0]
         raise ValueError(f"mesh {path}: meshio cannot read it ({text})") from None
     kinds = {b.type for b in m.cells}
     volume = sorted(kinds & (set(SUPPORTED) | set(OTHER_VOLUME)))

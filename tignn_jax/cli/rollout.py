@@ -1,4 +1,6 @@
-"""``tignn rollout``: a model's predicted states for cases of a data file, as .npz or a ParaView series."""
+"""``tignn rollout``: a model's predicted states for cases of a data file, as .npz and, with ``--paraview``, a
+ParaView series per case (VTU frames and a .pvd index, as ``tignn generate --paraview`` writes the FEM's), so the
+learned and the FEM rollouts open side by side."""
 from __future__ import annotations
 
 from pathlib import Path
@@ -15,6 +17,9 @@ def register(sub) -> None:
     p.add_argument("--data", required=True, metavar="FILE", help="data file on the model's mesh")
     p.add_argument("--sims", required=True, help="a split name (test) or 1-based sim ids, e.g. 9,10,12")
     p.add_argument("--out", required=True, help="output .npz with z and sim_id")
+    p.add_argument("--paraview", action="store_true",
+                   help="also write each case as a ParaView series OUT_case<id>.pvd (+ VTU frames): u, v, σ and "
+                        "von Mises, and the FEM's u and the error |u - u_FEM| from the data")
     p.set_defaults(func=run)
 
 
@@ -37,4 +42,20 @@ def run(args) -> int:
     out.parent.mkdir(parents=True, exist_ok=True)
     np.savez_compressed(out, z=z, sim_id=data.sim_id[rows])
     print(f"wrote {out} (z {z.shape})")
+    if args.paraview:
+        from fem.mesh import write_series
+
+        cells = params["mesh"].get("cells")
+        cells = D.cells(args.data) if cells is None else cells
+        if cells is None:
+            raise UsageError(f"--paraview: neither the model nor {args.data} keeps the mesh's cells")
+        kind = "hexahedron" if cells.shape[1] == 8 else "tetra"
+        t = data.dt * np.arange(z.shape[1])
+        for c, row in enumerate(rows):
+            true = data.z[row]
+            extra = {"u_fem": true[..., :3] - data.q0,
+                     "u_error": np.linalg.norm(z[c, ..., :3] - true[..., :3], axis=-1)}
+            path = write_series(out.with_name(f"{out.stem}_case{int(data.sim_id[row]):03d}.pvd"), data.q0, cells,
+                                kind, t, z[c, ..., :3], z[c, ..., 3:6], z[c, ..., 6:12], extra)
+            print(f"wrote {path}")
     return 0
