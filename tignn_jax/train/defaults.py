@@ -48,8 +48,8 @@ def default_recipe(name: str, data_path):
     kappa = 2.0 / float(mat["d1"])
     hexes = meta.get("cell_type", "hexahedron") == "hexahedron"
     model = module.LinearConfig(hidden=16, mu=_round(1e-3 * mu), kappa=_round(1e-3 * kappa),
-                                density=_round(mat["density"]), alpha=_round(meta.get("damping", 0.0)), tied_pressure=True, element_channels=True,
-                                cell_pressure=hexes, prior=True)
+                                density=_round(mat["density"]), alpha=_round(meta.get("damping", 0.0)),
+                                tied_pressure=True, element_channels=True, cell_pressure=hexes, prior=True)
     return module.TrainConfig(model=model, steps=100, lr=1e-2, val_every=10, float64=True), module
 
 
