@@ -11,7 +11,7 @@ import importlib
 import sys
 
 COMMANDS = ("tignn_jax.cli.generate", "tignn_jax.cli.train", "tignn_jax.cli.evaluate", "tignn_jax.cli.rollout",
-            "tignn_jax.cli.demo", "tignn_jax.cli.fem_example", "tignn_jax.cli.view")
+            "tignn_jax.cli.demo", "tignn_jax.cli.fem_example", "tignn_jax.cli.view", "tignn_jax.cli.track")
 
 
 class UsageError(Exception):

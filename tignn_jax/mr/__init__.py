@@ -8,7 +8,8 @@ Modules, one concept each:
 * `tignn_jax.mr.render`: colour map, Phong shading, a software rasteriser, occlusion by a real depth image.
 * `tignn_jax.mr.legend`: the colour legend drawn onto finished frames.
 * `tignn_jax.mr.background`: the real RGB and depth image, a synthetic table, the hand proxy.
-* `tignn_jax.mr.track`: fingertip tracks (the JSON-lines format, a synthetic press).
+* `tignn_jax.mr.track`: fingertip tracks (the JSON-lines format, a synthetic press); `tignn_jax.mr.hands`:
+  MediaPipe hand landmarks into tracks (depth from the hand's size).
 * `tignn_jax.mr.scene`: `Scene`, `Body` and the real-time loop `run`.
 * `tignn_jax.mr.runtime`: process set-up of the loop (CPU pinning, CPU devices, XLA:CPU options).
 
@@ -28,6 +29,7 @@ from tignn_jax.mr.render import (Raster, colour_map, draw_mesh, fragment_capacit
 from tignn_jax.mr.runtime import REAL_TIME_XLA_FLAG, cpu_devices, pin_cores, real_time_cores, real_time_xla_flags
 from tignn_jax.mr.scene import Body, Scene, StepFn, Timings, build, make_render_fn, run, validate
 from tignn_jax.mr.surface import HEX8_FACES, TET4_FACES, surface_nodes, surface_triangles, vertex_normals
+from tignn_jax.mr.hands import hand_to_tips
 from tignn_jax.mr.track import load_track, press_track, save_track
 
 __all__ = [
@@ -44,7 +46,7 @@ __all__ = [
     # background
     "Background", "hand_proxy", "table_background",
     # track
-    "load_track", "press_track", "save_track",
+    "load_track", "press_track", "save_track", "hand_to_tips",
     # scene
     "Body", "Scene", "StepFn", "Timings", "build", "make_render_fn", "run", "validate",
     # runtime
