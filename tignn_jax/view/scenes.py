@@ -5,11 +5,9 @@ folder written by ``tignn train`` (``DIR/model/model.npz`` or ``DIR/model.npz``)
 ``fem-newton`` (the FEM's own backward-Euler step, `tignn_jax.newton.fem_stepper`, on the scene's mesh). The
 dynamics come from `tignn_jax.cli.demo._dynamics` and `tignn_jax.cli.demo._fem_newton`, the demo's own.
 
-A model without a scene is shown on its own mesh. A model stores its nodes and graph but not its cells, so its
-surface is found as follows: the beam's or the bunny's cells when the model's nodes are those meshes (up to a
-scale); else the Delaunay tetrahedra of the nodes whose six edges are all edges of the model's graph (exact for a
-tet4 mesh whose graph is its edges); else, e.g. for hexahedra, the Delaunay tetrahedra whose circumradius is at
-most the graph's longest edge (an alpha shape). Their boundary faces are the surface.
+A model without a scene is shown on its own mesh, whose surface is drawn from the cells the model keeps
+(``params["mesh"]["cells"]``), or, for a model written before models kept their cells, from the beam's or the
+bunny's cells when its nodes are those meshes (up to a scale).
 """
 from __future__ import annotations
 
@@ -67,8 +65,11 @@ def load_scene(scene: str | None = None, model: str | None = None) -> Scene:
     Raises:
       ValueError: an unknown scene or model, or a model that is not on the scene's mesh.
     """
+    import jax
+
     from tignn_jax import api
     from tignn_jax.cli import demo
+    from tignn_jax.mr.surface import surface_triangles
 
     if scene is not None and scene not in SCENES:
         raise ValueError(f"scene must be one of {SCENES}, got {scene!r}")
@@ -76,14 +77,18 @@ def load_scene(scene: str | None = None, model: str | None = None) -> Scene:
         raise ValueError("give a scene or a model")
     if scene is None and model == demo.FEM_NEWTON:
         raise ValueError(f"{demo.FEM_NEWTON!r} runs on a scene's mesh: give a scene")
+    given = model
     model = resolve_model(model or demo.DEFAULT_MODELS[scene])
     if scene is None:
         params, _ = api.load_pretrained(model)
         q0 = np.asarray(params["mesh"]["q0"], np.float32)
-        cells = _known_cells(params)
-        triangles = _surface(params, cells)
-        step, dynamics, q0, _ = demo._dynamics(model, q0, "beam-linear")
-        name, poses = f"model {Path(model).stem if Path(model).is_file() else model}", [None]
+        cells = params["mesh"].get("cells")
+        cells = _known_cells(params) if cells is None else np.asarray(cells)
+        if cells is None:
+            raise ValueError(f"model {model!r} keeps no cells to draw its surface from: retrain it with tignn train")
+        triangles = surface_triangles(cells, q0)
+        step, dynamics, q0, _ = demo._dynamics(model, q0, "")
+        name, poses = f"{given} (its own mesh)", [None]
     else:
         mesh_q0, cells = _scene_mesh(scene)
         if model == demo.FEM_NEWTON:
@@ -92,12 +97,9 @@ def load_scene(scene: str | None = None, model: str | None = None) -> Scene:
         else:
             step, dynamics, q0, _ = demo._dynamics(model, mesh_q0, demo.LINEAR_OF_SCENE[scene])
             params, _ = api.load_pretrained(model)
-        from tignn_jax.mr.surface import surface_triangles
         triangles = surface_triangles(cells, q0)
         name = scene
         poses = [None, TWO_BEAMS_B] if scene == "two-beams" else [None]
-    import jax
-
     free = np.asarray(params["mesh"]["node_type"]) == 0
     bodies = tuple(Body(q0=q0, triangles=triangles, free=free,
                         rotation=np.eye(3) if pose is None else pose[0],
@@ -138,39 +140,6 @@ def _known_cells(params):
         if _model_units(params, q0)[1] > 0:
             return cells
     return None
-
-
-def _surface(params, cells):
-    """Outward surface triangles [T, 3] of the model's mesh (module docstring)."""
-    from scipy.spatial import Delaunay
-
-    from tignn_jax.mr.surface import surface_triangles
-
-    q0 = np.asarray(params["mesh"]["q0"], np.float64)
-    if cells is None:
-        senders, receivers = (np.asarray(params["mesh"][k]) for k in ("senders", "receivers"))
-        tets = Delaunay(q0).simplices
-        edges = set(zip(senders.tolist(), receivers.tolist()))
-        pairs = [(0, 1), (0, 2), (0, 3), (1, 2), (1, 3), (2, 3)]
-        exact = np.array([all((t[i], t[j]) in edges or (t[j], t[i]) in edges for i, j in pairs)
-                          for t in tets.tolist()], bool)
-        if exact.sum() >= 0.5 * len(q0):
-            cells = tets[exact]
-        else:
-            longest = float(np.linalg.norm(q0[senders] - q0[receivers], axis=1).max())
-            cells = tets[_circumradius(q0[tets]) <= longest * (1 + 1e-6)]
-    return surface_triangles(cells, q0)
-
-
-def _circumradius(x):
-    """Circumradii [K] of tetrahedra x [K, 4, 3] (inf for flat ones)."""
-    a = x[:, 1:] - x[:, :1]
-    rhs = 0.5 * np.sum(a * a, axis=2)
-    det = np.linalg.det(a)
-    ok = np.abs(det) > 1e-12 * np.abs(a).max() ** 3
-    centre = np.zeros((len(x), 3))
-    centre[ok] = np.linalg.solve(a[ok], rhs[ok][..., None])[..., 0]
-    return np.where(ok, np.linalg.norm(centre, axis=1), np.inf)
 
 
 def _ranges(envelope) -> dict:

@@ -28,7 +28,6 @@ from tignn_jax.view.session import QUANTITIES, Session
 BANDS = 12
 _EMPTY = np.array([[0, 1, 2]], np.uint32)
 VIEW_DIRECTION = np.array([0.25, -1.0, 0.55])  # from the target to the camera (world, z up)
-PANEL_SHIFT = 0.15   # the view's centre moves this fraction of the scene's size right, clear of the GUI panel
 FOV = np.radians(50.0)                          # the camera's vertical field of view
 
 
@@ -76,6 +75,7 @@ class ViewServer:
 
         self.server = viser.ViserServer(host=host, port=port, verbose=verbose)
         self.server.scene.set_up_direction("+z")
+        self.server.gui.configure_theme(control_layout="fixed", show_share_button=False)   # the panel beside the view
         self.server.on_client_connect(self._connect)
         self.server.on_client_disconnect(self._disconnect)
 
@@ -336,15 +336,12 @@ class Page:
 
 def frame_camera(camera, centre, size: float) -> None:
     """Aim a viser camera at a scene of diameter ``size`` (world units) around ``centre`` [3], from
-    ``VIEW_DIRECTION`` with z up, at the distance where the scene fills about 2/3 of the view's height, and
-    shifted ``PANEL_SHIFT`` to the right so that the body is not under the GUI panel."""
+    ``VIEW_DIRECTION`` with z up, at the distance where the scene spans about 60 % of the view's height."""
     camera.fov = float(FOV)
     camera.near, camera.far = 1e-3 * size, 50.0 * size
     direction = VIEW_DIRECTION / np.linalg.norm(VIEW_DIRECTION)
-    right = np.cross(-direction, [0.0, 0.0, 1.0])
-    target = centre + PANEL_SHIFT * size * right / np.linalg.norm(right)
-    position = tuple(float(x) for x in target + direction * 0.75 * size / np.tan(FOV / 2))
-    look_at = tuple(float(x) for x in target)
+    position = tuple(float(x) for x in centre + direction * 0.85 * size / np.tan(FOV / 2))
+    look_at = tuple(float(x) for x in centre)
     if hasattr(camera, "up_direction"):       # a tab's camera
         camera.up_direction = (0.0, 0.0, 1.0)
     else:                                     # the server's initial camera
