@@ -16,8 +16,13 @@ float32 rounding of the energies). Then the
 step time of each model on a frame of the 1× ramp (p50 of ``--repeats`` interleaved calls after compilation, one
 process) and its ratio to the learned linear beam's, measured in the same run.
 
+With ``--cells tetra`` the same beam is split into six tets per hex (`fem.hex_to_tet`, the FEM's nodal tet4) and
+the models are the FEM's rest linearisation and the corotational model of that tet mesh (nodal volume change);
+the step-time ratios are then to the rest linearisation's.
+
     python benchmarks/large_deformation.py              # 60 frames a case
     python benchmarks/large_deformation.py --quick --out /tmp/ld   # smoke run: 24 frames, 1× and 3× only
+    python benchmarks/large_deformation.py --cells tetra           # the tet4 beam: large_deformation_tet.{json,md}
 """
 from __future__ import annotations
 
@@ -53,26 +58,50 @@ def length(q, line):
     return np.linalg.norm(np.diff(p, axis=-2), axis=-1).sum(axis=-1)
 
 
-def models():
-    import tignn_jax
-    from fem import scenes
-    from tignn_jax.simulators import corotational as C
+BASE = {"hexahedron": "beam (learned linear)", "tetra": "tet beam: FEM rest linearisation"}
+
+
+def beam(cells: str):
+    """The beam scene, its hex8 mesh or that mesh split into tet4."""
+    from fem import mesh, meshes, scenes
 
     scene = scenes.beam_scene()
-    beam, _ = tignn_jax.load_pretrained("beam")
+    if cells == "tetra":
+        tets = mesh.hex_to_tet(scene.cells)
+        scene = scene._replace(cells=tets, cell_type="tetra", edges=meshes.mesh_edges(tets))
+    return scene
+
+
+def models(cells: str = "hexahedron"):
+    import tignn_jax
+    from fem import implicit, scenes
+    from tignn_jax.simulators import LinearGeneric
+    from tignn_jax.simulators import corotational as C
+    from tignn_jax.simulators import linear as LG
+
+    scene = beam(cells)
     linear, _ = tignn_jax.load_pretrained("beam-linear")
-    stored = C.from_fem(scenes.setup_scene(scene._replace(n_frames=1)), scene.material)
-    corot = tignn_jax.make_params(C.CorotationalGeneric(), stored, linear["mesh"], linear["envelope"],
-                                  {"kind": "the FEM's element operators, corotated (not learned)"})
-    return {"beam (learned linear)": beam, "beam-linear (FEM rest linearisation)": linear,
+    problem = scenes.setup_scene(scene._replace(n_frames=1))
+    stored = C.from_fem(problem, scene.material)
+    info = {"kind": "the FEM's element operators, corotated (not learned)"}
+    if cells == "tetra":
+        mesh = {"q0": scene.points, "senders": scene.edges[0], "receivers": scene.edges[1],
+                "node_type": scene.node_type}
+        rest = LG.from_rest_linearization(implicit.rest_linearization(problem, scene.material), scene.frame_dt)
+        return {BASE["tetra"]: tignn_jax.make_params(LinearGeneric(), rest, mesh, linear["envelope"], {}),
+                "tet beam: corotational": tignn_jax.make_params(C.CorotationalGeneric(), stored, mesh,
+                                                                linear["envelope"], info)}
+    beam_model, _ = tignn_jax.load_pretrained("beam")
+    corot = tignn_jax.make_params(C.CorotationalGeneric(), stored, linear["mesh"], linear["envelope"], info)
+    return {BASE["hexahedron"]: beam_model, "beam-linear (FEM rest linearisation)": linear,
             "corotational (FEM element operators)": corot}
 
 
-def reference(forces, explicit: bool = False):
+def reference(forces, explicit: bool = False, cells: str = "hexahedron"):
     from fem import implicit, scenes
     from fem import solver as sv
 
-    scene = scenes.beam_scene()
+    scene = beam(cells)
     problem = scenes.setup_scene(scene._replace(n_frames=len(forces)))
     loads = sv.Loads(nodal=jnp.asarray(forces, jnp.float32))
     if explicit:
@@ -121,7 +150,8 @@ def metrics(zs, q_ref, s_ref, q0, cells, line) -> dict:
 
 def report(result) -> str:
     m = result["machine"]
-    lines = ["# Large deformations: the beam's models against the converged FEM", "",
+    tets = result.get("cells") == "tetra"
+    lines = [f"# Large deformations: the {'tet4 ' if tets else ''}beam's models against the converged FEM", "",
              f"Test case {CASE}'s tip load scaled, {result['frames']} frames (20-frame ramp, then held or released); "
              "u and σ errors relative to each case's peak; volume and length changes as fractions"
              + (" — QUICK smoke run" if result["quick"] else "") + ".", "",
@@ -137,7 +167,8 @@ def report(result) -> str:
     lines += ["", "Step time (`tignn_jax.stepper`, one body, frame 11 of the 1× ramp, p50 of interleaved calls after "
               "compilation, not pinned):",
               "",
-              "| model | p50 ms | ratio to the learned linear beam |", "|---|---|---|"]
+              f"| model | p50 ms | ratio to the {'rest linearisation' if tets else 'learned linear beam'} |",
+              "|---|---|---|"]
     for name, t in result["step_ms"].items():
         lines.append(f"| {name} | {t['p50']:.2f} | {t['ratio']:.2f} |")
     lines += ["", f"Machine: {m['cpu']}, {m['cores']} cores, jax {m['jax']} ({m['backend']}), load average "
@@ -151,8 +182,10 @@ def main(argv=None) -> int:
     ap.add_argument("--frames", type=int, default=60, help="frames per case, ≥ 21 (default %(default)s; --quick: 24)")
     ap.add_argument("--repeats", type=int, default=100, help="timed calls per model (default %(default)s)")
     ap.add_argument("--quick", action="store_true", help="smoke run: 24 frames, loads 1x and 3x hold, 10 repeats")
+    ap.add_argument("--cells", choices=("hexahedron", "tetra"), default="hexahedron",
+                    help="the beam's hex8 mesh or its tet4 split (default %(default)s)")
     ap.add_argument("--out", default=str(RESULTS_DIR),
-                    help="folder of large_deformation.{json,md} (default %(default)s)")
+                    help="folder of large_deformation[_tet].{json,md} (default %(default)s)")
     args = ap.parse_args(argv)
     frames = 24 if args.quick else args.frames
     repeats = 10 if args.quick else args.repeats
@@ -161,16 +194,16 @@ def main(argv=None) -> int:
     from fem import scenes
 
     machine = describe()
-    scene = scenes.beam_scene()
+    scene = beam(args.cells)
     q0, cells, line = np.asarray(scene.points, np.float64), np.asarray(scene.cells), centre_line(scene.points)
-    params = models()
+    params = models(args.cells)
     rows = []
     for label, scale, mode in LOADS:
         if args.quick and label not in QUICK_LOADS:
             continue
         forces = scale * scenes.beam_reference_forces(scene, [CASE], after=frames - 20, mode=mode)[0]
         t = time.perf_counter()
-        q_ref, s_ref = reference(forces, explicit=mode == "release")
+        q_ref, s_ref = reference(forces, explicit=mode == "release", cells=args.cells)
         print(f"{label}: FEM reference {time.perf_counter() - t:.0f} s", flush=True)
         for name, p in params.items():
             zs, created = run_model(p, forces)
@@ -189,12 +222,14 @@ def main(argv=None) -> int:
         states[name] = z
     f = jnp.asarray(ramp[10])
     times = interleaved_ms({name: (lambda s=s, z=states[name]: s(z, f)) for name, s in steppers.items()}, repeats)
-    base = float(np.median(times["beam (learned linear)"]))
+    base = float(np.median(times[BASE[args.cells]]))
     step_ms = {name: {"p50": float(np.median(t)), "ratio": float(np.median(t)) / base} for name, t in times.items()}
-    result = {"machine": machine, "quick": args.quick, "frames": frames, "case": CASE, "rows": rows,
+    result = {"machine": machine, "quick": args.quick, "frames": frames, "case": CASE, "cells": args.cells,
+              "rows": rows,
               "step_ms": step_ms,
               "reference": "fem.implicit.simulate_implicit, max_newton=25 (release: the explicit fem.simulate)"}
-    write_results("large_deformation", result, report(result), Path(args.out))
+    name = "large_deformation" + ("_tet" if args.cells == "tetra" else "")
+    write_results(name, result, report(result), Path(args.out))
     return 0
 
 

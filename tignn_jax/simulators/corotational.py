@@ -1,11 +1,21 @@
 """The corotational GENERIC model: a hyperelastic energy that is exact under rotation, stepped by backward Euler.
 
-A body of hex8 elements e with rest nodal coordinates X_e (centred on the element, [8, 3]), volume V_e, uniform
-shape-function gradients b_e [8, 3] and the stiffness K_e of its deviatoric response at rest. At the state
-z = (q, v, σ) with u = q − X::
+A body of hex8 or tet4 elements e with rest nodal coordinates X_e (centred on the element, [n_e, 3]), volume V_e,
+uniform shape-function gradients b_e [n_e, 3] and the stiffness K_e of its deviatoric response at rest. At the
+state z = (q, v, σ) with u = q − X::
 
     F_e = I + Σ_a u_a ⊗ b_a,   F_e = R_e U_e (polar),   J_e = det F_e,   ũ_e = R_eᵀ x̄_e − X_e
-    E(z) = ½ vᵀ M v + Σ_e [½ ũ_eᵀ K_e ũ_e + ½ κ V_e (J_e − 1)²],   dissipation α vᵀ M v ≥ 0,
+    E(z) = ½ vᵀ M v + Σ_e ½ ũ_eᵀ K_e ũ_e + E_vol,   dissipation α vᵀ M v ≥ 0,
+    E_vol = Σ_e ½ κ V_e (J_e − 1)²  (hex8),     E_vol = Σ_i ½ κ V_i (J̄_i − 1)²  (tet4),
+
+where for tets the volume change is averaged to the nodes, J̄_i − 1 = Σ_{e∋i} (V_e / 4V_i)(J_e − 1) with
+V_i = Σ_{e∋i} V_e / 4: a linear tet holds one volume constraint per element, more than a nearly incompressible
+mesh has degrees of freedom to meet (it locks), and one per node is what the FEM's nodal tet4 keeps
+(`fem.elements`). As that element does, a tet mesh's deviatoric energy is shared: K_e carries the weight β of the
+element-wise part, and each node adds the rest of it on its averaged deformation gradient F̄_i = Σ_{e∋i}
+(V_e / 4V_i) F_e, turned back by its polar factor R̄_i,
+
+    E_dev,nodes = Σ_i μ̄ V_i |dev sym(R̄_iᵀ F̄_i − I)|²,   μ̄ = (1 − β) μ   (zero for hexes),
 
 with x̄_e the element's current nodal coordinates centred on the element, M = diag(m_i) lumped masses, κ the bulk
 modulus and α the mass damping. The deviatoric energy is the linear one in the element's rotated frame (the
@@ -15,7 +25,8 @@ incompressible body keeps its volume. At a fixed temperature GENERIC's L∇E + M
 M v̇ = f − ∂E/∂q − α M v (L the canonical coupling of q and v, M ≥ 0 the mass damping).
 
 One frame Δt = h is one linearised backward-Euler step for v' (the element rotations held at the frame's start,
-the volumetric term by its Gauss–Newton tangent V κ g gᵀ with g = cof(F) b)::
+the volumetric term by its Gauss–Newton tangent, κ V g gᵀ with g = ∂J/∂x = cof(F) b per element, or per node
+κ V_i ḡ_i ḡ_iᵀ with ḡ_i the average of g_e like J̄_i)::
 
     [(1 + αh)/h² M + K_R + K_J] v' = M v / h² + (f − f_int(q)) / h,   q' = q + h v',
 
@@ -23,7 +34,8 @@ solved by ``cg_iterations`` conjugate-gradient iterations from v' = v, precondit
 turned with the body, R A₀⁻¹ Rᵀ (R each node's rotation, the polar factor of the mean of its elements' R_e;
 A₀ = (1 + αh)/h² M + K₀ the FEM's rest operator, inverted once when the model is prepared). The stress
 observable σ' = R_e (S_e ũ_e) R_eᵀ + κ (J_e − 1 + g_e · Δu_e) I, averaged to the nodes by volume (S_e the
-element's deviatoric stress at rest): the pressure is the step's own linearised one. Taken from J_e(q') it would carry
+element's deviatoric stress at rest; for tets that average is J̄'s): the pressure is the step's own linearised
+one. Taken from J_e(q') it would carry
 the O(Δθ²) volume change a linearised step makes when the body turns by Δθ, which times the bulk modulus of a
 nearly incompressible solid is of the size of the stress itself (see docs/research_log.md).
 
@@ -52,7 +64,7 @@ from fem.solver import _polar_rotation as polar
 from fem.solver import _sum_over as _sum
 from tignn_jax.simulators import linear as LG
 
-STORED = ("cells", "ke", "se", "b", "volume", "kappa", "mass", "alpha", "dt")
+STORED = ("cells", "ke", "se", "b", "volume", "kappa", "mass", "alpha", "dt", "mu_nodes")
 BACKTRACK = (1.0, 0.5, 0.25, 0.125, 0.0625, 0.03125, 0.0)   # the step lengths of the frame's line search
 SPLIT = 4   # steps a frame is split into where one step would have to be shortened (`frame`)
 POLAR_ITERATIONS = 5   # Higham's iteration R ← (R + R⁻ᵀ)/2: quadratic, exact at once for a rigid motion
@@ -73,9 +85,11 @@ class CorotationalConfig(NamedTuple):
 class CorotationalGeneric:
     """The corotational GENERIC model class (module docstring).
 
-    Stored arrays (``stored``): ``cells`` [K, 8] int32; ``ke`` [K, 24, 24] (deviatoric element stiffness at rest,
-    force per length, rows and columns 3a + i for node a, component i); ``se`` [K, 6, 24] (deviatoric element
-    stress per displacement at rest); ``b`` [K, 8, 3] (uniform shape-function gradients, 1/length); ``volume`` [K];
+    Stored arrays (``stored``), n_e = 8 (hex8) or 4 (tet4): ``cells`` [K, n_e] int32; ``ke`` [K, 3n_e, 3n_e]
+    (deviatoric element stiffness at rest, force per length, rows and columns 3a + i for node a, component i);
+    ``se`` [K, 6, 3n_e] (deviatoric element stress per displacement at rest); ``b`` [K, n_e, 3] (uniform
+    shape-function gradients, 1/length); ``volume`` [K]; ``mu_nodes`` [1] (μ̄, the nodes' share of the shear
+    modulus: 0 for hexes; a model file without it has none);
     ``kappa`` [1] (bulk modulus, stress); ``mass`` [N]; ``alpha`` [1] (1/time); ``dt`` [1] (the frame step).
     """
     config: CorotationalConfig = CorotationalConfig()
@@ -83,8 +97,9 @@ class CorotationalGeneric:
     stable_by_construction: ClassVar[bool] = True   # no step creates energy: guard for finiteness only
 
     def prepare(self, stored: dict, mesh: dict) -> dict:
-        """The arrays the step reads: the stored ones; the centred rest element coordinates ``x0e`` [K, 8, 3] and
-        the stress averaging weights ``wnode`` [K, 8], and all element arrays again in the step's element-last
+        """The arrays the step reads: the stored ones; the centred rest element coordinates ``x0e`` [K, n_e, 3]
+        and the averaging weights ``wnode`` [K, n_e] (V_e over the volume of the node's elements), and all element
+        arrays again in the step's element-last
         layout (`element_last`); the rest operator's inverse (``ainv``, or ``ainv_blocks`` when large, as
         `tignn_jax.simulators.linear`), ``q0`` and the free-node mask ``free`` [N, 1].
 
@@ -93,6 +108,7 @@ class CorotationalGeneric:
         """
         if not (isinstance(self.config.cg_iterations, (int, np.integer)) and self.config.cg_iterations >= 1):
             raise ValueError(f"cg_iterations must be a positive integer, got {self.config.cg_iterations!r}")
+        stored = {"mu_nodes": np.zeros(1, np.float32), **stored}
         missing = [k for k in STORED if k not in stored]
         if missing:
             raise ValueError(f"a corotational model needs the arrays {list(STORED)}, missing {missing}")
@@ -111,12 +127,13 @@ class CorotationalGeneric:
         total = np.bincount(out["cells"].reshape(-1), share, minlength=n)
         out["wnode"] = (share / total[out["cells"].reshape(-1)]).reshape(k, per).astype(np.float32)
         out.update(element_last(out, n))
+        out["q0"] = q0.astype(np.float32)
         ainv = np.linalg.inv(rest_operator(out, node_type)).astype(np.float32)
         blocks = LG.ainv_blocks(ainv, n) if 4 * ainv.size >= LG.AINV_BLOCK_BYTES else {}
         out["ainv_blocks" if blocks else "ainv"] = blocks or ainv
         out["q0"] = q0.astype(np.float32)
         out["free"] = (node_type == 0)[:, None].astype(np.float32)
-        for key in ("ke", "se", "b", "volume", "kappa", "mass", "alpha", "dt"):
+        for key in ("ke", "se", "b", "volume", "kappa", "mass", "alpha", "dt", "mu_nodes"):
             out[key] = out[key].astype(np.float32)
         return jax.tree_util.tree_map(jnp.asarray, out)
 
@@ -135,27 +152,25 @@ class CorotationalGeneric:
 
 
 def from_fem(problem, material, frame_dt: float | None = None) -> dict:
-    """Stored arrays (`CorotationalGeneric.stored`) of an elastic hex8 FEM scene: each element's deviatoric
+    """Stored arrays (`CorotationalGeneric.stored`) of an elastic hex8 or tet4 FEM scene: each element's deviatoric
     stiffness and stress at rest (the FEM's own, hourglass control included, by forward differentiation of its
     internal force and stress, all elements at once), shape-function gradients and volumes, the bulk modulus
     2/D1, the lumped masses and mass damping of ``problem``.
 
     Args:
-      problem: a `fem.solver.Problem` (hex8; its clamps, masses and damping are the model's).
+      problem: a `fem.solver.Problem` (hex8 or tet4; its clamps, masses and damping are the model's). A tet4
+        element's stiffness is the linear tet's (the FEM's nodal tet4 on a lone element).
       material: its `fem.material.Material` (elastic: no Prony terms).
       frame_dt: the frame step Δt (default: the problem's frame).
 
     Raises:
-      ValueError: the mesh is not hex8, or the material is viscoelastic.
+      ValueError: the material is viscoelastic.
     """
     from fem import elements as el
     from fem import implicit
     from fem import solver as sv
 
     cfg = problem.config
-    if cfg.cell_type != "hexahedron":
-        raise ValueError(f"the corotational model takes hex8 meshes, got {cfg.cell_type!r} (a tet4 mesh's "
-                         "nodal-averaged FEM has no element stiffness to turn)")
     if material.n_prony:
         raise ValueError("the corotational model is elastic: the material has Prony terms")
     points = np.asarray(problem.arrays.points, np.float64)
@@ -164,7 +179,7 @@ def from_fem(problem, material, frame_dt: float | None = None) -> dict:
     # every element on its own nodes: one forward derivative per element degree of freedom gives that column of
     # every element's stiffness at once
     alone = sv.setup(points[cells].reshape(-1, 3), np.arange(k * per).reshape(k, per), material=material,
-                     frame_dt=cfg.frame_dt, n_frames=1, cell_type="hexahedron")
+                     frame_dt=cfg.frame_dt, n_frames=1, cell_type=cfg.cell_type)
     force, _ = implicit.force_and_stress(alone, material)
     stress = lambda u: sv._element_stress(alone.arrays, material, u, (), alone.config)
     u0 = jnp.zeros((k * per, 3), alone.arrays.points.dtype)
@@ -179,23 +194,28 @@ def from_fem(problem, material, frame_dt: float | None = None) -> dict:
             sc.append(np.asarray(sk, np.float64))
     ke, se = np.stack(kc, -1), np.stack(sc, -1)
     ke = 0.5 * (ke + ke.transpose(0, 2, 1))
-    geo = el.hex_geometry(points, cells)
+    geo = el.hex_geometry(points, cells) if per == 8 else el.tet_geometry(points, cells)
     kappa = 2.0 / float(material.d1)
     bf = geo.b.reshape(k, -1)
     ke -= (kappa * geo.volume)[:, None, None] * bf[:, :, None] * bf[:, None, :]   # the volumetric part is in J
     se[:, :3] -= se[:, :3].mean(axis=1, keepdims=True)                          # the pressure too
+    # a nodal tet4 shares its isochoric energy: weight β per element, 1 − β on the nodes' averaged F
+    beta = cfg.tet_blend if (per == 4 and cfg.tet_formulation == "nodal") else 1.0
+    mu_nodes = (1.0 - beta) * 2.0 * (float(material.c10) + float(material.c01))
     mass = np.asarray(sv.lumped_mass(problem, material), np.float64)
     h = float(cfg.frame_dt if frame_dt is None else frame_dt)
-    return {"cells": cells.astype(np.int32), "ke": ke.astype(np.float32), "se": se.astype(np.float32),
-            "b": geo.b.astype(np.float32), "volume": geo.volume.astype(np.float32),
-            "kappa": np.array([kappa], np.float32), "mass": mass.astype(np.float32),
-            "alpha": np.array([float(problem.arrays.damping_alpha)], np.float32), "dt": np.array([h], np.float32)}
+    return {"cells": cells.astype(np.int32), "ke": (beta * ke).astype(np.float32),
+            "se": (beta * se).astype(np.float32), "b": geo.b.astype(np.float32),
+            "volume": geo.volume.astype(np.float32), "kappa": np.array([kappa], np.float32),
+            "mass": mass.astype(np.float32), "alpha": np.array([float(problem.arrays.damping_alpha)], np.float32),
+            "dt": np.array([h], np.float32), "mu_nodes": np.array([mu_nodes], np.float32)}
 
 
 def element_last(stored: dict, n: int) -> dict:
-    """The step's layouts of the element arrays, components first and elements last: ``cells_t`` [8, K],
-    ``incidence`` [N, w] (`fem.elements.incidence_table`), ``b_t`` and ``x0e_t`` [3, 8, K], ``ke_t`` [24, 24, K]
-    and ``se_t`` [6, 24, K] with rows and columns 8 i + a (component i of node a), ``wnode_t`` [8, K]."""
+    """The step's layouts of the element arrays, components first and elements last: ``cells_t`` [n_e, K],
+    ``incidence`` [N, w] (`fem.elements.incidence_table`), ``b_t`` and ``x0e_t`` [3, n_e, K], ``ke_t``
+    [3n_e, 3n_e, K] and ``se_t`` [6, 3n_e, K] with rows and columns n_e i + a (component i of node a), ``wnode_t``
+    [n_e, K]."""
     from fem.elements import incidence_table
 
     cells = np.asarray(stored["cells"]).astype(np.int32)
@@ -211,49 +231,77 @@ def element_last(stored: dict, n: int) -> dict:
 
 
 def rest_operator(stored: dict, node_type) -> np.ndarray:
-    """A₀ = (1 + αΔt)/Δt² M + K₀ [3N, 3N] float64, K₀ = Σ_e K_e + κ V_e b_e b_eᵀ (the model's stiffness at
-    rest), identity on the clamped nodes' rows and columns."""
+    """A₀ = (1 + αΔt)/Δt² M + K₀ [3N, 3N] float64, K₀ = Σ_e K_e + the volumetric stiffness at rest (κ V_e b_e b_eᵀ
+    per hex, κ V_i ḡ_i ḡ_iᵀ per node of a tet mesh), identity on the clamped nodes' rows and columns. ``stored``
+    needs ``wnode`` for tets (`CorotationalGeneric.prepare`)."""
     cells = np.asarray(stored["cells"]).astype(np.int64)
     n = len(np.asarray(node_type))
     k, per = cells.shape
     b = np.asarray(stored["b"], np.float64).reshape(k, -1)
     kappa = float(np.asarray(stored["kappa"]).reshape(-1)[0])
-    ke = np.asarray(stored["ke"], np.float64) + (kappa * np.asarray(stored["volume"], np.float64))[:, None, None] \
-        * b[:, :, None] * b[:, None, :]
+    volume = np.asarray(stored["volume"], np.float64)
     dof = (3 * cells[:, :, None] + np.arange(3)).reshape(k, -1)
+    ke = np.asarray(stored["ke"], np.float64)
+    if per == 8:
+        ke = ke + (kappa * volume)[:, None, None] * b[:, :, None] * b[:, None, :]
     K = np.zeros((3 * n, 3 * n))
     np.add.at(K, (dof[:, :, None], dof[:, None, :]), ke)
+    if per == 4:      # the nodes' volumetric and deviatoric stiffness at rest, column by column (float64)
+        K += _nodal_rest_stiffness(stored, n)
     return LG.with_mass_and_clamps(K, stored, node_type)
+
+
+def _nodal_rest_stiffness(stored: dict, n: int, chunk: int = 192) -> np.ndarray:
+    """[3N, 3N] float64: the tangent at rest of the tet nodes' energies, Σ_i κ V_i ḡ_i ḡ_iᵀ + the nodal
+    deviatoric term, by forward derivatives of `internal_force` (the element part left out)."""
+    keys = ("cells_t", "incidence", "b_t", "x0e_t", "wnode_t", "volume", "kappa", "mu_nodes", "q0")
+    with jax.enable_x64(True):
+        arrays = {k: jnp.asarray(np.asarray(stored[k], np.float64) if np.asarray(stored[k]).dtype.kind == "f"
+                                 else np.asarray(stored[k])) for k in keys}
+        arrays["ke_t"] = jnp.zeros((12, 12, arrays["cells_t"].shape[1]), jnp.float64)
+        u0 = jnp.zeros((n, 3), jnp.float64)
+        fn = jax.jit(jax.vmap(lambda d: jax.jvp(lambda u: internal_force(arrays, kinematics(arrays, u), n),
+                                                (u0,), (d,))[1]))
+        cols = []
+        for start in range(0, 3 * n, chunk):
+            idx = np.arange(start, min(start + chunk, 3 * n))
+            d = np.zeros((len(idx), 3 * n))
+            d[np.arange(len(idx)), idx] = 1.0
+            cols.append(np.asarray(fn(jnp.asarray(d.reshape(-1, n, 3))), np.float64).reshape(len(idx), 3 * n))
+    K = np.concatenate(cols).T
+    return 0.5 * (K + K.T)
 
 
 class _Kinematics(NamedTuple):
     """Per element, components first and elements last (XLA on CPU vectorises the last axis)."""
     R: jax.Array      # [3, 3, K]
     jm1: jax.Array    # [K]: J − 1 from ∇u's invariants (1 + tiny − 1 in float32 would lose it)
-    g: jax.Array      # [3, 8, K]: ∂J/∂x_a = cof(F) b_a
-    local: jax.Array  # [24, K]: ũ = Rᵀ x̄ − X, row 8 i + a for component i of node a
+    g: jax.Array      # [3, n_e, K]: ∂J/∂x_a = cof(F) b_a
+    local: jax.Array  # [3 n_e, K]: ũ = Rᵀ x̄ − X, row n_e i + a for component i of node a
+    Rn: jax.Array     # [3, 3, N] (tets; [3, 3, 0] for hexes): the polar factor R̄_i of the nodes' averaged F̄_i
+    Hn: jax.Array     # [3, 3, N] (tets): R̄_iᵀ F̄_i − I, the nodes' corotated displacement gradient
 
 
 def _gather(arrays, u):
-    """[3, 8, K] element nodal values of u [N, 3]."""
+    """[3, n_e, K] element nodal values of u [N, 3]."""
     return u.T[:, arrays["cells_t"]]
 
 
 def _assemble(arrays, fe, n: int):
-    """Nodal sums [N, C] of element nodal values fe [C, 8, K] (gathered through the incidence table)."""
+    """Nodal sums [N, C] of element nodal values fe [C, n_e, K] (gathered through the incidence table)."""
     flat = fe.reshape(fe.shape[0], -1).T
     return jnp.concatenate([flat, jnp.zeros((1, flat.shape[1]), flat.dtype)])[arrays["incidence"]].sum(axis=1)
 
 
 def _rotate(R, x, transpose: bool = False):
-    """R x (or Rᵀ x) for R [3, 3, K] and x [3, 8, K]."""
+    """R x (or Rᵀ x) for R [3, 3, K] and x [3, n_e, K]."""
     if transpose:
         return jnp.stack([_sum(lambda j: R[j, i][None] * x[j], 3) for i in range(3)])
     return jnp.stack([_sum(lambda j: R[i, j][None] * x[j], 3) for i in range(3)])
 
 
 def _apply_ke(arrays, x):
-    """K_e x for x [24, K] (the elements' deviatoric stiffness, element-last)."""
+    """K_e x for x [3n_e, K] (the elements' deviatoric stiffness, element-last)."""
     ke = arrays["ke_t"].astype(x.dtype)
     return _sum(lambda c: ke[:, c] * x[c][None], ke.shape[1])
 
@@ -261,8 +309,8 @@ def _apply_ke(arrays, x):
 def kinematics(arrays: dict, u) -> _Kinematics:
     """Each element's rotation, volume change, ∂J/∂x and corotated displacement at the displacements u [N, 3]."""
     ue = _gather(arrays, u)
-    b = arrays["b_t"].astype(u.dtype)                                  # [3, 8, K]
-    H = _sum(lambda a: ue[:, None, a] * b[None, :, a], 8)              # [3, 3, K]
+    b = arrays["b_t"].astype(u.dtype)                                  # [3, n_e, K]
+    H = _sum(lambda a: ue[:, None, a] * b[None, :, a], b.shape[1])     # [3, 3, K]
     F = H + jnp.eye(3, dtype=u.dtype)[:, :, None]
     R = polar(F, POLAR_ITERATIONS)
     tr = trace3(H)
@@ -271,16 +319,85 @@ def kinematics(arrays: dict, u) -> _Kinematics:
     g = jnp.stack([_sum(lambda j: cof[i, j][None] * b[j], 3) for i in range(3)])
     x0e = arrays["x0e_t"].astype(u.dtype)
     xe = x0e + ue - ue.mean(axis=1, keepdims=True)
-    local = (_rotate(R, xe, transpose=True) - x0e).reshape(24, -1)
-    return _Kinematics(R, jm1, g, local)
+    local = (_rotate(R, xe, transpose=True) - x0e).reshape(3 * b.shape[1], -1)
+    if not _nodal(arrays):
+        empty = jnp.zeros((3, 3, 0), u.dtype)
+        return _Kinematics(R, jm1, g, local, empty, empty)
+    Fn = _node_average(arrays, F.reshape(9, -1), u.shape[0]).T.reshape(3, 3, -1)
+    Rn = polar(Fn, POLAR_ITERATIONS)
+    Hn = matmul3(transpose3(Rn), Fn) - jnp.eye(3, dtype=u.dtype)[:, :, None]
+    return _Kinematics(R, jm1, g, local, Rn, Hn)
+
+
+def _nodal(arrays) -> bool:
+    """Whether the volume change is averaged to the nodes (tet4) rather than kept per element (hex8)."""
+    return arrays["cells_t"].shape[0] == 4
+
+
+def _node_average(arrays, x, n: int):
+    """x̄_i = Σ_{e∋i} w_ei x_e of element values x [K] → [N], or x [C, K] → [N, C] (the volume-weighted
+    average at each node)."""
+    w = arrays["wnode_t"].astype(x.dtype)
+    if x.ndim == 1:
+        return _assemble(arrays, (x[None, :] * w)[None], n)[:, 0]
+    return _assemble(arrays, x[:, None, :] * w[None], n)
+
+
+def _node_volume(arrays, dtype, n: int):
+    """V_i = Σ_{e∋i} V_e / 4 [N] (tets)."""
+    return _assemble(arrays, (0.25 * arrays["volume"].astype(dtype))[None, None] * jnp.ones((1, 4, 1), dtype), n)[:, 0]
+
+
+def _dev_sym(H):
+    """dev sym H for H [3, 3, M]."""
+    S = 0.5 * (H + transpose3(H))
+    return S - (trace3(S) / 3.0)[None, None] * jnp.eye(3, dtype=H.dtype)[:, :, None]
+
+
+def _nodes_to_elements(arrays, P, dtype):
+    """P̃_e = Σ_{a} w_ea P_{cells[e, a]} [3, 3, K] of nodal tensors P [3, 3, N]."""
+    w = arrays["wnode_t"].astype(dtype)                           # [4, K]
+    Pe = P[:, :, arrays["cells_t"]]                               # [3, 3, 4, K]
+    return jnp.sum(Pe * w[None, None], axis=2)
+
+
+def _nodal_deviatoric_force(arrays, kin, dF_nodes=None):
+    """Element nodal forces [3, 4, K] of the nodes' deviatoric energy: with P_i = 2 μ̄ V_i R̄_i dev sym(H),
+    H = R̄_iᵀ F̄_i − I (or R̄_iᵀ dF̄_i for a tangent product with ``dF_nodes``), f_ea = P̃_e b_ea."""
+    dt = kin.local.dtype
+    n = kin.Rn.shape[-1]
+    mu = arrays["mu_nodes"].reshape(-1)[0].astype(dt)
+    H = kin.Hn if dF_nodes is None else matmul3(transpose3(kin.Rn), dF_nodes)
+    P = matmul3(kin.Rn, _dev_sym(H)) * (2.0 * mu * _node_volume(arrays, dt, n))[None, None]
+    Pe = _nodes_to_elements(arrays, P, dt)
+    b = arrays["b_t"].astype(dt)                                   # [3, 4, K]
+    return jnp.stack([_sum(lambda j: Pe[i, j][None] * b[j], 3) for i in range(3)])
+
+
+def _volumetric(arrays, x, n: int):
+    """The per-element factors s [K] with which g_e carries the volumetric force of the volume changes x [K]:
+    κ V_e x_e per hex, κ (V_e / 4) Σ_{i∈e} x̄_i for tets (∂/∂q of Σ_i ½ κ V_i x̄_i² = Σ_e s_e g_e)."""
+    kappa = arrays["kappa"].reshape(-1)[0].astype(x.dtype)
+    volume = arrays["volume"].astype(x.dtype)
+    if not _nodal(arrays):
+        return kappa * volume * x
+    xn = _node_average(arrays, x, n)
+    return kappa * 0.25 * volume * jnp.sum(xn[arrays["cells_t"]], axis=0)
 
 
 def potential(arrays: dict, kin: _Kinematics):
-    """Σ_e ½ ũᵀ K_e ũ + ½ κ V_e (J_e − 1)² (work units)."""
+    """Σ_e ½ ũᵀ K_e ũ + the volumetric energy (module docstring; work units)."""
     dt = kin.local.dtype
     kappa = arrays["kappa"].reshape(-1)[0].astype(dt)
     dev = 0.5 * jnp.sum(kin.local * _apply_ke(arrays, kin.local))
-    return dev + 0.5 * kappa * jnp.sum(arrays["volume"].astype(dt) * kin.jm1 ** 2)
+    if not _nodal(arrays):
+        return dev + 0.5 * kappa * jnp.sum(arrays["volume"].astype(dt) * kin.jm1 ** 2)
+    n = arrays["q0"].shape[0]
+    jn = _node_average(arrays, kin.jm1, n)
+    vnode = _node_volume(arrays, dt, n)
+    dn = _dev_sym(kin.Hn)
+    mu = arrays["mu_nodes"].reshape(-1)[0].astype(dt)
+    return dev + 0.5 * kappa * jnp.sum(vnode * jn ** 2) + mu * jnp.sum(vnode * jnp.sum(dn * dn, axis=(0, 1)))
 
 
 def energy(arrays: dict, z):
@@ -292,42 +409,57 @@ def energy(arrays: dict, z):
 
 
 def internal_force(arrays: dict, kin: _Kinematics, n: int):
-    """∂(potential)/∂q [N, 3] at fixed rotations: Σ_e R_e K_e ũ_e + κ V_e (J_e − 1) g_e."""
-    dt = kin.local.dtype
-    kappa = arrays["kappa"].reshape(-1)[0].astype(dt)
-    fl = _apply_ke(arrays, kin.local).reshape(3, 8, -1)
-    fe = _rotate(kin.R, fl) + kin.g * (kappa * arrays["volume"].astype(dt) * kin.jm1)[None, None]
+    """∂(potential)/∂q [N, 3] at fixed rotations: Σ_e R_e K_e ũ_e + s_e g_e (`_volumetric`: s_e = κ V_e (J_e − 1)
+    per hex)."""
+    fl = _apply_ke(arrays, kin.local).reshape(3, kin.g.shape[1], -1)
+    fe = _rotate(kin.R, fl) + kin.g * _volumetric(arrays, kin.jm1, n)[None, None]
+    if _nodal(arrays):
+        fe = fe + _nodal_deviatoric_force(arrays, kin)
     return _assemble(arrays, fe, n)
 
 
 def tangent(arrays: dict, kin: _Kinematics, w):
-    """(K_R + K_J) w [N, 3]: Σ_e R_e K_e R_eᵀ w_e + κ V_e g_e (g_e · w_e), the frame's stiffness."""
-    dt = w.dtype
-    kappa = arrays["kappa"].reshape(-1)[0].astype(dt)
+    """(K_R + K_J) w [N, 3]: Σ_e R_e K_e R_eᵀ w_e + the volumetric Gauss–Newton term (κ V_e g_e (g_e · w_e) per
+    hex, Σ_i κ V_i ḡ_i (ḡ_i · w) for tets), the frame's stiffness."""
+    n, per = w.shape[0], kin.g.shape[1]
     we = _gather(arrays, w)
-    fl = _apply_ke(arrays, _rotate(kin.R, we, transpose=True).reshape(24, -1)).reshape(3, 8, -1)
-    gw = jnp.sum(kin.g * we, axis=(0, 1)) * kappa * arrays["volume"].astype(dt)
-    return _assemble(arrays, _rotate(kin.R, fl) + kin.g * gw[None, None], w.shape[0])
+    fl = _apply_ke(arrays, _rotate(kin.R, we, transpose=True).reshape(3 * per, -1)).reshape(3, per, -1)
+    gw = _volumetric(arrays, jnp.sum(kin.g * we, axis=(0, 1)), n)
+    fe = _rotate(kin.R, fl) + kin.g * gw[None, None]
+    if _nodal(arrays):
+        b = arrays["b_t"].astype(w.dtype)
+        dF = _sum(lambda a: we[:, None, a] * b[None, :, a], per)                        # [3, 3, K]
+        dFn = _node_average(arrays, dF.reshape(9, -1), n).T.reshape(3, 3, -1)
+        fe = fe + _nodal_deviatoric_force(arrays, kin, dFn)
+    return _assemble(arrays, fe, n)
 
 
 def node_rotations(arrays: dict, R, n: int):
     """Each node's rotation [3, 3, N]: the polar factor of the mean of its elements' rotations."""
-    k = R.shape[-1]
-    total = _assemble(arrays, jnp.broadcast_to(R.reshape(9, 1, k), (9, 8, k)), n)       # [N, 9]
-    count = _assemble(arrays, jnp.ones((1, 8, k), R.dtype), n)                           # [N, 1]
+    k, per = R.shape[-1], arrays["cells_t"].shape[0]
+    total = _assemble(arrays, jnp.broadcast_to(R.reshape(9, 1, k), (9, per, k)), n)     # [N, 9]
+    count = _assemble(arrays, jnp.ones((1, per, k), R.dtype), n)                         # [N, 1]
     lonely = (count == 0) * jnp.eye(3, dtype=R.dtype).reshape(1, 9)   # a node of no element: no turn
     return polar((total / jnp.maximum(count, 1.0) + lonely).T.reshape(3, 3, n), POLAR_ITERATIONS)
 
 
 def stress(arrays: dict, kin: _Kinematics, volume_change, n: int):
     """Nodal Cauchy stress [N, 6]: R_e (S_e ũ_e) R_eᵀ + κ (J_e − 1) I with J_e − 1 given as ``volume_change``
-    [K], averaged over each node's elements by volume."""
+    [K], averaged over each node's elements by volume. For tets, as the FEM's nodal tet4 reports it: each element's
+    deviatoric part plus the mean over its nodes of the nodes' pressure κ (J̄_i − 1) and deviatoric share, then
+    averaged to the nodes."""
     dt = kin.local.dtype
     se = arrays["se_t"].astype(dt)
     s = _sum(lambda c: se[:, c] * kin.local[c][None], se.shape[1])                    # [6, K]
     S = jnp.stack([jnp.stack([s[0], s[3], s[4]]), jnp.stack([s[3], s[1], s[5]]), jnp.stack([s[4], s[5], s[2]])])
     S = matmul3(matmul3(kin.R, S), transpose3(kin.R))
     p = arrays["kappa"].reshape(-1)[0].astype(dt) * volume_change
+    if _nodal(arrays):    # as the FEM's nodal tet4: each element adds the mean of its nodes' pressure and share
+        mu = arrays["mu_nodes"].reshape(-1)[0].astype(dt)      # of the deviatoric stress, R̄ (2 μ̄ dev sym H̄) R̄ᵀ
+        Sn = matmul3(matmul3(kin.Rn, 2.0 * mu * _dev_sym(kin.Hn)), transpose3(kin.Rn))
+        Sn = Sn + _node_average(arrays, p, n)[None, None] * jnp.eye(3, dtype=dt)[:, :, None]
+        S = S + jnp.mean(Sn[:, :, arrays["cells_t"]], axis=2)
+        p = jnp.zeros_like(p)
     sig = jnp.stack([S[a, c] + (p if a == c else 0.0) for a, c in _VOIGT])           # [6, K]
     return _assemble(arrays, sig[:, None, :] * arrays["wnode_t"].astype(dt)[None], n)
 

@@ -37,7 +37,7 @@ def run(data_paths, config: TrainConfig, run_dir, progress: bool = True) -> dict
       The model (`tignn_jax.api.load_model` of the written file).
 
     Raises:
-      ValueError: an unknown split, a tet4 mesh or a viscoelastic material (`from_fem`).
+      ValueError: an unknown split or a viscoelastic material (`from_fem`).
     """
     from tignn_jax import data as D
     from tignn_jax.simulators.corotational import CorotationalGeneric, from_fem

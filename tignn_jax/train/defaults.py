@@ -7,7 +7,7 @@ density and mass damping. The named recipes take their scales from it:
   (``prior``), with learned nodal and cell channels whose moduli start at 10⁻³ of the material's shear modulus
   μ = 2 (C10 + C01) and bulk modulus κ = 2 / D1, the density and damping of the data; 100 Adam steps on whole
   rollouts, in float64.
-* ``corotational``: the corotational GENERIC model (`tignn_jax.train.corotational`, hex8 meshes; nothing fitted).
+* ``corotational``: the corotational GENERIC model (`tignn_jax.train.corotational`; nothing fitted).
 * ``tignn``: the paper's graph network (`tignn_jax.train.gnn`) with its default architecture and schedule.
 
 `override` changes any field of a recipe from ``KEY=VALUE`` text (``steps=20``, ``model.hidden=16``).
