@@ -6,7 +6,8 @@ from __future__ import annotations
 
 import argparse
 import math
-import time
+import signal
+import threading
 
 from tignn_jax.cli import UsageError
 from tignn_jax.view.scenes import SCENES
@@ -41,7 +42,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def run(args) -> int:
-    """Serve the page until interrupted (Ctrl-C).
+    """Serve the page until interrupted (Ctrl-C or SIGTERM).
 
     Raises:
       UsageError: a bad option value, or viser is not installed.
@@ -74,9 +75,11 @@ def run(args) -> int:
         raise UsageError(f"--host {args.host} --port {args.port}: cannot serve there ({err})") from None
     print(f"tignn view: {view.scene_of(scene, args.model).dynamics}; open http://{args.host}:{args.port} "
           "(Ctrl-C stops)", flush=True)
+    stop = threading.Event()
+    signal.signal(signal.SIGTERM, lambda *_: stop.set())   # kill: stop as Ctrl-C does
     try:
-        while True:
-            time.sleep(1.0)
+        while not stop.wait(0.5):
+            pass
     except KeyboardInterrupt:
         pass
     finally:

@@ -92,7 +92,9 @@ class ViewServer:
         key = (scene, model)
         with self._lock:
             if key not in self._scenes:
-                self._scenes[key] = load_scene(scene, model)
+                loaded = load_scene(scene, model)
+                Session(loaded).step()        # compile the step now, not in a tab's first frame
+                self._scenes[key] = loaded
             return self._scenes[key]
 
     def _connect(self, client) -> None:
@@ -110,7 +112,8 @@ class Page:
     Attributes:
       session: the tab's `Session` (replaced when the tab picks another scene or model).
       physics_rate: physics steps per second over the last second.
-      frame_rate: frames sent to the tab per second over the last second.
+      frame_rate: frames built and queued for the tab per second over the last second (viser sends the newest
+        and drops older unsent ones, so a slow tab receives fewer).
       frame_ms: the last frame's time to build and queue (positions, bands, messages).
     """
 
@@ -138,6 +141,9 @@ class Page:
         self._stop.set()
         with self._stepped:
             self._stepped.notify_all()
+        for t in self._threads:
+            if t is not threading.current_thread():
+                t.join(timeout=10.0)
 
     # GUI ---------------------------------------------------------------------------------------------------
 
@@ -174,15 +180,22 @@ class Page:
     def _pick_scene(self) -> None:
         value = self._scene_menu.value
         if value not in SCENES:        # the model's own mesh
-            self._request = (None, self.view.model)
-            return
-        self._request = (value, None if value != self.view.scene else self.view.model)
+            self._ask(None, self.view.model)
+        else:
+            self._ask(value, None if value != self.view.scene else self.view.model)
 
     def _pick_model(self) -> None:
         value = self._model_menu.value
-        if self.scene_name is None or value not in self._models(self.scene_name):
-            return
-        self._request = (self.scene_name, value)
+        if self.scene_name is not None and value in self._models(self.scene_name):
+            self._ask(self.scene_name, value)
+
+    def _ask(self, scene, model) -> None:
+        """Have the physics thread load (scene, model) unless the tab shows it already."""
+        from tignn_jax.cli.demo import DEFAULT_MODELS
+
+        default = DEFAULT_MODELS.get(scene)
+        if (scene, model or default) != (self.scene_name, self.model or DEFAULT_MODELS.get(self.scene_name)):
+            self._request = (scene, model)
 
     def _pick_colour(self) -> None:
         value = self._colour_menu.value
@@ -208,9 +221,12 @@ class Page:
                     cast_shadow=False, receive_shadow=False)
                 handle.on_drag("left")(self._on_drag)
                 self._meshes.append(handle)
-        self._tip = self.client.scene.add_icosphere("/fingertip", radius=0.012 * self.session.size,
+        self._tip = self.client.scene.add_icosphere("/fingertip", radius=0.015 * self.session.size,
                                                     color=(230, 60, 40), visible=False)
-        self._meshes.append(self._tip)
+        self._spring = self.client.scene.add_line_segments("/spring", np.zeros((1, 2, 3), np.float32),
+                                                           colors=(230, 60, 40), thickness=3.0,
+                                                           thickness_units="screen", visible=False)
+        self._meshes += [self._tip, self._spring]
         size, centre = self.session.size, self.session.centre
         low = min(float(b.q0[:, 2].min()) for b in scene.bodies)   # the floor, just below the lowest node
         self.client.scene.add_grid("/floor", width=1.5 * size, height=1.5 * size, cell_size=size / 20,
@@ -306,7 +322,7 @@ class Page:
                 self.frame_rate, count, since = count / (now - since), 0, now
                 self._status.content = (
                     f"step **{session.step_ms:.1f} ms** · physics **{self.physics_rate:.0f}/s** · "
-                    f"frame **{self.frame_ms:.1f} ms** · sent **{self.frame_rate:.0f} frames/s**"
+                    f"frame **{self.frame_ms:.1f} ms** · queued **{self.frame_rate:.0f} frames/s**"
                     + (f" · guard resets {session.resets}" if session.resets else "")
                     + (" · paused" if session.paused else ""))
 
@@ -325,12 +341,12 @@ class Page:
                         vertices, faces = np.repeat(positions[:1], 3, 0).astype(np.float32), _EMPTY
                     self._meshes[m].vertices = vertices
                     self._meshes[m].faces = faces
-            target = session.target
-            if target is not None:
-                self._tip.position = tuple(float(x) for x in target)
-                self._tip.visible = True
-            elif self._tip.visible:
-                self._tip.visible = False
+            spring = session.spring()
+            if spring is not None:
+                self._tip.position = tuple(float(x) for x in spring[1])
+                self._spring.points = np.asarray([spring], np.float32)
+            if self._tip.visible != (spring is not None):
+                self._tip.visible = self._spring.visible = spring is not None
         self._sent = (frame.index, colour, id(session))
 
 

@@ -10,14 +10,23 @@ through the grab point) pulls the patch's grab point, the patch centroid c(q) pl
 
     F = clip(k · (T - (c(q) + d)), F_cap),    f_i = F / |P| for i in P,
 
-with F_cap = |P| · f_max (no node receives more than the largest nodal force of the model's training data,
-``envelope["f_max"]``) and k = F_cap / u_max (a pointer held u_max, the largest training displacement, away
-from the grab point applies the largest force). Pressing into the surface and pulling out are the same gesture.
-The spring acts on the current patch position, so a body follows the pointer toward the equilibrium
-k (T - x) = K_body x instead of being pushed ever harder by a held pointer; the force is clipped, so a pointer
-dragged far away never leaves the training loads. Why a spring on a patch rather than the demo's constant force
-along the normal (`tignn_jax.mr.forcing.fingertip_forces`): a mouse has no depth, so "press" and "pull" must
-come from the pointer's motion in the view plane, and a spring turns that motion into a bounded, continuous load.
+with F_cap = |P| · f_max: no node receives more than the largest nodal force of the model's training data
+(``envelope["f_max"]``), so a pointer dragged far away never leaves the training loads. Pressing into the surface
+and pulling out are the same gesture. The stiffness is
+
+    k = min(F_cap / u_max, LOOP_GAIN / ‖C‖₂):
+
+a pointer held u_max (the largest training displacement) from the grab point applies the largest force, unless
+the body is softer than that. The spring acts on the current patch position, so the body settles where
+k (T - x) = K_body x instead of being pushed ever harder by a held pointer; but that makes it an explicit feedback
+loop, which oscillates with a period of two steps when k ‖C‖ exceeds about 1, C [3, 3] the patch's one-step
+compliance (how far one model step moves its centroid per unit force), which `grab` probes with four model steps
+from the current state. F also changes by at most ``RAMP`` x F_cap per step: a sudden yank builds up over a few
+steps, which the FEM's truncated Newton step (``fem-newton``, `tignn_jax.newton`) needs to stay finite.
+
+Why a spring on a patch rather than the demo's constant force along the normal
+(`tignn_jax.mr.forcing.fingertip_forces`): a mouse has no depth, so "press" and "pull" must come from the
+pointer's motion in the view plane, and a spring turns that motion into a bounded, continuous load.
 
 Frames: every body's state lives in its model frame and units; the world (what the page shows, and what `grab`
 and `drag` take) is the first body's model frame, z up. Body k maps model to world by x_w = R_k x + t_k.
@@ -36,6 +45,7 @@ import numpy as np
 
 QUANTITIES = ("von Mises", "σxx", "|u|")
 LOOP_GAIN = 0.5   # k · ‖C‖₂ of the spring (module docstring)
+RAMP = 0.1        # the spring's force changes by at most this fraction of F_cap per step
 
 
 class Body(NamedTuple):
@@ -115,6 +125,7 @@ class Session:
         self.grab_radius = float(grab_radius) if grab_radius else 1.5 * _median_edge(scene.bodies[0])
         self._grab = None          # (body, patch node ids, offset d [3] model units) while grabbing
         self._target = None        # [3] world
+        self._pull = np.zeros(3)   # the spring's total force in the last step (model frame)
         self.paused = False
         self.index = 0             # steps taken since the last reset
         self.resets = 0            # bodies reset by their guard
@@ -152,6 +163,7 @@ class Session:
         with self._lock:
             self._grab = (k, patch, offset, stiffness)
             self._target = p
+            self._pull = np.zeros(3)
         return True
 
     def drag(self, target) -> bool:
@@ -194,23 +206,20 @@ class Session:
         with self._lock:
             return None if self._grab is None else self._target
 
-    def forces(self) -> tuple:
-        """The fingertip spring's nodal forces per body, ([N, 3] float32, ...), model units (module docstring)."""
+    def spring(self):
+        """(grab point, target), each [3] in the world, while a patch is grabbed, else None: the spring's ends,
+        the grab point moving with the patch (c(q) + d)."""
         with self._lock:
             grab, target, zs = self._grab, self._target, self.zs
-        out = [np.zeros((len(b.q0), 3), np.float32) for b in self.scene.bodies]
         if grab is None:
-            return tuple(out)
-        k, patch, offset, stiffness = grab
-        b = self.scene.bodies[k]
-        anchor = zs[k][patch, :3].mean(0) + offset
-        cap = len(patch) * self.scene.f_max
-        pull = ((target - b.offset) @ b.rotation - anchor) * stiffness
-        norm = float(np.linalg.norm(pull))
-        if norm > cap:
-            pull *= cap / norm
-        out[k][patch] = pull / len(patch)
-        return tuple(out)
+            return None
+        k, patch, offset, _ = grab
+        return _to_world(self.scene.bodies[k], zs[k][patch, :3].mean(0) + offset), target
+
+    def forces(self) -> tuple:
+        """The fingertip spring's nodal forces per body that the next `step` applies, ([N, 3] float32, ...),
+        model units (module docstring)."""
+        return self._forces()[0]
 
     def step(self) -> bool:
         """Advance every body by one frame of the model under the spring's (and contact) forces.
@@ -222,7 +231,8 @@ class Session:
             return False
         t0 = time.perf_counter()
         zs = self.zs
-        forces = list(self.forces())
+        forces, grab, pull = self._forces()
+        forces = list(forces)
         if self._contact is not None:
             for k, f in enumerate(self._contact(zs)):
                 forces[k] = forces[k] + f
@@ -237,6 +247,8 @@ class Session:
             if self.zs is zs:            # not reset meanwhile
                 self.zs = tuple(new)
                 self.index += 1
+            if self._grab is grab:       # not grabbed anew or released meanwhile
+                self._pull = pull
         self.step_ms = 1e3 * (time.perf_counter() - t0)
         return True
 
@@ -271,6 +283,22 @@ class Session:
         k = cap / self.scene.u_max
         return min(k, LOOP_GAIN / norm) if np.isfinite(norm) and norm > 0 else k
 
+    def _forces(self):
+        """(nodal forces per body, the grab they belong to, the total pull F [3]): F is the spring's force,
+        clipped to F_cap, its change since the last step limited to ``RAMP`` x F_cap."""
+        with self._lock:
+            grab, target, zs, last = self._grab, self._target, self.zs, self._pull
+        out = [np.zeros((len(b.q0), 3), np.float32) for b in self.scene.bodies]
+        if grab is None:
+            return tuple(out), grab, np.zeros(3)
+        k, patch, offset, stiffness = grab
+        b = self.scene.bodies[k]
+        cap = len(patch) * self.scene.f_max
+        pull = _clip(((target - b.offset) @ b.rotation - (zs[k][patch, :3].mean(0) + offset)) * stiffness, cap)
+        pull = last + _clip(pull - last, RAMP * cap)
+        out[k][patch] = pull / len(patch)
+        return tuple(out), grab, pull
+
     def _point(self, point):
         """A finite world point [3] within reach of the scene, as float64, or None."""
         try:
@@ -280,6 +308,12 @@ class Session:
         if not np.all(np.isfinite(p)) or np.linalg.norm(p - self.centre) > self._reach:
             return None
         return p
+
+
+def _clip(v, bound: float):
+    """``v`` [3] shortened to length ``bound`` where longer."""
+    norm = float(np.linalg.norm(v))
+    return v * (bound / norm) if norm > bound else v
 
 
 def _to_world(body: Body, q) -> np.ndarray:
