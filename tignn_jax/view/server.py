@@ -75,7 +75,8 @@ class ViewServer:
 
         self.server = viser.ViserServer(host=host, port=port, verbose=verbose)
         self.server.scene.set_up_direction("+z")
-        self.server.gui.configure_theme(control_layout="fixed", show_share_button=False)   # the panel beside the view
+        self.server.gui.configure_theme(show_share_button=False)
+        self.server.gui.main_panel.dock_right()        # the panel beside the view, not over the body
         self.server.on_client_connect(self._connect)
         self.server.on_client_disconnect(self._disconnect)
 
