@@ -125,10 +125,11 @@ class Page:
         self.physics_rate = self.frame_rate = self.frame_ms = 0.0
         self._stop = threading.Event()
         self._stepped = threading.Condition()
+        self._drawing = threading.Lock()      # held while a frame is sent and while the scene is replaced
         self._request = None                  # (scene, model) the tab asked for, loaded by the physics thread
         self._meshes = []
         self.session = Session(view.scene_of(self.scene_name, self.model))
-        self._framed = False                 # the camera is framed once the tab has reported its own
+        self._framed = False     # framed by the server's initial camera, and again once the tab reports its own
         self._build_gui()
         self._build_scene()
         client.camera.on_update(self._on_camera)
@@ -232,8 +233,6 @@ class Page:
         low = min(float(b.q0[:, 2].min()) for b in scene.bodies)   # the floor, just below the lowest node
         self.client.scene.add_grid("/floor", width=1.5 * size, height=1.5 * size, cell_size=size / 20,
                                    position=(centre[0], centre[1], low - 0.5 * scene.u_max - 0.01 * size))
-        if self._framed:
-            self._frame_camera(self.client.camera)
         self._legend.image = _legend(scene.ranges[self.colour], self.colour)
         self._about.content = (f"**{scene.name}**: {scene.dynamics}. Press the left button on the body and drag "
                                "to pull it; drag elsewhere to turn the view.")
@@ -291,12 +290,15 @@ class Page:
         except (ValueError, OSError) as err:
             self._status.content = f"cannot load {model or scene}: {err}"
             return
-        self.scene_name, self.model = scene, model
-        paused = self.session.paused
-        self.session = Session(loaded)
-        self.session.pause(paused)
-        with self.client.atomic():
+        with self._drawing, self.client.atomic():     # not while a frame of the old scene is being sent
+            self.scene_name, self.model = scene, model
+            paused = self.session.paused
+            self.session = Session(loaded)
+            self.session.pause(paused)
             self._build_scene()
+            self._framed = True               # the tab has long reported its camera: move it
+            self._frame_camera(self.client.camera)
+            self._scene_menu.value = scene if scene is not None else self._scene_menu.options[0]
             if scene is not None:
                 self._model_menu.options = self._models(scene)
                 self._model_menu.value = self._model_label()
@@ -307,18 +309,20 @@ class Page:
         while not self._stop.is_set():
             with self._stepped:
                 self._stepped.wait(timeout=0.25)
-            session = self.session
             now = time.perf_counter()
-            if (session.index, self.colour, id(session)) != self._sent:
-                t0 = now
-                try:
-                    self._send(session)
-                except Exception:             # the tab closed while sending
-                    if self._stop.is_set():
-                        return
-                    raise
-                self.frame_ms = 1e3 * (time.perf_counter() - t0)
-                count += 1
+            with self._drawing:
+                session = self.session
+                if (session.index, self.colour, id(session)) != self._sent:
+                    try:
+                        self._send(session)
+                    except Exception as err:      # the tab closed while sending, or a bad frame: go on
+                        if self._stop.is_set():
+                            return
+                        self._status.content = f"drawing failed: {type(err).__name__}: {err}"
+                        self._sent = (session.index, self.colour, id(session))
+                        continue
+                    self.frame_ms = 1e3 * (time.perf_counter() - now)
+                    count += 1
             if now - since >= 0.5:
                 self.frame_rate, count, since = count / (now - since), 0, now
                 self._status.content = (
