@@ -280,6 +280,9 @@ def test_a_mouse_drag_in_chromium_pushes_the_beam():
             errors = []
             page.on("console", lambda m: m.type == "error" and errors.append(m.text))
             page.on("pageerror", lambda e: errors.append(str(e)))
+            local = (f"http://127.0.0.1:{port}", f"ws://127.0.0.1:{port}", "data:", "blob:")
+            outside = []                                            # viser's client is served by the package
+            page.on("request", lambda r: r.url.startswith(local) or outside.append(r.url))
             page.goto(f"http://127.0.0.1:{port}")
             _wait(lambda: view.pages, 20, "the tab to connect")
             tab = next(iter(view.pages.values()))
@@ -312,6 +315,7 @@ def test_a_mouse_drag_in_chromium_pushes_the_beam():
             browser.close()
         assert np.abs(pushed - rest).mean() > 1.0                    # the page shows the bent, coloured beam
         assert not [e for e in errors if not any(b in e for b in BENIGN)], errors
+        assert not outside, outside                                   # nothing fetched from the network
     finally:
         view.stop()
 

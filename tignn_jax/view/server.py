@@ -7,12 +7,16 @@ never block: viser queues a mesh's property updates and keeps only the newest un
 fewer frames and the physics does not wait for it. A tab's threads stop and its session is dropped when it
 closes.
 
-Drawing: viser meshes have one colour each, so a body is drawn as ``BANDS`` meshes sharing its surface vertices,
-each holding the triangles whose mean value falls in its band of the legend's range (contour bands, as FEM
-post-processors show them), coloured by `tignn_jax.mr.colour_map` at the band's centre. The legend shows the same
-bands. Pressing the left button on a body and dragging pulls it (`Session.grab`/`drag`/`release`, through viser's
-scene-node drag events: the pointer is projected onto the camera-facing plane through the grab point); dragging
-elsewhere turns the camera.
+Drawing: viser meshes take one colour each, so a body is drawn as ``BANDS`` meshes, band j holding the pieces of
+the surface triangles where the quantity lies in the j-th twelfth of the legend's range
+(`tignn_jax.view.bands.contour_bands`: contour bands, as FEM post-processors show them), coloured by
+`tignn_jax.mr.colour_map` at the band's centre; the legend shows the same bands. Pressing the left button on a
+body and dragging pulls it (`Session.grab`/`drag`/`release`, through viser's scene-node drag events, which give
+the pressed surface point and the pointer projected onto the camera-facing plane through it); dragging elsewhere
+turns the camera. A red line from the grab point to a red ball at the pointer shows the spring.
+
+On screen: ``step`` (one model step with the spring, contact and guard, ms), ``physics`` (steps per second),
+``frame`` (building and queueing one frame, ms) and ``queued`` (frames per second queued for the tab).
 """
 from __future__ import annotations
 
