@@ -202,6 +202,7 @@ def test_contour_bands_tile_the_surface_with_its_winding():
     (["--rate", "nan"], ["--rate", "nan"]),
     (["--port", "70000"], ["--port", "70000"]),
     (["--model", "no-such-model"], ["--model", "'no-such-model'"]),
+    (["--host", "999.1.1.1"], ["--host 999.1.1.1"]),
 ])
 def test_bad_options_are_one_line_naming_the_value_and_exit_2(argv, names, capsys):
     assert cli.main(["view", *argv]) == 2
@@ -210,11 +211,22 @@ def test_bad_options_are_one_line_naming_the_value_and_exit_2(argv, names, capsy
     assert err.startswith("tignn view: error: ") and all(n in err for n in names), err
 
 
+def test_a_taken_port_is_refused_rather_than_moved(capsys):
+    with socket.socket() as taken:
+        taken.bind(("127.0.0.1", 0))
+        taken.listen()
+        port = taken.getsockname()[1]
+        assert cli.main(["view", "--port", str(port)]) == 2
+    err = capsys.readouterr().err
+    assert err.strip() == (f"tignn view: error: --host 127.0.0.1 --port {port}: cannot serve there "
+                           "(Address already in use)")
+
+
 def test_without_viser_the_error_says_how_to_install_it(monkeypatch, capsys):
     import sys
 
     monkeypatch.setitem(sys.modules, "viser", None)     # import viser -> ImportError
-    assert cli.main(["view"]) == 2
+    assert cli.main(["view", "--port", str(_free_port())]) == 2
     assert capsys.readouterr().err.strip() == 'tignn view: error: viser is not installed: pip install ".[view]"'
 
 

@@ -7,6 +7,7 @@ from __future__ import annotations
 import argparse
 import math
 import signal
+import socket
 import threading
 
 from tignn_jax.cli import UsageError
@@ -51,10 +52,6 @@ def run(args) -> int:
         raise UsageError(f"--port must be 1..65535, got {args.port}")
     if not (math.isfinite(args.rate) and 1.0 <= args.rate <= 240.0):
         raise UsageError(f"--rate must be 1..240 steps per second, got {args.rate}")
-    try:
-        import viser  # noqa: F401
-    except ImportError:
-        raise UsageError('viser is not installed: pip install ".[view]"') from None
     from tignn_jax.cli.demo import FEM_NEWTON
     from tignn_jax.view.scenes import resolve_model
 
@@ -66,13 +63,14 @@ def run(args) -> int:
             raise UsageError(f"--{err}") from None   # "--model 'NAME': ..."
     if scene is None and (args.model is None or args.model == FEM_NEWTON):
         scene = "beam"
+    _check_address(args.host, args.port)
+    try:
+        import viser  # noqa: F401
+    except ImportError:
+        raise UsageError('viser is not installed: pip install ".[view]"') from None
     from tignn_jax.view.server import serve
 
-    try:
-        view = serve(scene, args.model, host=args.host, port=args.port, colour=COLOURS[args.colour],
-                     rate=args.rate)
-    except OSError as err:
-        raise UsageError(f"--host {args.host} --port {args.port}: cannot serve there ({err})") from None
+    view = serve(scene, args.model, host=args.host, port=args.port, colour=COLOURS[args.colour], rate=args.rate)
     print(f"tignn view: {view.scene_of(scene, args.model).dynamics}; open http://{args.host}:{args.port} "
           "(Ctrl-C stops)", flush=True)
     stop = threading.Event()
@@ -85,3 +83,14 @@ def run(args) -> int:
     finally:
         view.stop()
     return 0
+
+
+def _check_address(host: str, port: int) -> None:
+    """Refuse a host that does not resolve or a port that is taken (viser would silently move to another)."""
+    try:
+        family, kind, _, _, address = socket.getaddrinfo(host, port, type=socket.SOCK_STREAM)[0]
+        with socket.socket(family, kind) as probe:
+            probe.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+            probe.bind(address)
+    except OSError as err:
+        raise UsageError(f"--host {host} --port {port}: cannot serve there ({err.strerror or err})") from None
