@@ -32,15 +32,22 @@ def register(sub) -> None:
 def run(args) -> int:
     from tignn_jax.train import defaults, load_recipe
 
+    named = args.config in defaults.NAMES
+    if not named:
+        if Path(args.config).suffix == ".py" and not Path(args.config).is_file():
+            raise UsageError(f"--config {args.config}: no recipe file {args.config!r}")
+        if Path(args.config).suffix != ".py" and not Path(args.config).exists():
+            raise UsageError(f"--config {args.config!r}: not a recipe file nor one of {', '.join(defaults.NAMES)}")
     for path in args.data:
         if not Path(path).exists():
             raise UsageError(f"--data {path}: no such file")
-    if args.config in defaults.NAMES:
+    if named:
         config, trainer = defaults.default_recipe(args.config, args.data[0])
-    elif Path(args.config).suffix == ".py" or Path(args.config).exists():
-        config, trainer = load_recipe(args.config)
     else:
-        raise UsageError(f"--config {args.config!r}: not a recipe file nor one of {', '.join(defaults.NAMES)}")
+        try:
+            config, trainer = load_recipe(args.config)
+        except ValueError as e:
+            raise UsageError(f"--config {args.config}: {e}")
     try:
         config = defaults.override(config, args.set)
     except ValueError as e:

@@ -319,8 +319,13 @@ def train(data_path, config: TrainConfig, run_dir, split=("train", "val"), progr
         norm_np.update(parent["stored"]["norm"])
     mesh = {"q0": np.asarray(data.q0, np.float32), "senders": data.edges[0], "receivers": data.edges[1],
             "node_type": data.node_type}
-    first = data_path if isinstance(data_path, (str, Path)) else list(data_path)[0]
-    cells = D.cells(first)
+    if isinstance(data_path, (str, Path)):
+        first = data_path
+    elif isinstance(data_path, (list, tuple)) and not hasattr(data_path, "_fields") and data_path:
+        first = data_path[0]
+    else:      # data given in memory: no file to read the cells from
+        first = None
+    cells = D.cells(first) if isinstance(first, (str, Path)) else None
     stored = model.init(jax.random.PRNGKey(cfg.seed), norm_np, mesh)
     if parent is not None:
         stored["weights"] = parent["stored"]["weights"]
