@@ -48,6 +48,7 @@ def tiny_data(tmp_path_factory):
         jax.config.update("jax_enable_x64", False)
 
 
+@pytest.mark.long   # CI time: tests/test_user_mesh.py runs generate → train linear → evaluate → rollout
 def test_a_tiny_linear_model_trains_evaluates_and_rolls_out(tmp_path, tiny_data, capsys):
     run = tmp_path / "run"
     assert main(["train", "--config", str(ROOT / "configs" / "tiny_linear.py"), "--data", str(tiny_data),

@@ -78,6 +78,7 @@ def test_held_load_settles_to_static_equilibrium(cell_type):
     assert np.asarray(diag.residual).max() <= 1e-10 and int(res.inverted) == -1
 
 
+@pytest.mark.long   # CI time: the recurrence and static-equilibrium tests verify the implicit step
 def test_low_modes_match_explicit_dynamics_and_backward_euler_decay():
     """Free bending vibration with ωh ≈ 0.05: the period is the explicit solver's to 0.5 %, and the amplitude
     decays per period as backward Euler's amplification |1 + iωh|⁻¹ per step predicts (to 5 %)."""

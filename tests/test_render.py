@@ -424,6 +424,7 @@ def test_guard_resets_bodies_whose_state_goes_bad():
     assert t.guard_trips > 0 and t.summary()["guard_trips"] == t.guard_trips
 
 
+@pytest.mark.long   # CI time: test_guard_resets_bodies_whose_state_goes_bad covers the guard
 def test_guard_with_one_flag_per_body_resets_only_the_flagged_body():
     # Two bodies, one whose step goes bad: a guard that returns one flag per body resets that body alone and
     # counts one trip per reset body; the other keeps stepping.

@@ -276,6 +276,7 @@ def test_model_class_holds_the_fem_rest_linearisation():
     assert_same_linearisation(mine, lin, node_type == 0, 1e-6)
 
 
+@pytest.mark.long   # CI time: test_model_class_holds_the_fem_rest_linearisation covers the prior
 def test_prior_starts_the_model_at_the_fem_rest_linearisation_of_a_hex_bar():
     # with a prior (the FEM's rest linearisation) and learned channels started a millionth as stiff, the operators
     # are the prior's: K, S, masses and α; training then learns a correction (its scales, a PSD K throughout)
