@@ -45,4 +45,4 @@ def test_the_corotational_beam_beats_the_published_network_on_the_test_split(ref
     report, _ = EV.evaluate(params, reference, ("test",), structure=False)
     got = [report["test"]["all"][v]["mean"] for v in EV.VARIABLES]
     assert all(g < p for g, p in zip(got, PUBLISHED_TEST)), got
-    np.testing.assert_allclose(got, (0.000828, 0.01602, 0.02978, 0.01510), rtol=0.02)   # as measured at the build
+    np.testing.assert_allclose(got, (0.000670, 0.01027, 0.02295, 0.01446), rtol=0.02)   # as measured at the build

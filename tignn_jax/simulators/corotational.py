@@ -30,7 +30,8 @@ the volumetric term by its Gauss–Newton tangent, κ V g gᵀ with g = ∂J/∂
 
     [(1 + αh)/h² M + K_R + K_J] v' = M v / h² + (f − f_int(q)) / h,   q' = q + h v',
 
-solved by ``cg_iterations`` conjugate-gradient iterations from v' = v, preconditioned with the rest operator
+solved by at least ``cg_iterations`` conjugate-gradient iterations from v' = v (up to ``cg_max_iterations`` while
+the residual is large: `CorotationalConfig`), preconditioned with the rest operator
 turned with the body, R A₀⁻¹ Rᵀ (R each node's rotation, the polar factor of the mean of its elements' R_e;
 A₀ = (1 + αh)/h² M + K₀ the FEM's rest operator, inverted once when the model is prepared). The stress
 observable σ' = R_e (S_e ũ_e) R_eᵀ + κ (J_e − 1 + g_e · Δu_e) I, averaged to the nodes by volume (S_e the
@@ -75,10 +76,16 @@ class CorotationalConfig(NamedTuple):
     """How the corotational step solves its frame.
 
     Attributes:
-      cg_iterations: conjugate-gradient iterations of the frame's linear solve (preconditioned by the turned rest
-        operator; from rest one iteration is exact).
+      cg_iterations: conjugate-gradient iterations every frame's linear solve makes (preconditioned by the turned
+        rest operator; from rest one iteration is exact).
+      cg_max_iterations: the most iterations a frame may make: past ``cg_iterations`` the solve goes on while the
+        preconditioned residual rᵀP r is above ``cg_tolerance``² times its start (a state far from the rest
+        operator's, e.g. a noisy or fast-turning one, needs more than the few iterations a smooth frame does).
+      cg_tolerance: that relative residual.
     """
     cg_iterations: int = 3
+    cg_max_iterations: int = 12
+    cg_tolerance: float = 1e-2
 
 
 @dataclasses.dataclass(frozen=True)
@@ -106,8 +113,14 @@ class CorotationalGeneric:
         Raises:
           ValueError: an array is missing or sized for another mesh, or the iteration count is not positive.
         """
-        if not (isinstance(self.config.cg_iterations, (int, np.integer)) and self.config.cg_iterations >= 1):
-            raise ValueError(f"cg_iterations must be a positive integer, got {self.config.cg_iterations!r}")
+        c = self.config
+        if not (isinstance(c.cg_iterations, (int, np.integer)) and c.cg_iterations >= 1):
+            raise ValueError(f"cg_iterations must be a positive integer, got {c.cg_iterations!r}")
+        if not (isinstance(c.cg_max_iterations, (int, np.integer)) and c.cg_max_iterations >= c.cg_iterations):
+            raise ValueError(f"cg_max_iterations must be an integer >= cg_iterations ({c.cg_iterations}), "
+                             f"got {c.cg_max_iterations!r}")
+        if not (isinstance(c.cg_tolerance, (int, float, np.floating)) and 0.0 < c.cg_tolerance < 1.0):
+            raise ValueError(f"cg_tolerance must be a number in (0, 1), got {c.cg_tolerance!r}")
         stored = {"mu_nodes": np.zeros(1, np.float32), **stored}
         missing = [k for k in STORED if k not in stored]
         if missing:
@@ -143,7 +156,7 @@ class CorotationalGeneric:
 
     def step_state(self, arrays: dict, z, f):
         """One frame of one body: z [N, 12], f [N, 3] (force, constant over the frame) → z' [N, 12]."""
-        return frame(arrays, z, f.astype(z.dtype), int(self.config.cg_iterations))
+        return frame(arrays, z, f.astype(z.dtype), self.config)
 
     def diagnostics(self, arrays: dict, z, f, z_next) -> dict:
         """The energy balance of one frame z → z_next under f: {"energy": E(z_next), "work": W = f · Δq over the
@@ -464,20 +477,20 @@ def stress(arrays: dict, kin: _Kinematics, volume_change, n: int):
     return _assemble(arrays, sig[:, None, :] * arrays["wnode_t"].astype(dt)[None], n)
 
 
-def frame(arrays: dict, z, f, iterations: int):
+def frame(arrays: dict, z, f, config: CorotationalConfig):
     """z' [N, 12] of one frame (module docstring), ``iterations`` preconditioned CG iterations. Where the frame's
     step would have to be shortened to keep the energy budget (θ < 1), the frame is stepped instead as ``SPLIT``
     steps of Δt / ``SPLIT`` (each with its own budget), so a fast turn is followed rather than damped."""
     h = arrays["dt"].reshape(-1)[0].astype(z.dtype)
-    z1, theta = _step(arrays, z, f, iterations, h)
+    z1, theta = _step(arrays, z, f, config, h)
 
     def split(_):
-        return jax.lax.fori_loop(0, SPLIT, lambda _, zz: _step(arrays, zz, f, iterations, h / SPLIT)[0], z)
+        return jax.lax.fori_loop(0, SPLIT, lambda _, zz: _step(arrays, zz, f, config, h / SPLIT)[0], z)
 
     return jax.lax.cond(theta == 1.0, lambda _: z1, split, None)
 
 
-def _step(arrays: dict, z, f, iterations: int, h):
+def _step(arrays: dict, z, f, config: CorotationalConfig, h):
     """(z' after a step h, the step length θ the energy budget allowed)."""
     _, alpha, free, m = LG._constants(arrays, z.dtype)
     n = z.shape[0]
@@ -499,16 +512,28 @@ def _step(arrays: dict, z, f, iterations: int, h):
     x, r = v, rhs - apply_a(v)
     p = precondition(r)
     d, rz = p, jnp.vdot(r, p)
-    for i in range(iterations):   # unrolled: a few iterations, the last one needs no new direction
+    first, most = int(config.cg_iterations), int(config.cg_max_iterations)
+    bound = jnp.asarray(config.cg_tolerance, z.dtype) ** 2 * rz
+
+    def iteration(carry, direction: bool = True):
+        x, r, d, rz, i = carry
         ad = apply_a(d)
         dad = jnp.vdot(d, ad)
         step = jnp.where(dad > 0, rz / jnp.where(dad > 0, dad, 1.0), 0.0)
         x, r = x + step * d, r - step * ad
-        if i + 1 < iterations:
-            p = precondition(r)
-            rz_new = jnp.vdot(r, p)
-            d, rz = p + jnp.where(rz > 0, rz_new / jnp.where(rz > 0, rz, 1.0), 0.0) * d, rz_new
-    v1 = x * free
+        if not direction:   # the last iteration needs no new direction
+            return x, r, d, rz, i + 1
+        p = precondition(r)
+        rz_new = jnp.vdot(r, p)
+        d = p + jnp.where(rz > 0, rz_new / jnp.where(rz > 0, rz, 1.0), 0.0) * d
+        return x, r, d, rz_new, i + 1
+
+    carry = (x, r, d, rz, 0)
+    for i in range(first):   # unrolled: the iterations every frame makes
+        carry = iteration(carry, direction=i + 1 < first or most > first)
+    if most > first:         # then on while the residual is large
+        carry = jax.lax.while_loop(lambda c: (c[4] < most) & (c[3] > bound), iteration, carry)
+    v1 = carry[0] * free
     # energy never created, E(z') ≤ E(z) + W: the longest of the steps θ h v' (θ in BACKTRACK) whose potential
     # fits the budget, P(u + θ h v') ≤ E(z) + θ W with W = f · h v' (θ = 0 always fits)
     e0 = 0.5 * jnp.sum(m * v * v) + potential(arrays, kin)
