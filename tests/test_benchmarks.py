@@ -42,6 +42,13 @@ def test_every_option_has_help(script):
         assert len(line.split()) > 2, line
 
 
+def test_diffrax_quick_integrates_the_same_trajectory(tmp_path):
+    _bench("diffrax_integrators", "--quick", "--out", str(tmp_path))
+    result, md = _results(tmp_path, "diffrax")
+    assert result["quick"] and result["frames"] == 5 and result["max_difference_relative"] < 1e-5
+    assert all(v > 0 for v in result["ms_per_frame_p50"].values()) and "QUICK RUN" in md
+
+
 def test_model_step_quick_reports_step_against_stepper(tmp_path):
     _bench("model_step", "--quick", "--rows", "beam:1,beam:2", "--out", str(tmp_path))
     result, md = _results(tmp_path, "model_step")
