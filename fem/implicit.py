@@ -260,9 +260,11 @@ def _jvp_columns(fn, n: int, dtype, chunk: int):
     Dense, so meant for meshes of a few thousand nodes."""
     u0 = jnp.zeros((n, 3), dtype)
     cols = jax.jit(jax.vmap(lambda d: jax.jvp(fn, (u0,), (d.reshape(n, 3),))[1]))
-    eye = np.eye(3 * n, dtype=np.asarray(u0).dtype)
-    parts = [cols(jnp.asarray(eye[s:s + chunk])) for s in range(0, 3 * n, chunk)]
-    return tuple(np.concatenate([np.asarray(p[i], np.float64) for p in parts]) for i in range(len(parts[0])))
+    m = 3 * n
+    chunk = min(chunk, m)
+    eye = np.eye(-(-m // chunk) * chunk, m, dtype=np.asarray(u0).dtype)   # padded: every call one shape, one compile
+    parts = [cols(jnp.asarray(eye[s:s + chunk])) for s in range(0, m, chunk)]
+    return tuple(np.concatenate([np.asarray(p[i], np.float64) for p in parts])[:m] for i in range(len(parts[0])))
 
 
 def _blocks(dense, rtol: float = 1e-9):

@@ -652,10 +652,12 @@ def to_rest_linearization(params, geo: Geometry, config: LinearConfig):
     ga = geometry_arrays(geo)
     ops = operators(params["net"], ga, geo.h, config, params)
     n = geo.nbr.shape[0]
-    K = np.asarray(stiffness(ops, ga, geo.h), np.float64).reshape(n, 3, n, 3).transpose(0, 2, 1, 3)
+    h = geo.h      # compiled: op by op, K's assembly and S's forward columns take seconds even on small meshes
+    K = np.asarray(jax.jit(lambda o, g: stiffness(o, g, h))(ops, ga), np.float64)
+    K = K.reshape(n, 3, n, 3).transpose(0, 2, 1, 3)
     K = 0.5 * (K + K.transpose(1, 0, 3, 2))
     rows, cols = np.nonzero(np.abs(K).max(axis=(2, 3)) > 1e-12 * np.abs(K).max())
-    S = jax.jacfwd(lambda u: nodal_stress(u, ops, ga))(jnp.zeros((n, 3), ops.mu.dtype))     # [N, 6, N, 3]
+    S = jax.jit(jax.jacfwd(nodal_stress))(jnp.zeros((n, 3), ops.mu.dtype), ops, ga)      # [N, 6, N, 3]
     S = np.asarray(S, np.float64).transpose(0, 2, 1, 3)
     s_rows, s_cols = np.nonzero(np.abs(S).max(axis=(2, 3)) > 0)
     return RestLinearization(rows, cols, K[rows, cols], s_rows, s_cols, S[s_rows, s_cols],
