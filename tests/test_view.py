@@ -324,7 +324,16 @@ def test_a_mouse_drag_in_chromium_pushes_the_beam():
             pushed = np.asarray(_png(page.screenshot()), np.float64)
             page.mouse.up()
             _wait(lambda: not tab.session.grabbed, 10, "the release")
+            second = browser.new_page(viewport={"width": 640, "height": 480})   # a second tab: its own scene
+            second.goto(f"http://127.0.0.1:{port}")
+            _wait(lambda: len(view.pages) == 2, 20, "the second tab to connect")
+            other = next(t for t in view.pages.values() if t is not tab)
+            _wait(lambda: "physics" in other._status.content, 20, "the second tab's frames")
+            assert other.session is not tab.session and other.session.displacement()[0].max() < 1e-3   # at rest
+            second.close()
+            _wait(lambda: list(view.pages.values()) == [tab], 20, "the closed tab to be dropped")
             browser.close()
+        _wait(lambda: not view.pages, 20, "the closed browser's tab to be dropped")
         assert np.abs(pushed - rest).mean() > 1.0                    # the page shows the bent, coloured beam
         assert not [e for e in errors if not any(b in e for b in BENIGN)], errors
         assert not outside, outside                                   # nothing fetched from the network
