@@ -62,10 +62,12 @@ import numpy as np
 from fem.material import cofactor3, det3, matmul3, trace3, transpose3
 from fem.solver import _polar_rotation as polar
 from fem.solver import _sum_over as _sum
+from tignn_jax.simulators import banded
 from tignn_jax.simulators import linear as LG
 
 STORED = ("cells", "ke", "se", "b", "volume", "kappa", "mass", "alpha", "dt", "mu_nodes")
 BACKTRACK = (1.0, 0.5, 0.25, 0.125, 0.0625, 0.03125, 0.0)   # the step lengths of the frame's line search
+BAND_FRACTION = 4   # the banded factor of A₀ replaces its dense inverse where the band is ≤ 1/4 of 3N wide
 SPLIT = 4   # steps a frame is split into where one step would have to be shortened (`frame`)
 POLAR_ITERATIONS = 5   # Higham's iteration R ← (R + R⁻ᵀ)/2: quadratic, exact at once for a rigid motion
 _VOIGT = ((0, 0), (1, 1), (2, 2), (0, 1), (0, 2), (1, 2))   # the data's stress order S11 S22 S33 S12 S13 S23
@@ -128,9 +130,14 @@ class CorotationalGeneric:
         out["wnode"] = (share / total[out["cells"].reshape(-1)]).reshape(k, per).astype(np.float32)
         out.update(element_last(out, n))
         out["q0"] = q0.astype(np.float32)
-        ainv = np.linalg.inv(rest_operator(out, node_type)).astype(np.float32)
-        blocks = LG.ainv_blocks(ainv, n) if 4 * ainv.size >= LG.AINV_BLOCK_BYTES else {}
-        out["ainv_blocks" if blocks else "ainv"] = blocks or ainv
+        a0 = rest_operator(out, node_type)
+        band = banded.factor(a0, q0)
+        if BAND_FRACTION * band["linv"].shape[1] <= a0.shape[0]:   # narrow enough to beat the dense inverse
+            out["band"] = band
+        else:
+            ainv = np.linalg.inv(a0).astype(np.float32)
+            blocks = LG.ainv_blocks(ainv, n) if 4 * ainv.size >= LG.AINV_BLOCK_BYTES else {}
+            out["ainv_blocks" if blocks else "ainv"] = blocks or ainv
         out["q0"] = q0.astype(np.float32)
         out["free"] = (node_type == 0)[:, None].astype(np.float32)
         for key in ("ke", "se", "b", "volume", "kappa", "mass", "alpha", "dt", "mu_nodes"):
@@ -493,7 +500,8 @@ def _step(arrays: dict, z, f, iterations: int, h):
                                                                     # the [N, 3] layout the dense one reads
     def precondition(r):
         back = jnp.einsum("nji,nj->ni", rn, r * free).reshape(-1)
-        return jnp.einsum("nij,nj->ni", rn, LG.apply_ainv(arrays, back).reshape(n, 3)) * free
+        rest = banded.solve(arrays["band"], back) if "band" in arrays else LG.apply_ainv(arrays, back)
+        return jnp.einsum("nij,nj->ni", rn, rest.reshape(n, 3)) * free
 
     rhs = (m * v / h ** 2 + (f - internal_force(arrays, kin, n)) / h) * free
     x, r = v, rhs - apply_a(v)
