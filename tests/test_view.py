@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from tignn_jax import api, cli
-from tignn_jax.view import Session, load_scene
+from tignn_jax.view import Interaction, load_scene
 from tignn_jax.view.bands import contour_bands
 
 TIP = np.array([38.0, 5.0, 10.0])     # on the beam's top face, near its free end (world = the beam's model frame)
@@ -22,19 +22,19 @@ def beam():
     return load_scene("beam")
 
 
-def _run(session, steps):
+def _run(interaction, steps):
     for _ in range(steps):
-        assert session.step()
+        assert interaction.step()
 
 
-def _patch_motion(session):
+def _patch_motion(interaction):
     """The grabbed patch's mean displacement [3] (model units)."""
-    k, patch = session._grab[0], session._grab[1]
-    return (session.zs[k][patch, :3] - session.scene.bodies[k].q0[patch]).mean(0)
+    k, patch = interaction._grab[0], interaction._grab[1]
+    return (interaction.zs[k][patch, :3] - interaction.scene.bodies[k].q0[patch]).mean(0)
 
 
 def test_pressing_down_moves_the_body_down(beam):
-    s = Session(beam)
+    s = Interaction(beam)
     assert s.grab(TIP)
     assert s.drag(TIP - [0.0, 0.0, 10.0])
     _run(s, 20)
@@ -43,14 +43,14 @@ def test_pressing_down_moves_the_body_down(beam):
 
 
 def test_pulling_up_moves_the_body_up(beam):
-    s = Session(beam)
+    s = Interaction(beam)
     assert s.grab(TIP) and s.drag(TIP + [0.0, 0.0, 10.0])
     _run(s, 20)
     assert _patch_motion(s)[2] > 1.0   # the same gesture pulls out: the spring acts both ways
 
 
 def test_the_pull_stays_within_the_training_loads(beam):
-    s = Session(beam)
+    s = Interaction(beam)
     assert s.grab(TIP) and s.drag(TIP - [0.0, 0.0, 500.0])   # the pointer far away
     _run(s, 15)
     per_node = np.linalg.norm(s.forces()[0], axis=1)
@@ -59,7 +59,7 @@ def test_the_pull_stays_within_the_training_loads(beam):
 
 
 def test_release_lets_the_body_spring_back(beam):
-    s = Session(beam)
+    s = Interaction(beam)
     assert s.grab(TIP) and s.drag(TIP - [0.0, 0.0, 10.0])
     _run(s, 20)
     pushed = s.displacement()[0].max()
@@ -72,7 +72,7 @@ def test_release_lets_the_body_spring_back(beam):
 @pytest.mark.parametrize("point", [[np.nan, 0.0, 0.0], [np.inf, 5.0, 10.0], [1e30, 0.0, 0.0], "abc", [1.0, 2.0],
                                    None, [[1, 2, 3], [4, 5, 6]]])
 def test_malformed_or_out_of_range_points_are_refused(beam, point):
-    s = Session(beam)
+    s = Interaction(beam)
     assert not s.grab(point) and not s.grabbed
     assert s.grab(TIP)
     before = s.target.copy()
@@ -83,12 +83,12 @@ def test_malformed_or_out_of_range_points_are_refused(beam, point):
 
 
 def test_a_press_beside_the_body_grabs_nothing(beam):
-    s = Session(beam)
+    s = Interaction(beam)
     assert not s.grab([5.0, 5.0, 200.0]) and not s.grabbed   # finite and within reach, but on no body
 
 
 def test_dragging_without_a_grab_is_refused(beam):
-    s = Session(beam)
+    s = Interaction(beam)
     assert not s.drag(TIP) and not s.grabbed
     s.release()                         # a release without a grab is harmless
     _run(s, 2)
@@ -96,7 +96,7 @@ def test_dragging_without_a_grab_is_refused(beam):
 
 
 def test_reset_returns_to_rest(beam):
-    s = Session(beam)
+    s = Interaction(beam)
     assert s.grab(TIP) and s.drag(TIP - [0.0, 0.0, 10.0])
     _run(s, 10)
     s.reset()
@@ -105,7 +105,7 @@ def test_reset_returns_to_rest(beam):
 
 
 def test_pause_holds_the_state(beam):
-    s = Session(beam)
+    s = Interaction(beam)
     assert s.grab(TIP) and s.drag(TIP - [0.0, 0.0, 10.0])
     _run(s, 3)
     s.pause(True)
@@ -116,7 +116,7 @@ def test_pause_holds_the_state(beam):
 
 
 def test_two_sessions_are_independent(beam):
-    a, b = Session(beam), Session(beam)
+    a, b = Interaction(beam), Interaction(beam)
     assert a.grab(TIP) and a.drag(TIP - [0.0, 0.0, 10.0])
     for _ in range(10):
         a.step()
@@ -125,14 +125,14 @@ def test_two_sessions_are_independent(beam):
 
 
 def test_a_non_finite_state_is_reset_by_the_guard(beam):
-    s = Session(beam._replace(step=lambda z, f: np.full_like(z, np.nan)))
+    s = Interaction(beam._replace(step=lambda z, f: np.full_like(z, np.nan)))
     assert s.step()
     assert s.resets == 1 and np.array_equal(s.zs[0][:, :3], beam.bodies[0].q0)
 
 
 def test_pressing_the_upper_beam_pushes_the_lower_one_through_contact():
     scene = load_scene("two-beams")
-    s = Session(scene)
+    s = Interaction(scene)
     b = scene.bodies[1]
     top = b.rotation @ TIP + b.offset          # B's free end, top face, in the world (A's frame)
     assert s.grab(top) and s._grab[0] == 1
@@ -163,7 +163,7 @@ def test_a_model_on_its_own_mesh_is_shown_from_its_cells(tmp_path, monkeypatch):
     scene = load_scene(None, str(run))          # a run folder of tignn train
     assert scene.name == f"{run} (its own mesh)" and len(scene.bodies) == 1
     assert len(np.unique(scene.bodies[0].triangles)) == 1002      # the bunny's surface nodes
-    s = Session(scene)
+    s = Interaction(scene)
     point = scene.bodies[0].q0[917]             # the top of the head
     assert s.grab(point) and s.drag(point + [0.0, 0.0, -scene.u_max])
     _run(s, 10)
@@ -300,7 +300,7 @@ def test_a_mouse_drag_in_chromium_pushes_the_beam():
             tab = next(iter(view.pages.values()))
             camera = tab.client.camera
             framed = types.SimpleNamespace(up_direction=None)       # where frame_camera puts the camera
-            frame_camera(framed, tab.session.centre, tab.session.size)
+            frame_camera(framed, tab.interaction.centre, tab.interaction.size)
             _wait(lambda: camera.update_timestamp and np.allclose(camera.position, framed.position, atol=1e-3),
                   20, "the tab's camera to be framed")
             _wait(lambda: "physics" in tab._status.content, 20, "the first frames")
@@ -314,22 +314,23 @@ def test_a_mouse_drag_in_chromium_pushes_the_beam():
             for i in range(1, 21):                                   # pull the tip down on the screen
                 page.mouse.move(canvas["x"] + u, canvas["y"] + v + 6 * i)
                 time.sleep(0.02)
-            _wait(lambda: tab.session.displacement()[0].max() > 2.0, 15, "the beam to move")
-            assert tab.session.grabbed
-            k, patch = tab.session._grab[:2]
-            assert np.linalg.norm(tab.session.scene.bodies[k].q0[patch].mean(0) - TIP) < 3.0   # grabbed at the tip
-            moved = tab.session.zs[0][patch, 2] - tab.session.scene.bodies[0].q0[patch, 2]
+            _wait(lambda: tab.interaction.displacement()[0].max() > 2.0, 15, "the beam to move")
+            assert tab.interaction.grabbed
+            k, patch = tab.interaction._grab[:2]
+            assert np.linalg.norm(tab.interaction.scene.bodies[k].q0[patch].mean(0) - TIP) < 3.0   # grabbed at the tip
+            moved = tab.interaction.zs[0][patch, 2] - tab.interaction.scene.bodies[0].q0[patch, 2]
             assert moved.mean() < -1.0                                # down, as dragged
             time.sleep(0.5)
             pushed = np.asarray(_png(page.screenshot()), np.float64)
             page.mouse.up()
-            _wait(lambda: not tab.session.grabbed, 10, "the release")
+            _wait(lambda: not tab.interaction.grabbed, 10, "the release")
             second = browser.new_page(viewport={"width": 640, "height": 480})   # a second tab: its own scene
             second.goto(f"http://127.0.0.1:{port}")
             _wait(lambda: len(view.pages) == 2, 20, "the second tab to connect")
             other = next(t for t in view.pages.values() if t is not tab)
             _wait(lambda: "physics" in other._status.content, 20, "the second tab's frames")
-            assert other.session is not tab.session and other.session.displacement()[0].max() < 1e-3   # at rest
+            assert other.interaction is not tab.interaction                    # its own scene, at rest
+            assert other.interaction.displacement()[0].max() < 1e-3
             second.close()
             _wait(lambda: list(view.pages.values()) == [tab], 20, "the closed tab to be dropped")
             browser.close()

@@ -1,6 +1,6 @@
 """The viewer's scenes: the demo's beam, two beams and bunny, or any model's own mesh.
 
-`load_scene` builds a `tignn_jax.view.session.Scene` from a scene name and a model: a shipped model name, a model
+`load_scene` builds a `tignn_jax.view.interaction.Scene` from a scene name and a model: a shipped model name, a model
 folder written by ``tignn train`` (``DIR/model/model.npz`` or ``DIR/model.npz``), a model ``.npz`` file, or
 ``fem-newton`` (the FEM's own backward-Euler step, `tignn_jax.newton.fem_stepper`, on the scene's mesh). The
 dynamics come from `tignn_jax.cli.demo._dynamics` and `tignn_jax.cli.demo._fem_newton`, the demo's own.
@@ -15,7 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
-from tignn_jax.view.session import Body, Scene
+from tignn_jax.view.interaction import Body, Scene
 
 SCENES = ("beam", "two-beams", "bunny")
 # B of the two beams in A's model frame (`tignn_jax.cli.demo.build_scene`): turned 90° about z, across A's free
@@ -60,7 +60,7 @@ def load_scene(scene: str | None = None, model: str | None = None) -> Scene:
         scene, `tignn_jax.cli.demo.DEFAULT_MODELS`).
 
     Returns:
-      The `tignn_jax.view.session.Scene`.
+      The `tignn_jax.view.interaction.Scene`.
 
     Raises:
       ValueError: an unknown scene or model, or a model that is not on the scene's mesh.

@@ -1,17 +1,17 @@
 """The viewer's web server: each browser tab pushes its own bodies with the mouse (viser, served on localhost).
 
 `serve` starts a `viser.ViserServer` (its web client ships inside the package: no network is needed). Every
-connecting tab gets a `Page`: its own `tignn_jax.view.session.Session`, a physics thread that steps it at a fixed
-``rate`` whatever the tab does, and a drawing thread that sends the newest state at most once per step. Sends
+connecting tab gets a `Page`: its own `tignn_jax.view.interaction.Interaction`, a physics thread that steps it
+at a fixed ``rate`` whatever the tab does, and a drawing thread that sends the newest state at most once per step. Sends
 never block: viser queues a mesh's property updates and keeps only the newest unsent one, so a slow tab is sent
-fewer frames and the physics does not wait for it. A tab's threads stop and its session is dropped when it
+fewer frames and the physics does not wait for it. A tab's threads stop and its interaction is dropped when it
 closes.
 
 Drawing: viser meshes take one colour each, so a body is drawn as ``BANDS`` meshes, band j holding the pieces of
 the surface triangles where the quantity lies in the j-th twelfth of the legend's range
 (`tignn_jax.view.bands.contour_bands`: contour bands, as FEM post-processors show them), coloured by
 `tignn_jax.mr.colour_map` at the band's centre; the legend shows the same bands. Pressing the left button on a
-body and dragging pulls it (`Session.grab`/`drag`/`release`, through viser's scene-node drag events, which give
+body and dragging pulls it (`Interaction.grab`/`drag`/`release`, through viser's scene-node drag events, which give
 the pressed surface point and the pointer projected onto the camera-facing plane through it); dragging elsewhere
 turns the camera. A red line from the grab point to a red ball at the pointer shows the spring.
 
@@ -27,7 +27,7 @@ import numpy as np
 
 from tignn_jax.view.bands import contour_bands
 from tignn_jax.view.scenes import SCENES, load_scene, models_for
-from tignn_jax.view.session import QUANTITIES, Session
+from tignn_jax.view.interaction import QUANTITIES, Interaction
 
 BANDS = 12
 _EMPTY = np.array([[0, 1, 2]], np.uint32)
@@ -43,7 +43,7 @@ def serve(scene: str | None = "beam", model: str | None = None, host: str = "127
       scene: one of `tignn_jax.view.scenes.SCENES`, or None for ``model``'s own mesh.
       model: a shipped model name, a model folder or file, or ``fem-newton`` (default: the scene's own).
       host, port: where to serve the page (http://host:port).
-      colour: the quantity first shown, one of `tignn_jax.view.session.QUANTITIES`.
+      colour: the quantity first shown, one of `tignn_jax.view.interaction.QUANTITIES`.
       rate: physics steps per second of every tab (each step one model frame).
       verbose: let viser print its banner and connections.
 
@@ -58,7 +58,7 @@ def serve(scene: str | None = "beam", model: str | None = None, host: str = "127
     if not (np.isfinite(rate) and 1.0 <= rate <= 240.0):
         raise ValueError(f"rate must be 1..240 steps per second, got {rate}")
     view = ViewServer(scene, model, colour, rate)
-    first = Session(view.scene_of(scene, model))     # load (and compile) before the first tab arrives
+    first = Interaction(view.scene_of(scene, model))     # load (and compile) before the first tab arrives
     view.start(host, port, verbose)
     frame_camera(view.server.initial_camera, first.centre, first.size)
     return view
@@ -98,7 +98,7 @@ class ViewServer:
         with self._lock:
             if key not in self._scenes:
                 loaded = load_scene(scene, model)
-                Session(loaded).step()        # compile the step now, not in a tab's first frame
+                Interaction(loaded).step()        # compile the step now, not in a tab's first frame
                 self._scenes[key] = loaded
             return self._scenes[key]
 
@@ -112,10 +112,10 @@ class ViewServer:
 
 
 class Page:
-    """One tab: its session, its GUI, its meshes, and its physics and drawing threads.
+    """One tab: its interaction, its GUI, its meshes, and its physics and drawing threads.
 
     Attributes:
-      session: the tab's `Session` (replaced when the tab picks another scene or model).
+      interaction: the tab's `Interaction` (replaced when the tab picks another scene or model).
       physics_rate: physics steps per second over the last second.
       frame_rate: frames built and queued for the tab per second over the last second (viser sends the newest
         and drops older unsent ones, so a slow tab receives fewer).
@@ -132,7 +132,7 @@ class Page:
         self._drawing = threading.Lock()      # held while a frame is sent and while the scene is replaced
         self._request = None                  # (scene, model) the tab asked for, loaded by the physics thread
         self._meshes = []
-        self.session = Session(view.scene_of(self.scene_name, self.model))
+        self.interaction = Interaction(view.scene_of(self.scene_name, self.model))
         self._framed = False     # framed by the server's initial camera, and again once the tab reports its own
         self._build_gui()
         self._build_scene()
@@ -143,7 +143,7 @@ class Page:
             t.start()
 
     def close(self) -> None:
-        """Stop the tab's threads (its session is dropped with the page)."""
+        """Stop the tab's threads (its interaction is dropped with the page)."""
         self._stop.set()
         with self._stepped:
             self._stepped.notify_all()
@@ -156,7 +156,7 @@ class Page:
     def _build_gui(self) -> None:
         gui = self.client.gui
         custom = self.view.scene is None
-        scenes = ([self.session.scene.name] if custom else []) + list(SCENES)
+        scenes = ([self.interaction.scene.name] if custom else []) + list(SCENES)
         self._scene_menu = gui.add_dropdown("scene", scenes, initial_value=scenes[0] if custom else self.scene_name)
         self._model_menu = gui.add_dropdown("model", self._models(self.scene_name),
                                             initial_value=self._model_label())
@@ -164,13 +164,13 @@ class Page:
         self._pause = gui.add_checkbox("pause", False)
         reset = gui.add_button("reset")
         self._status = gui.add_markdown("")
-        self._legend = gui.add_image(_legend(self.session.scene.ranges[self.colour], self.colour), format="png")
+        self._legend = gui.add_image(_legend(self.interaction.scene.ranges[self.colour], self.colour), format="png")
         self._about = gui.add_markdown("")
         self._scene_menu.on_update(lambda _: self._pick_scene())
         self._model_menu.on_update(lambda _: self._pick_model())
         self._colour_menu.on_update(lambda _: self._pick_colour())
-        self._pause.on_update(lambda _: self.session.pause(bool(self._pause.value)))
-        reset.on_click(lambda _: self.session.reset())
+        self._pause.on_update(lambda _: self.interaction.pause(bool(self._pause.value)))
+        reset.on_click(lambda _: self.interaction.reset())
 
     def _models(self, scene) -> tuple:
         models = models_for(scene)
@@ -181,7 +181,7 @@ class Page:
     def _model_label(self) -> str:
         from tignn_jax.cli.demo import DEFAULT_MODELS
 
-        return self.model or DEFAULT_MODELS.get(self.scene_name, self.session.scene.name)
+        return self.model or DEFAULT_MODELS.get(self.scene_name, self.interaction.scene.name)
 
     def _pick_scene(self) -> None:
         value = self._scene_menu.value
@@ -207,18 +207,18 @@ class Page:
         value = self._colour_menu.value
         if value in QUANTITIES:
             self.colour = value
-            self._legend.image = _legend(self.session.scene.ranges[value], value)
+            self._legend.image = _legend(self.interaction.scene.ranges[value], value)
 
     # scene -------------------------------------------------------------------------------------------------
 
     def _build_scene(self) -> None:
-        """Add the session's meshes and frame the camera on them."""
+        """Add the interaction's meshes and frame the camera on them."""
         for handle in self._meshes:
             handle.remove()
-        scene = self.session.scene
+        scene = self.interaction.scene
         self._meshes = []
         self._empty = [True] * (BANDS * len(scene.bodies))
-        frame = self.session.frame()
+        frame = self.interaction.frame()
         for k, body in enumerate(scene.bodies):
             vertices = np.repeat(frame.positions[k][:1], 3, 0).astype(np.float32)
             for j in range(BANDS):
@@ -227,13 +227,13 @@ class Page:
                     cast_shadow=False, receive_shadow=False)
                 handle.on_drag("left")(self._on_drag)
                 self._meshes.append(handle)
-        self._tip = self.client.scene.add_icosphere("/fingertip", radius=0.015 * self.session.size,
+        self._tip = self.client.scene.add_icosphere("/fingertip", radius=0.015 * self.interaction.size,
                                                     color=(230, 60, 40), visible=False)
         self._spring = self.client.scene.add_line_segments("/spring", np.zeros((1, 2, 3), np.float32),
                                                            colors=(230, 60, 40), thickness=3.0,
                                                            thickness_units="screen", visible=False)
         self._meshes += [self._tip, self._spring]
-        size, centre = self.session.size, self.session.centre
+        size, centre = self.interaction.size, self.interaction.centre
         low = min(float(b.q0[:, 2].min()) for b in scene.bodies)   # the floor, just below the lowest node
         self.client.scene.add_grid("/floor", width=1.5 * size, height=1.5 * size, cell_size=size / 20,
                                    position=(centre[0], centre[1], low - 0.5 * scene.u_max - 0.01 * size))
@@ -249,20 +249,20 @@ class Page:
 
     def _frame_camera(self, camera) -> None:
         """Point ``camera`` (a tab's, or the server's initial one) at the scene, from its size."""
-        frame_camera(camera, self.session.centre, self.session.size)
+        frame_camera(camera, self.interaction.centre, self.interaction.size)
 
     def _on_drag(self, event) -> None:
         if event.phase == "start":
-            self.session.grab(event.start_position)
+            self.interaction.grab(event.start_position)
         elif event.phase == "update":
-            self.session.drag(event.end_position)
+            self.interaction.drag(event.end_position)
         else:
-            self.session.release()
+            self.interaction.release()
 
     # threads -----------------------------------------------------------------------------------------------
 
     def _physics(self) -> None:
-        """Step the session every 1/rate s (catching up at most one step, never piling up)."""
+        """Step the interaction every 1/rate s (catching up at most one step, never piling up)."""
         period = 1.0 / self.view.rate
         next_t = time.perf_counter()
         count, since = 0, time.perf_counter()
@@ -271,10 +271,10 @@ class Page:
                 self._switch()
                 next_t = time.perf_counter()
             try:
-                stepped = self.session.step()
+                stepped = self.interaction.step()
             except Exception as err:          # a model error must not kill the tab's physics
                 self._status.content = f"step failed: {type(err).__name__}: {err}"
-                self.session.reset()
+                self.interaction.reset()
                 stepped = False
             count += stepped
             with self._stepped:
@@ -296,9 +296,9 @@ class Page:
             return
         with self._drawing, self.client.atomic():     # not while a frame of the old scene is being sent
             self.scene_name, self.model = scene, model
-            paused = self.session.paused
-            self.session = Session(loaded)
-            self.session.pause(paused)
+            paused = self.interaction.paused
+            self.interaction = Interaction(loaded)
+            self.interaction.pause(paused)
             self._build_scene()
             self._framed = True               # the tab has long reported its camera: move it
             self._frame_camera(self.client.camera)
@@ -315,32 +315,32 @@ class Page:
                 self._stepped.wait(timeout=0.25)
             now = time.perf_counter()
             with self._drawing:
-                session = self.session
-                if (session.index, self.colour, id(session)) != self._sent:
+                interaction = self.interaction
+                if (interaction.index, self.colour, id(interaction)) != self._sent:
                     try:
-                        self._send(session)
+                        self._send(interaction)
                     except Exception as err:      # the tab closed while sending, or a bad frame: go on
                         if self._stop.is_set():
                             return
                         self._status.content = f"drawing failed: {type(err).__name__}: {err}"
-                        self._sent = (session.index, self.colour, id(session))
+                        self._sent = (interaction.index, self.colour, id(interaction))
                         continue
                     self.frame_ms = 1e3 * (time.perf_counter() - now)
                     count += 1
             if now - since >= 0.5:
                 self.frame_rate, count, since = count / (now - since), 0, now
                 self._status.content = (
-                    f"step **{session.step_ms:.1f} ms** · physics **{self.physics_rate:.0f}/s** · "
+                    f"step **{interaction.step_ms:.1f} ms** · physics **{self.physics_rate:.0f}/s** · "
                     f"frame **{self.frame_ms:.1f} ms** · queued **{self.frame_rate:.0f} frames/s**"
-                    + (f" · guard resets {session.resets}" if session.resets else "")
-                    + (" · paused" if session.paused else ""))
+                    + (f" · guard resets {interaction.resets}" if interaction.resets else "")
+                    + (" · paused" if interaction.paused else ""))
 
-    def _send(self, session: Session) -> None:
-        frame, colour = session.frame(), self.colour
-        lo, hi = session.scene.ranges[colour]
+    def _send(self, interaction: Interaction) -> None:
+        frame, colour = interaction.frame(), self.colour
+        lo, hi = interaction.scene.ranges[colour]
         with self.client.atomic():
             for k, (positions, values) in enumerate(zip(frame.positions, frame.values[colour])):
-                pieces = contour_bands(positions, values, session.scene.bodies[k].triangles, lo, hi, BANDS)
+                pieces = contour_bands(positions, values, interaction.scene.bodies[k].triangles, lo, hi, BANDS)
                 for j, (vertices, faces) in enumerate(pieces):
                     m = k * BANDS + j
                     if not len(faces) and self._empty[m]:
@@ -350,13 +350,13 @@ class Page:
                         vertices, faces = np.repeat(positions[:1], 3, 0).astype(np.float32), _EMPTY
                     self._meshes[m].vertices = vertices
                     self._meshes[m].faces = faces
-            spring = session.spring()
+            spring = interaction.spring()
             if spring is not None:
                 self._tip.position = tuple(float(x) for x in spring[1])
                 self._spring.points = np.asarray([spring], np.float32)
             if self._tip.visible != (spring is not None):
                 self._tip.visible = self._spring.visible = spring is not None
-        self._sent = (frame.index, colour, id(session))
+        self._sent = (frame.index, colour, id(interaction))
 
 
 def frame_camera(camera, centre, size: float) -> None:

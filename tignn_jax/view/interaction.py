@@ -1,6 +1,6 @@
 """One viewer's simulation: bodies pushed and pulled by a dragged fingertip, stepped at a fixed rate.
 
-A `Session` holds one page's state (the bodies' states z, the grab, the pause flag) and advances it by `step`,
+A `Interaction` holds one page's state (the bodies' states z, the grab, the pause flag) and advances it by `step`,
 one frame of the model per call. It knows nothing of the browser: `tignn_jax.view.server` calls `grab`, `drag`,
 `release` from the page's pointer events and `step` from a physics thread, and tests call them directly.
 
@@ -66,7 +66,7 @@ class Body(NamedTuple):
 
 
 class Scene(NamedTuple):
-    """What a `Session` simulates.
+    """What a `Interaction` simulates.
 
     Attributes:
       name: the scene's name as shown on the page.
@@ -97,7 +97,7 @@ class Frame(NamedTuple):
     index: int
 
 
-class Session:
+class Interaction:
     """One viewer's bodies, grab and clock.
 
     Thread-safe: `grab`, `drag`, `release`, `reset` and `pause` may be called from one thread while another
