@@ -33,11 +33,9 @@ def run(args) -> int:
     from tignn_jax.train import defaults, load_recipe
 
     named = args.config in defaults.NAMES
-    if not named:
-        if Path(args.config).suffix == ".py" and not Path(args.config).is_file():
-            raise UsageError(f"--config {args.config}: no recipe file {args.config!r}")
-        if Path(args.config).suffix != ".py" and not Path(args.config).exists():
-            raise UsageError(f"--config {args.config!r}: not a recipe file nor one of {', '.join(defaults.NAMES)}")
+    if not named and not Path(args.config).is_file():
+        raise UsageError(f"--config {args.config!r}: no recipe file by that name, "
+                         f"nor one of {', '.join(defaults.NAMES)}")
     for path in args.data:
         if not Path(path).exists():
             raise UsageError(f"--data {path}: no such file")

@@ -111,7 +111,7 @@ class CorotationalGeneric:
         `tignn_jax.simulators.linear`), ``q0`` and the free-node mask ``free`` [N, 1].
 
         Raises:
-          ValueError: an array is missing or sized for another mesh, or the iteration count is not positive.
+          ValueError: an array is missing or sized for another mesh, or the CG options are out of range.
         """
         c = self.config
         if not (isinstance(c.cg_iterations, (int, np.integer)) and c.cg_iterations >= 1):
@@ -478,7 +478,7 @@ def stress(arrays: dict, kin: _Kinematics, volume_change, n: int):
 
 
 def frame(arrays: dict, z, f, config: CorotationalConfig):
-    """z' [N, 12] of one frame (module docstring), ``iterations`` preconditioned CG iterations. Where the frame's
+    """z' [N, 12] of one frame (module docstring), its CG iterations as ``config`` says. Where the frame's
     step would have to be shortened to keep the energy budget (θ < 1), the frame is stepped instead as ``SPLIT``
     steps of Δt / ``SPLIT`` (each with its own budget), so a fast turn is followed rather than damped."""
     h = arrays["dt"].reshape(-1)[0].astype(z.dtype)

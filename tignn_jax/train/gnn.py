@@ -319,13 +319,8 @@ def train(data_path, config: TrainConfig, run_dir, split=("train", "val"), progr
         norm_np.update(parent["stored"]["norm"])
     mesh = {"q0": np.asarray(data.q0, np.float32), "senders": data.edges[0], "receivers": data.edges[1],
             "node_type": data.node_type}
-    if isinstance(data_path, (str, Path)):
-        first = data_path
-    elif isinstance(data_path, (list, tuple)) and not hasattr(data_path, "_fields") and data_path:
-        first = data_path[0]
-    else:      # data given in memory: no file to read the cells from
-        first = None
-    cells = D.cells(first) if isinstance(first, (str, Path)) else None
+    in_memory = isinstance(data_path, D.Dataset)      # as `_load` reads it: a Dataset has no file for the cells
+    cells = None if in_memory else D.cells(data_path if isinstance(data_path, (str, Path)) else data_path[0])
     stored = model.init(jax.random.PRNGKey(cfg.seed), norm_np, mesh)
     if parent is not None:
         stored["weights"] = parent["stored"]["weights"]
