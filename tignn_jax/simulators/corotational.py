@@ -41,7 +41,7 @@ the O(Δθ²) volume change a linearised step makes when the body turns by Δθ,
 nearly incompressible solid is of the size of the stress itself (see docs/research_log.md).
 
 Energy never created, by construction: with W = f · (q' − q) the work of the frame's forces, the step keeps
-E(z') ≤ E(z) + W. The frame's displacement is taken as θ h v' with θ the longest of 1, ½, …, 1/32, 0 whose
+E(z') ≤ E(z) + W (up to the float32 round-off of the energies, ``ROUNDOFF`` of |E(z)| + |W|). The frame's displacement is taken as θ h v' with θ the longest of 1, ½, …, 1/32, 0 whose
 potential energy fits that budget (θ = 1 unless the body turns fast, e.g. released from a large deformation: a
 linearised step moves nodes along straight lines, which stretches turning elements); v' is then scaled down to
 the budget left (an extra dissipation: M ≥ 0 still). θ = 0 always fits. A frame whose step had to be shortened
@@ -68,6 +68,7 @@ from tignn_jax.simulators import linear as LG
 STORED = ("cells", "ke", "se", "b", "volume", "kappa", "mass", "alpha", "dt", "mu_nodes")
 BACKTRACK = (1.0, 0.5, 0.25, 0.125, 0.0625, 0.03125, 0.0)   # the step lengths of the frame's line search
 SPLIT = 4   # steps a frame is split into where one step would have to be shortened (`frame`)
+ROUNDOFF = 2.0 ** -17   # relative round-off allowed in the energy budget E(z') ≤ E(z) + W (about 16 float32 ulps)
 POLAR_ITERATIONS = 5   # Higham's iteration R ← (R + R⁻ᵀ)/2: quadratic, exact at once for a rigid motion
 _VOIGT = ((0, 0), (1, 1), (2, 2), (0, 1), (0, 2), (1, 2))   # the data's stress order S11 S22 S33 S12 S13 S23
 
@@ -79,8 +80,9 @@ class CorotationalConfig(NamedTuple):
       cg_iterations: conjugate-gradient iterations every frame's linear solve makes (preconditioned by the turned
         rest operator; from rest one iteration is exact).
       cg_max_iterations: the most iterations a frame may make: past ``cg_iterations`` the solve goes on while the
-        preconditioned residual rᵀP r is above ``cg_tolerance``² times its start (a state far from the rest
-        operator's, e.g. a noisy or fast-turning one, needs more than the few iterations a smooth frame does).
+        preconditioned residual rᵀP r is above ``cg_tolerance``² times the right-hand side's bᵀA⁻¹b (a state far
+        from the rest operator's, e.g. a noisy or fast-turning one, needs more than the few iterations a smooth
+        frame does).
       cg_tolerance: that relative residual.
     """
     cg_iterations: int = 3
@@ -480,14 +482,22 @@ def stress(arrays: dict, kin: _Kinematics, volume_change, n: int):
 def frame(arrays: dict, z, f, config: CorotationalConfig):
     """z' [N, 12] of one frame (module docstring), its CG iterations as ``config`` says. Where the frame's
     step would have to be shortened to keep the energy budget (θ < 1), the frame is stepped instead as ``SPLIT``
-    steps of Δt / ``SPLIT`` (each with its own budget), so a fast turn is followed rather than damped."""
+    steps of Δt / ``SPLIT`` (each with its own budget), so a fast turn is followed rather than damped. One loop
+    runs both (a single copy of the step in the compiled program): one step of Δt, or that step's restart as
+    ``SPLIT`` short ones."""
     h = arrays["dt"].reshape(-1)[0].astype(z.dtype)
-    z1, theta = _step(arrays, z, f, config, h)
 
-    def split(_):
-        return jax.lax.fori_loop(0, SPLIT, lambda _, zz: _step(arrays, zz, f, config, h / SPLIT)[0], z)
+    def body(carry):
+        zk, k, split = carry
+        z1, theta = _step(arrays, zk, f, config, jnp.where(split, h / SPLIT, h))
+        redo = jnp.logical_not(split) & (theta < 1.0)     # the full step fell short: start again, split
+        return jnp.where(redo, z, z1), jnp.where(redo, 0, k + 1), split | redo
 
-    return jax.lax.cond(theta == 1.0, lambda _: z1, split, None)
+    def more(carry):
+        _, k, split = carry
+        return k < jnp.where(split, SPLIT, 1)
+
+    return jax.lax.while_loop(more, body, (z, jnp.zeros((), jnp.int32), jnp.zeros((), bool)))[0]
 
 
 def _step(arrays: dict, z, f, config: CorotationalConfig, h):
@@ -513,31 +523,34 @@ def _step(arrays: dict, z, f, config: CorotationalConfig, h):
     p = precondition(r)
     d, rz = p, jnp.vdot(r, p)
     first, most = int(config.cg_iterations), int(config.cg_max_iterations)
-    bound = jnp.asarray(config.cg_tolerance, z.dtype) ** 2 * rz
+    # the solve goes on while rᵀPr > tol² bᵀA⁻¹b, with bᵀA⁻¹b ≈ bᵀ(P r₀ + x₀) (P ≈ A⁻¹, r₀ = b − A x₀): relative
+    # to the right-hand side, not to the first residual, which is at round-off in a held frame (x₀ = v is the
+    # answer) and could never be reduced by tol there
+    bound = jnp.asarray(config.cg_tolerance, z.dtype) ** 2 * jnp.maximum(rz, jnp.vdot(rhs, p + v))
 
-    def iteration(carry, direction: bool = True):
+    def iteration(carry):
         x, r, d, rz, i = carry
         ad = apply_a(d)
         dad = jnp.vdot(d, ad)
         step = jnp.where(dad > 0, rz / jnp.where(dad > 0, dad, 1.0), 0.0)
         x, r = x + step * d, r - step * ad
-        if not direction:   # the last iteration needs no new direction
-            return x, r, d, rz, i + 1
         p = precondition(r)
         rz_new = jnp.vdot(r, p)
         d = p + jnp.where(rz > 0, rz_new / jnp.where(rz > 0, rz, 1.0), 0.0) * d
         return x, r, d, rz_new, i + 1
 
-    carry = (x, r, d, rz, 0)
-    for i in range(first):   # unrolled: the iterations every frame makes
-        carry = iteration(carry, direction=i + 1 < first or most > first)
-    if most > first:         # then on while the residual is large
-        carry = jax.lax.while_loop(lambda c: (c[4] < most) & (c[3] > bound), iteration, carry)
-    v1 = carry[0] * free
+    def more(carry):   # the first iterations always, then on while the residual is large
+        i, rz = carry[4], carry[3]
+        return (i < first) | ((i < most) & (rz > bound))
+
+    v1 = jax.lax.while_loop(more, iteration, (x, r, d, rz, jnp.zeros((), jnp.int32)))[0] * free
     # energy never created, E(z') ≤ E(z) + W: the longest of the steps θ h v' (θ in BACKTRACK) whose potential
     # fits the budget, P(u + θ h v') ≤ E(z) + θ W with W = f · h v' (θ = 0 always fits)
     e0 = 0.5 * jnp.sum(m * v * v) + potential(arrays, kin)
     work = jnp.sum(f * h * v1 * free)
+    # the energies' round-off (float32 sums over the elements): a held frame's true change is far below it, and
+    # without this allowance half such frames would be shortened for nothing
+    e0 = e0 + ROUNDOFF * (jnp.abs(e0) + jnp.abs(work))
     full = kinematics(arrays, u + h * v1)
 
     def shorten(_):
