@@ -228,19 +228,20 @@ def from_fem(problem, material, frame_dt: float | None = None) -> dict:
 
 def element_last(stored: dict, n: int) -> dict:
     """The step's layouts of the element arrays, components first and elements last: ``cells_t`` [n_e, K],
-    ``incidence`` [N, w] (`fem.elements.incidence_table`), ``b_t`` and ``x0e_t`` [3, n_e, K], ``ke_t``
-    [3n_e, 3n_e, K] and ``se_t`` [6, 3n_e, K] with rows and columns n_e i + a (component i of node a), ``wnode_t``
-    [n_e, K]."""
+    ``incidence`` [N, w] (`fem.elements.incidence_table`), ``b_t`` and ``x0e_t`` [3, n_e, K], ``ke_f``
+    [K, 3n_e, 3n_e] (elements first: applied by one batched product, three times faster here than element-last
+    multiply-adds) and ``se_t`` [6, 3n_e, K], with rows and columns n_e i + a (component i of node a),
+    ``wnode_t`` [n_e, K]."""
     from fem.elements import incidence_table
 
     cells = np.asarray(stored["cells"]).astype(np.int32)
     k, per = cells.shape
-    ke = np.asarray(stored["ke"], np.float32).reshape(k, per, 3, per, 3).transpose(2, 1, 4, 3, 0)
+    ke = np.asarray(stored["ke"], np.float32).reshape(k, per, 3, per, 3).transpose(0, 2, 1, 4, 3)
     se = np.asarray(stored["se"], np.float32).reshape(k, 6, per, 3).transpose(1, 3, 2, 0)
     return {"cells_t": np.ascontiguousarray(cells.T), "incidence": incidence_table(cells, n),
             "b_t": np.ascontiguousarray(np.asarray(stored["b"], np.float32).transpose(2, 1, 0)),
             "x0e_t": np.ascontiguousarray(np.asarray(stored["x0e"], np.float32).transpose(2, 1, 0)),
-            "ke_t": np.ascontiguousarray(ke.reshape(3 * per, 3 * per, k)),
+            "ke_f": np.ascontiguousarray(ke.reshape(k, 3 * per, 3 * per)),
             "se_t": np.ascontiguousarray(se.reshape(6, 3 * per, k)),
             "wnode_t": np.ascontiguousarray(np.asarray(stored["wnode"], np.float32).T)}
 
@@ -273,7 +274,7 @@ def _nodal_rest_stiffness(stored: dict, n: int, chunk: int = 192) -> np.ndarray:
     with jax.enable_x64(True):
         arrays = {k: jnp.asarray(np.asarray(stored[k], np.float64) if np.asarray(stored[k]).dtype.kind == "f"
                                  else np.asarray(stored[k])) for k in keys}
-        arrays["ke_t"] = jnp.zeros((12, 12, arrays["cells_t"].shape[1]), jnp.float64)
+        arrays["ke_f"] = jnp.zeros((arrays["cells_t"].shape[1], 12, 12), jnp.float64)
         u0 = jnp.zeros((n, 3), jnp.float64)
         fn = jax.jit(jax.vmap(lambda d: jax.jvp(lambda u: internal_force(arrays, kinematics(arrays, u), n),
                                                 (u0,), (d,))[1]))
@@ -317,8 +318,7 @@ def _rotate(R, x, transpose: bool = False):
 
 def _apply_ke(arrays, x):
     """K_e x for x [3n_e, K] (the elements' deviatoric stiffness, element-last)."""
-    ke = arrays["ke_t"].astype(x.dtype)
-    return _sum(lambda c: ke[:, c] * x[c][None], ke.shape[1])
+    return jnp.einsum("kij,jk->ik", arrays["ke_f"].astype(x.dtype), x)
 
 
 def kinematics(arrays: dict, u) -> _Kinematics:
