@@ -14,7 +14,8 @@ largest difference of the beam's length (its centre line, the mean of the four i
 frames whose energy rose by more than the forces' work (the model's ``diagnostics``: D < −1e-4 · E, above the
 float32 rounding of the energies). Then the
 step time of each model on a frame of the 1× ramp (p50 of ``--repeats`` interleaved calls after compilation, one
-process) and its ratio to the learned linear beam's, measured in the same run.
+process) and its ratio to the learned linear beam's, measured in the same run; and the p50 and p99 of every frame
+of the cases above, each timed alone (a model whose step is slower on some frames shows it there).
 
 With ``--cells tetra`` the same beam is split into six tets per hex (`fem.hex_to_tet`, the FEM's nodal tet4) and
 the models are the FEM's rest linearisation and the corotational model of that tet mesh (nodal volume change);
@@ -118,15 +119,17 @@ def run_model(params, forces):
     diag = jax.jit(lambda z, f, z1: params["model"].diagnostics(params["arrays"], z, f, z1))
     q0 = np.asarray(params["mesh"]["q0"], np.float32)
     z = jnp.asarray(np.concatenate([q0, np.zeros((len(q0), 9), np.float32)], axis=1))
-    zs, created = [], 0
+    zs, created, ms = [], 0, []
     for f in forces:
         f = jnp.asarray(f, jnp.float32)
-        z1 = step(z, f)
+        t = time.perf_counter()
+        z1 = step(z, f).block_until_ready()
+        ms.append(1e3 * (time.perf_counter() - t))
         d = diag(z, f, z1)
         created += int(float(d["dissipation"]) < -1e-4 * max(abs(float(d["energy"])), 1.0))
         zs.append(np.asarray(z1, np.float64))
         z = z1
-    return np.array(zs), created
+    return np.array(zs), created, ms[1:]   # the first call compiles
 
 
 def metrics(zs, q_ref, s_ref, q0, cells, line) -> dict:
@@ -171,6 +174,13 @@ def report(result) -> str:
               "|---|---|---|"]
     for name, t in result["step_ms"].items():
         lines.append(f"| {name} | {t['p50']:.2f} | {t['ratio']:.2f} |")
+    lines += ["", "Every frame of the cases above timed alone (`stepper` call to a ready result, the model's "
+              "diagnostics between frames; the first call of each model, which compiles, left out): how steady the "
+              "step is along ramps, holds and releases (the goal: p99 ≤ 1.5 × p50).", "",
+              "| model | frames | p50 ms | p99 ms | max ms | p99 / p50 |", "|---|---|---|---|---|---|"]
+    for name, t in result["frame_ms"].items():
+        lines.append(f"| {name} | {t['frames']} | {t['p50']:.2f} | {t['p99']:.2f} | {t['max']:.2f} | "
+                     f"{t['p99'] / t['p50']:.2f} |")
     lines += ["", f"Machine: {m['cpu']}, {m['cores']} cores, jax {m['jax']} ({m['backend']}), load average "
               f"{m['load_average_1m']} at the start. FEM reference: {result['reference']}."]
     return "\n".join(lines) + "\n"
@@ -197,7 +207,7 @@ def main(argv=None) -> int:
     scene = beam(args.cells)
     q0, cells, line = np.asarray(scene.points, np.float64), np.asarray(scene.cells), centre_line(scene.points)
     params = models(args.cells)
-    rows = []
+    rows, frame_ms = [], {name: [] for name in params}
     for label, scale, mode in LOADS:
         if args.quick and label not in QUICK_LOADS:
             continue
@@ -206,7 +216,8 @@ def main(argv=None) -> int:
         q_ref, s_ref = reference(forces, explicit=mode == "release", cells=args.cells)
         print(f"{label}: FEM reference {time.perf_counter() - t:.0f} s", flush=True)
         for name, p in params.items():
-            zs, created = run_model(p, forces)
+            zs, created, ms = run_model(p, forces)
+            frame_ms[name] += ms
             rows.append({"model": name, "load": label, **metrics(zs, q_ref, s_ref, q0, cells, line),
                          "energy_creating_frames": created})
     import tignn_jax
@@ -227,6 +238,8 @@ def main(argv=None) -> int:
     result = {"machine": machine, "quick": args.quick, "frames": frames, "case": CASE, "cells": args.cells,
               "rows": rows,
               "step_ms": step_ms,
+              "frame_ms": {name: {"frames": len(t), "p50": float(np.median(t)), "p99": float(np.percentile(t, 99)),
+                                  "max": float(np.max(t))} for name, t in frame_ms.items()},
               "reference": "fem.implicit.simulate_implicit, max_newton=25 (release: the explicit fem.simulate)"}
     name = "large_deformation" + ("_tet" if args.cells == "tetra" else "")
     write_results(name, result, report(result), Path(args.out))
