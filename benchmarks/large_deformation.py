@@ -175,7 +175,7 @@ def report(result) -> str:
     for name, t in result["step_ms"].items():
         lines.append(f"| {name} | {t['p50']:.2f} | {t['ratio']:.2f} |")
     lines += ["", "Every frame of the cases above timed alone (`stepper` call to a ready result, the model's "
-              "diagnostics between frames; the first call of each model, which compiles, left out): how steady the "
+              "diagnostics between frames; each case's first call, which may compile, left out): how steady the "
               "step is along ramps, holds and releases (the goal: p99 ≤ 1.5 × p50).", "",
               "| model | frames | p50 ms | p99 ms | max ms | p99 / p50 |", "|---|---|---|---|---|---|"]
     for name, t in result["frame_ms"].items():

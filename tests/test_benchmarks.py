@@ -1,7 +1,8 @@
 """Smoke tests of the product benchmarks (benchmarks/model_step.py, stability.py, pareto.py, scaling.py,
-fem_implicit.py, fem_throughput.py, abaqus_agreement.py, datasets.py): each runs in its quick or small-argument
-mode, in a fresh process, into a temporary results folder, and writes its .json and .md (and .png where it draws
-one) with the expected rows. Every option has a help text."""
+fem_implicit.py, large_deformation.py, fem_throughput.py, abaqus_agreement.py, datasets.py,
+diffrax_integrators.py): each runs in its quick or small-argument mode, in a fresh process, into a temporary
+results folder, and writes its .json and .md (and .png where it draws one) with the expected rows. Every option
+has a help text."""
 import json
 import subprocess
 import sys
@@ -73,6 +74,21 @@ def test_stability_quick_runs_every_loading_with_and_without_guards(tmp_path):
         assert len(run["series"]["u_max"]) == 41 and run["energy"]["dissipative_fraction"] == 1.0
         assert f"| beam | {name} | beam |" in md
     assert "| beam | noise | fallback |" in md
+
+
+@pytest.mark.long
+def test_large_deformation_quick_compares_the_models_with_the_fem_and_times_every_frame(tmp_path):
+    _bench("large_deformation", "--quick", "--out", str(tmp_path), timeout=600)
+    result, md = _results(tmp_path, "large_deformation")
+    assert result["quick"] and result["frames"] == 24
+    models = {r["model"] for r in result["rows"]}
+    assert {r["load"] for r in result["rows"]} == {"1x hold", "3x hold"} and len(models) == 3
+    corot = [r for r in result["rows"] if r["model"].startswith("corotational")]
+    assert all(r["finite"] and r["energy_creating_frames"] == 0 and r["u_error"] < 0.05 for r in corot), corot
+    assert set(result["frame_ms"]) == models == set(result["step_ms"])
+    for t in result["frame_ms"].values():   # 2 cases of 24 frames, each case's first call left out
+        assert t["frames"] == 46 and 0 < t["p50"] <= t["p99"] <= t["max"]
+    assert "p99 / p50" in md
 
 
 @pytest.mark.long
