@@ -38,6 +38,37 @@ def fingertip_forces(tips, positions, normals, radius, magnitude) -> Array:
     return -magnitude * touched[:, None] * normals
 
 
+def fingertip_contact_forces(tips, positions, normals, radius, stiffness) -> Array:
+    """The nodal forces of rigid fingertips (spheres) pressed into a body's surface, by a penalty spring.
+
+    Every surface node inside a fingertip's sphere is pushed out of it along the line from the sphere's centre,
+    in proportion to how deep it is, as a rigid ball pressed into a soft solid::
+
+        f_i = stiffness · Σ_k max(radius - |x_i - t_k|, 0) · (x_i - t_k) / |x_i - t_k|   (n_i ≠ 0).
+
+    Unlike `fingertip_forces` (a fixed force per node on a patch, like the training data's loads) the load follows
+    the press: the deeper the fingertip, the larger the force, so the surface stays on the fingertip instead of
+    the fingertip sinking through a body that yields, and nodes on the far side of the body are never pulled.
+    For models that hold at any load (the corotational model): a learned model is kept to its training loads.
+
+    Args:
+      tips: [K, 3] fingertip centres in the body's model frame; a missing fingertip is a row of NaN.
+      positions: [N, 3] current nodal positions (model units).
+      normals: [N, 3] outward unit normals, zero for interior nodes (only surface nodes are pushed).
+      radius: the fingertip's radius (model units).
+      stiffness: force per model length of penetration, per node (model force units per length).
+
+    Returns:
+      [N, 3] nodal forces.
+    """
+    offset = positions[None, :, :] - tips[:, None, :]                                   # [K, N, 3]
+    distance = jnp.linalg.norm(offset, axis=-1)
+    depth = jnp.where(distance < radius, radius - distance, 0.0)                        # NaN compares false
+    direction = offset / jnp.where(distance > 0, distance, 1.0)[..., None]
+    surface = jnp.any(normals != 0, axis=-1)[:, None]
+    return stiffness * surface * jnp.sum(depth[..., None] * direction, axis=0)
+
+
 def contact_forces(positions_a, positions_b, radius, stiffness, capacity: int | None = None):
     """Penalty contact between two bodies.
 

@@ -27,7 +27,7 @@ import numpy as np
 
 from tignn_jax.mr.background import Background, hand_proxy
 from tignn_jax.mr.camera import Camera, camera_projection, project, transform_points, unproject
-from tignn_jax.mr.forcing import contact_forces, fingertip_forces
+from tignn_jax.mr.forcing import contact_forces, fingertip_contact_forces, fingertip_forces
 from tignn_jax.mr.render import colour_map, draw_mesh, fragment_capacity, occlude, von_mises
 from tignn_jax.mr.surface import surface_nodes, vertex_normals
 
@@ -47,6 +47,10 @@ class Body(NamedTuple):
         checks on values: `run` jits all bodies' steps together).
       tip_radius: the fingertip's contact radius (model units; `tignn_jax.mr.forcing.fingertip_forces`).
       tip_force: the fingertip's force per node (model force units).
+      tip_stiffness: when set, the fingertip is a rigid sphere of ``tip_radius`` that pushes surface nodes out of
+        it by a penalty spring of this stiffness (force per model length;
+        `tignn_jax.mr.forcing.fingertip_contact_forces`) and ``tip_force`` is unused; when None, a fixed
+        ``tip_force`` per node on the patch the fingertip touches (`fingertip_forces`).
       vmax: the value shown at the top of the colour map (the von Mises stress of σ, or the displacement
         magnitude, see ``Scene.colour_by``), whose bottom is 0.
       guard: optional jit-able ``z -> bool``, True where this body's new state must not be shown (as
@@ -62,6 +66,7 @@ class Body(NamedTuple):
     tip_force: float
     vmax: float
     guard: Callable | None = None
+    tip_stiffness: float | None = None
 
 
 class Scene(NamedTuple):
@@ -513,8 +518,11 @@ def build(scene: Scene):
         for b, z, inv, tri in zip(scene.bodies, zs, inverses, tris):
             q = z[:, :3]
             normals = vertex_normals(q, tri)
-            out.append(fingertip_forces(transform_points(inv, world_tips), q, normals,
-                                           b.tip_radius, b.tip_force))
+            local_tips = transform_points(inv, world_tips)
+            if b.tip_stiffness is None:
+                out.append(fingertip_forces(local_tips, q, normals, b.tip_radius, b.tip_force))
+            else:
+                out.append(fingertip_contact_forces(local_tips, q, normals, b.tip_radius, b.tip_stiffness))
         world = [transform_points(m, z[:, :3])[s] for m, z, s in zip(models, zs, surfaces)]
         for i in range(n if scene.contact_radius > 0 else 0):   # no contact: no neighbour search at all
             for j in range(i + 1, n):
@@ -635,6 +643,8 @@ def validate(scene: Scene) -> None:
             raise ValueError(f"bodies[{k}].step_fn must be callable (or give the scene a step), got {b.step_fn!r}")
         if not (b.tip_radius > 0 and b.vmax > 0):
             raise ValueError(f"bodies[{k}] needs tip_radius > 0 and vmax > 0, got {b.tip_radius}, {b.vmax}")
+        if b.tip_stiffness is not None and not b.tip_stiffness > 0:
+            raise ValueError(f"bodies[{k}].tip_stiffness must be positive (or None), got {b.tip_stiffness!r}")
 
 
 def _world_mesh(scene: Scene, zs):
