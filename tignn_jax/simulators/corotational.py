@@ -40,13 +40,13 @@ one. Taken from J_e(q') it would carry
 the O(Δθ²) volume change a linearised step makes when the body turns by Δθ, which times the bulk modulus of a
 nearly incompressible solid is of the size of the stress itself (see docs/research_log.md).
 
-Energy never created, by construction: with W = f · (q' − q) the work of the frame's forces, the step keeps
-E(z') ≤ E(z) + W (up to the float32 round-off of the energies, ``ROUNDOFF`` of |E(z)| + |W|). The frame's displacement is taken as θ h v' with θ the longest of 1, ½, …, 1/32, 0 whose
-potential energy fits that budget (θ = 1 unless the body turns fast, e.g. released from a large deformation: a
-linearised step moves nodes along straight lines, which stretches turning elements); v' is then scaled down to
-the budget left (an extra dissipation: M ≥ 0 still). θ = 0 always fits. A frame whose step had to be shortened
-is stepped again from its start as four steps of Δt/4, each kept within its own budget (`frame`). Clamped nodes
-(node_type ≠ 0) keep q and v.
+Energy never created, by construction: with W = f · (q' − q) the work of the frame's forces, the step keeps E(z') ≤ E(z)
++ W (up to the float32 round-off of the energies, ``ROUNDOFF`` of |E(z)| + |W|). The frame's displacement is taken as θ
+h v' with θ the longest of 1, ½, …, 1/32, 0 whose potential energy fits that budget (θ = 1 unless the body turns fast,
+e.g. released from a large deformation: a linearised step moves nodes along straight lines, which stretches turning
+elements); v' is then scaled down to the budget left (an extra dissipation: M ≥ 0 still). θ = 0 always fits. A frame
+whose step had to be shortened is stepped again from its start as four steps of Δt/4, each kept within its own budget
+(`frame`). Clamped nodes (node_type ≠ 0) keep q and v.
 
 Made from the FEM's own element operators (`from_fem`): not learned. Accuracy against the FEM at loads past the
 training range: ``benchmarks/large_deformation.py``.
