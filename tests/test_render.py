@@ -414,6 +414,27 @@ def test_colour_by_displacement_draws_without_stress():
         mr.run(scene._replace(colour_by="temperature"))
 
 
+def test_clamped_nodes_are_drawn_in_the_clamp_colour_and_the_legend_names_them():
+    # the supports show: the box's clamped end (x = 0) is drawn in CLAMP_COLOUR, not the colour map; the pixels it
+    # changes turn from the map's blue-purple towards that brick red (shaded, and interpolated over the elements
+    # next to the clamp), and the legend's swatch carries the exact colour and its name
+    scene, _ = _demo_scene(frames=1)
+    body = scene.bodies[0]
+    clamped = np.asarray(body.q0)[:, 0] == 0.0
+    plain, marked = [], []
+    mr.run(scene, write=lambda i, rgb: plain.append(rgb))
+    mr.run(scene._replace(bodies=(body._replace(clamped=clamped),)), write=lambda i, rgb: marked.append(rgb))
+    changed = np.any(plain[0] != marked[0], axis=-1)
+    assert changed.sum() > 20
+    red, before = marked[0][changed].astype(float), plain[0][changed].astype(float)
+    assert np.mean((red[:, 0] - red[:, 2]) - (before[:, 0] - before[:, 2])) > 30
+    framed = mr.with_legend(marked[0], 0.0, body.vmax, "von Mises stress", swatches=(("clamped", mr.CLAMP_COLOUR),))
+    swatch = np.round(255 * np.asarray(mr.CLAMP_COLOUR)).astype(np.uint8)
+    assert np.all(framed == swatch, axis=-1).sum() >= 100    # a 14 x 14 square less its outline
+    with pytest.raises(ValueError, match="clamped"):
+        mr.validate(scene._replace(bodies=(body._replace(clamped=clamped[:-1]),)))
+
+
 def test_guard_resets_bodies_whose_state_goes_bad():
     # A step that produces NaN once touched: the guard rejects the state and the body shows its rest state.
     scene, _ = _demo_scene(frames=6)

@@ -336,6 +336,9 @@ def test_a_mouse_drag_in_chromium_pushes_the_beam():
             browser.close()
         _wait(lambda: not view.pages, 20, "the closed browser's tab to be dropped")
         assert np.abs(pushed - rest).mean() > 1.0                    # the page shows the bent, coloured beam
+        from tignn_jax.mr.scene import CLAMP_COLOUR                   # and its clamped end, marked in that colour
+        clamp = np.all(np.abs(rest - 255 * np.asarray(CLAMP_COLOUR)) < 40, axis=-1)
+        assert clamp.sum() > 20, clamp.sum()
         assert not [e for e in errors if not any(b in e for b in BENIGN)], errors
         assert not outside, outside                                   # nothing fetched from the network
     finally:

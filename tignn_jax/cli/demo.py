@@ -133,7 +133,8 @@ def run(args) -> int:
     t0 = time.perf_counter()
     label = "von Mises stress" if scene.colour_by == "stress" else "displacement |u|"
     vmax = scene.bodies[0].vmax
-    imageio.mimsave(gif, [mr.with_legend(f, 0.0, vmax, f"{label} (data units)") for f in frames],
+    swatches = (("clamped", mr.CLAMP_COLOUR),) if any(b.clamped is not None for b in scene.bodies) else ()
+    imageio.mimsave(gif, [mr.with_legend(f, 0.0, vmax, f"{label} (data units)", swatches=swatches) for f in frames],
                     duration=1 / 30, loop=0)
     summary = {"scene": args.scene, "dynamics": dynamics, "image": [scene.camera.width, scene.camera.height],
                "cores": args.cores, "pinned_cpus": list(pinned),
@@ -236,7 +237,7 @@ def build_scene(name: str, frames: int, model: str | None = None, stand_in: bool
     z0 = np.concatenate([q0, np.zeros((len(q0), 9), np.float32)], axis=1)
     bodies = tuple(mr.Body(q0=q0, triangles=triangles, model=np.asarray(m), z=z0, step_fn=step_fn,
                            tip_radius=tip_radius, tip_force=tip_force, vmax=vmax,
-                           guard=getattr(step_fn, "guard", None)) for m in poses)
+                           guard=getattr(step_fn, "guard", None), clamped=clamped) for m in poses)
     world_point = np.asarray(mr.transform_points(poses[press_body], jnp.asarray([press_at], jnp.float32)))[0]
     world_normal = np.asarray(poses[press_body])[:3, :3] @ np.asarray(normal, np.float64)
     world_normal /= np.linalg.norm(world_normal)
@@ -340,7 +341,8 @@ def own_scene(model: str, frames: int, size: tuple = SIZE):
     triangles = mr.surface_triangles(cells, q0_model)
     z0 = np.concatenate([q0_model, np.zeros((len(q0_model), 9), np.float32)], axis=1)
     body = mr.Body(q0=q0_model, triangles=triangles, model=pose, z=z0, step_fn=step_fn, tip_radius=tip_radius,
-                   tip_force=tip_force, vmax=max(sigma_scale, 1e-12), guard=getattr(step_fn, "guard", None))
+                   tip_force=tip_force, vmax=max(sigma_scale, 1e-12), guard=getattr(step_fn, "guard", None),
+                   clamped=np.asarray(mesh["node_type"]) != 0)
     point = np.asarray(mr.transform_points(pose, jnp.asarray([q0[nodes[pick]]], jnp.float32)))[0]
     track = mr.press_track(cam, point, world_normals[pick], frames, approach=0.15 * 0.2, press=0.05 * 0.2)
     fallback = getattr(step_fn, "fallback", None)

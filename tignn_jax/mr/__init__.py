@@ -27,7 +27,7 @@ from tignn_jax.mr.legend import with_legend
 from tignn_jax.mr.render import (Raster, colour_map, draw_mesh, fragment_capacity, occlude, phong, rasterize,
                                  von_mises)
 from tignn_jax.mr.runtime import REAL_TIME_XLA_FLAG, cpu_devices, pin_cores, real_time_cores, real_time_xla_flags
-from tignn_jax.mr.scene import Body, Scene, StepFn, Timings, build, make_render_fn, run, validate
+from tignn_jax.mr.scene import CLAMP_COLOUR, Body, Scene, StepFn, Timings, build, make_render_fn, run, validate
 from tignn_jax.mr.surface import HEX8_FACES, TET4_FACES, surface_nodes, surface_triangles, vertex_normals
 from tignn_jax.mr.hands import hand_to_tips
 from tignn_jax.mr.track import load_track, press_track, save_track
@@ -48,7 +48,7 @@ __all__ = [
     # track
     "load_track", "press_track", "save_track", "hand_to_tips",
     # scene
-    "Body", "Scene", "StepFn", "Timings", "build", "make_render_fn", "run", "validate",
+    "CLAMP_COLOUR", "Body", "Scene", "StepFn", "Timings", "build", "make_render_fn", "run", "validate",
     # runtime
     "REAL_TIME_XLA_FLAG", "cpu_devices", "pin_cores", "real_time_cores", "real_time_xla_flags",
 ]

@@ -9,7 +9,8 @@ import numpy as np
 from tignn_jax.mr.render import colour_map
 
 
-def with_legend(rgb, vmin: float, vmax: float, label: str, width: int = 14, height: int | None = None):
+def with_legend(rgb, vmin: float, vmax: float, label: str, width: int = 14, height: int | None = None,
+                swatches: tuple = ()):
     """The frame with a vertical colour bar in its top-right corner, labelled with ``label`` and the values at
     its ends.
 
@@ -19,6 +20,8 @@ def with_legend(rgb, vmin: float, vmax: float, label: str, width: int = 14, heig
       label: the quantity and its units, e.g. "von Mises stress (data units)".
       width: the bar's width in pixels.
       height: the bar's height in pixels (default: 40 % of the frame's).
+      swatches: (name, (r, g, b) in [0, 1]) entries drawn as small labelled squares below the bar, for colours
+        that are not values of the map (e.g. the clamped nodes', `tignn_jax.mr.scene.CLAMP_COLOUR`).
 
     Returns:
       [H, W, 3] uint8: a copy of the frame with the legend.
@@ -51,4 +54,10 @@ def with_legend(rgb, vmin: float, vmax: float, label: str, width: int = 14, heig
     draw.text((right + width + 3, top + height - 10), f"{vmin:.3g}", fill=(0, 0, 0), font=font)
     text_w = draw.textlength(label, font=font)
     draw.text((max(2, w - 4 - text_w), 4), label, fill=(0, 0, 0), font=font)
+    for k, (name, colour) in enumerate(swatches):
+        y = top + height + 10 + 18 * k
+        x = min(right, w - 4 - width - 3 - int(draw.textlength(str(name), font=font)))   # its name inside the frame
+        draw.rectangle([x - 1, y - 1, x + width, y + width],
+                       fill=tuple(int(round(255 * c)) for c in colour), outline=(0, 0, 0))
+        draw.text((x + width + 3, y), str(name), fill=(0, 0, 0), font=font)
     return np.asarray(image)

@@ -34,6 +34,9 @@ from tignn_jax.mr.surface import surface_nodes, vertex_normals
 StepFn = Callable[[jax.Array, jax.Array], jax.Array]
 
 
+CLAMP_COLOUR = (0.62, 0.24, 0.18)   # the supports' colour (brick red: outside the colour map and the table's greys)
+
+
 class Body(NamedTuple):
     """A virtual solid.
 
@@ -52,6 +55,8 @@ class Body(NamedTuple):
       guard: optional jit-able ``z -> bool``, True where this body's new state must not be shown (as
         ``Scene.guard``, for one body; with ``Scene.devices`` it runs in the body's own step program on its
         device).
+      clamped: optional [N] bool, the nodes held fixed (the model's node_type ≠ 0): drawn in ``CLAMP_COLOUR``
+        instead of the colour map, so the supports show.
     """
     q0: np.ndarray
     triangles: np.ndarray
@@ -62,6 +67,7 @@ class Body(NamedTuple):
     tip_force: float
     vmax: float
     guard: Callable | None = None
+    clamped: np.ndarray | None = None
 
 
 class Scene(NamedTuple):
@@ -635,6 +641,9 @@ def validate(scene: Scene) -> None:
             raise ValueError(f"bodies[{k}].step_fn must be callable (or give the scene a step), got {b.step_fn!r}")
         if not (b.tip_radius > 0 and b.vmax > 0):
             raise ValueError(f"bodies[{k}] needs tip_radius > 0 and vmax > 0, got {b.tip_radius}, {b.vmax}")
+        if b.clamped is not None and np.asarray(b.clamped).shape != (n,):
+            raise ValueError(f"bodies[{k}].clamped must be [{n}] (one flag per node), got "
+                             f"{np.asarray(b.clamped).shape}")
 
 
 def _world_mesh(scene: Scene, zs):
@@ -643,7 +652,10 @@ def _world_mesh(scene: Scene, zs):
         positions.append(transform_points(jnp.asarray(b.model, jnp.float32), z[:, :3]))
         value = (von_mises(z[:, 6:12]) if scene.colour_by == "stress"
                  else jnp.linalg.norm(z[:, :3] - jnp.asarray(b.q0, z.dtype), axis=1))
-        colours.append(colour_map(value, 0.0, b.vmax))
+        colour = colour_map(value, 0.0, b.vmax)
+        if b.clamped is not None:
+            colour = jnp.where(jnp.asarray(b.clamped)[:, None], jnp.asarray(CLAMP_COLOUR, colour.dtype), colour)
+        colours.append(colour)
     return jnp.concatenate(positions), jnp.concatenate(colours)
 
 
