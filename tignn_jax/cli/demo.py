@@ -38,6 +38,8 @@ from tignn_jax.cli import UsageError
 BUNNY_PRESS_NODE = 917
 # the shipped learned linear GENERIC models (`tignn_jax.simulators.LinearGeneric`): stable without a guard
 DEFAULT_MODELS = {"beam": "beam", "two-beams": "beam", "bunny": "bunny"}
+TIP_STIFFNESS = 2.0e4   # the beams' fingertip pressing by depth: force per beam length of depth, per node
+DEEP_PRESS = 0.07       # how far past the beam's surface that fingertip goes (m: 14 beam lengths of 40)
 # ``--model fem-newton``: the FEM's own backward-Euler frame step (`tignn_jax.newton.fem_stepper`, 2 Newton
 # iterations of 3 CG each), not learned, on the mesh of the scene's rest-linearised model
 FEM_NEWTON = "fem-newton"
@@ -226,6 +228,9 @@ def build_scene(name: str, frames: int, model: str | None = None, stand_in: bool
         step_fn, dynamics, q0, units = _fem_newton(LINEAR_OF_SCENE[name], q0)
     else:
         step_fn, dynamics, q0, units = _dynamics(model, q0, LINEAR_OF_SCENE[name])
+    # a model that holds at any load (`_dynamics`): the fingertip presses by depth, deep enough to bend the upper
+    # beam onto the lower one; any other model: a fixed force per node, as in its data
+    deep = getattr(step_fn, "large_deformations", False) and name in ("two-beams", "beam")
     if units != 1.0:   # the model's mesh is this mesh scaled (the bunny data use the scan's scale)
         poses = [np.asarray(m) @ np.diag([1 / units] * 3 + [1.0]) for m in poses]
         press_at, tip_radius = np.asarray(press_at) * units, tip_radius * units
@@ -237,14 +242,16 @@ def build_scene(name: str, frames: int, model: str | None = None, stand_in: bool
     z0 = np.concatenate([q0, np.zeros((len(q0), 9), np.float32)], axis=1)
     bodies = tuple(mr.Body(q0=q0, triangles=triangles, model=np.asarray(m), z=z0, step_fn=step_fn,
                            tip_radius=tip_radius, tip_force=tip_force, vmax=vmax,
-                           guard=getattr(step_fn, "guard", None), clamped=clamped) for m in poses)
+                           guard=getattr(step_fn, "guard", None), clamped=clamped,
+                           tip_stiffness=TIP_STIFFNESS if deep else None) for m in poses)
     world_point = np.asarray(mr.transform_points(poses[press_body], jnp.asarray([press_at], jnp.float32)))[0]
     world_normal = np.asarray(poses[press_body])[:3, :3] @ np.asarray(normal, np.float64)
     world_normal /= np.linalg.norm(world_normal)
-    track = mr.press_track(cam, world_point, world_normal, frames, approach=0.03, press=0.012)
+    track = mr.press_track(cam, world_point, world_normal, frames, approach=0.03, press=DEEP_PRESS if deep else 0.012)
     fallback = getattr(step_fn, "fallback", None)
     scene = mr.Scene(bodies=bodies, camera=cam, background=mr.table_background(cam), track=track,
                      contact_radius=0.006, contact_stiffness=5e7,
+                     hand_radius=tip_radius * scale if deep else 0.008, press_direction=tuple(-world_normal),
                      fallback=(fallback,) * len(bodies) if fallback is not None else (),
                      handover="next-frame")   # a trip frame runs one learned step, not that and a fallback step
     if len(devices) > 1 and len(bodies) > 1:
@@ -469,6 +476,7 @@ def _dynamics(model_name: str, q0, linear_name: str):
         return fn(z, forces)
 
     described = f"model {model_name}"
+    step.large_deformations = getattr(params["model"], "large_deformations", False)
     if getattr(params["model"], "stable_by_construction", False):
         step.guard = _finite_guard
     else:

@@ -38,6 +38,40 @@ def fingertip_forces(tips, positions, normals, radius, magnitude) -> Array:
     return -magnitude * touched[:, None] * normals
 
 
+def fingertip_press_forces(tips, positions, normals, radius, stiffness, direction, velocities=None,
+                           lead: float = 0.0) -> Array:
+    """The nodal forces of fingertips pressed into a body along a direction, by a penalty on their depth.
+
+    Every surface node inside a fingertip's sphere is pushed along the press ``direction`` in proportion to how
+    deep inside the sphere it lies::
+
+        f_i = stiffness · Σ_k max(radius - |x_i - t_k|, 0) · d̂   (n_i ≠ 0).
+
+    The deeper the fingertip goes, the harder it pushes, so a body that yields is followed rather than passed
+    through; and as the force is along the press, never along the surface's normals, a fingertip that has sunk
+    into the body does not push the far face back at it (`fingertip_forces`' inward normals would).
+
+    Args:
+      tips: [K, 3] fingertip centres in the body's model frame; a missing fingertip is a row of NaN.
+      positions: [N, 3] current nodal positions (model units).
+      normals: [N, 3] outward unit normals, zero for interior nodes (only surface nodes are pushed).
+      radius: the fingertip's radius (model units).
+      stiffness: force per model length of depth, per node (model force units per length).
+      direction: [3] the press direction in the model frame (any length > 0).
+
+    Returns:
+      [N, 3] nodal forces.
+    """
+    d = jnp.asarray(direction, positions.dtype)
+    d = d / jnp.linalg.norm(d)
+    distance = jnp.linalg.norm(positions[None, :, :] - tips[:, None, :], axis=-1)        # [K, N]
+    depth = jnp.sum(jnp.where(distance < radius, radius - distance, 0.0), axis=0)       # NaN compares false
+    if velocities is not None:   # the depth a node will have after ``lead`` (moving away along d: less)
+        depth = jnp.where(depth > 0, jnp.maximum(depth - lead * (velocities @ d), 0.0), 0.0)
+    surface = jnp.any(normals != 0, axis=-1)
+    return stiffness * (depth * surface)[:, None] * d[None, :]
+
+
 def contact_forces(positions_a, positions_b, radius, stiffness, capacity: int | None = None):
     """Penalty contact between two bodies.
 

@@ -27,13 +27,14 @@ import numpy as np
 
 from tignn_jax.mr.background import Background, hand_proxy
 from tignn_jax.mr.camera import Camera, camera_projection, project, transform_points, unproject
-from tignn_jax.mr.forcing import contact_forces, fingertip_forces
+from tignn_jax.mr.forcing import contact_forces, fingertip_forces, fingertip_press_forces
 from tignn_jax.mr.render import colour_map, draw_mesh, fragment_capacity, occlude, von_mises
 from tignn_jax.mr.surface import surface_nodes, vertex_normals
 
 StepFn = Callable[[jax.Array, jax.Array], jax.Array]
 
 
+PRESS_LEAD = 0.05   # s: a pressing fingertip's depth is taken where each node will be after this (one frame)
 CLAMP_COLOUR = (0.62, 0.24, 0.18)   # the supports' colour (brick red: outside the colour map and the table's greys)
 
 
@@ -55,6 +56,9 @@ class Body(NamedTuple):
       guard: optional jit-able ``z -> bool``, True where this body's new state must not be shown (as
         ``Scene.guard``, for one body; with ``Scene.devices`` it runs in the body's own step program on its
         device).
+      tip_stiffness: when set, the fingertip presses by depth instead of with ``tip_force``: every surface node
+        inside its sphere is pushed along ``Scene.press_direction`` by this stiffness times its depth (force per
+        model length; `tignn_jax.mr.forcing.fingertip_press_forces`), for models that hold at any load.
       clamped: optional [N] bool, the nodes held fixed (the model's node_type ≠ 0): drawn in ``CLAMP_COLOUR``
         instead of the colour map, so the supports show.
     """
@@ -68,6 +72,7 @@ class Body(NamedTuple):
     vmax: float
     guard: Callable | None = None
     clamped: np.ndarray | None = None
+    tip_stiffness: float | None = None
 
 
 class Scene(NamedTuple):
@@ -112,6 +117,8 @@ class Scene(NamedTuple):
         jitted on its own and the bodies' steps are dispatched together, so they run concurrently, one core each
         (XLA runs one program's independent parts one after another on a single core); the states return to
         ``devices[0]`` for forces and rendering. Empty: all bodies step in one program on the default device.
+      press_direction: the world direction a body with ``Body.tip_stiffness`` is pressed along (default: from
+        the camera towards the fingertip, as a finger pushes into the image).
       fuse: once a body is touched, forces, step and guard are dispatched together and awaited once per frame:
         one program, or with ``devices`` one per body on its device. Where bodies step on their own (no
         ``Scene.step``, no ``Scene.guard``) each body's part holds its guard and its hand-over, and a body on
@@ -136,6 +143,7 @@ class Scene(NamedTuple):
     fallback_hold: int = 30
     fuse: bool = True
     handover: str = "same-frame"
+    press_direction: tuple | None = None
 
 
 class Timings(NamedTuple):
@@ -510,6 +518,7 @@ def build(scene: Scene):
     capacities = [max(64, len(s) // 2) for s in surfaces]
     rotations = [m[:3, :3] / jnp.linalg.norm(m[:3, :3], axis=0, keepdims=True) for m in models]
     n = len(scene.bodies)
+    eye = jnp.asarray(np.linalg.inv(cam.view)[:3, 3], jnp.float32)
 
     @jax.jit
     def forces_fn(zs, tips):
@@ -519,8 +528,14 @@ def build(scene: Scene):
         for b, z, inv, tri in zip(scene.bodies, zs, inverses, tris):
             q = z[:, :3]
             normals = vertex_normals(q, tri)
-            out.append(fingertip_forces(transform_points(inv, world_tips), q, normals,
-                                           b.tip_radius, b.tip_force))
+            local_tips = transform_points(inv, world_tips)
+            if b.tip_stiffness is None:
+                out.append(fingertip_forces(local_tips, q, normals, b.tip_radius, b.tip_force))
+            else:
+                press = (jnp.asarray(scene.press_direction, jnp.float32) if scene.press_direction is not None
+                         else jnp.nanmean(world_tips - eye, axis=0))        # the view ray through the fingertips
+                out.append(fingertip_press_forces(local_tips, q, normals, b.tip_radius, b.tip_stiffness,
+                                                  inv[:3, :3] @ press, z[:, 3:6], PRESS_LEAD))
         world = [transform_points(m, z[:, :3])[s] for m, z, s in zip(models, zs, surfaces)]
         for i in range(n if scene.contact_radius > 0 else 0):   # no contact: no neighbour search at all
             for j in range(i + 1, n):

@@ -104,6 +104,8 @@ class CorotationalGeneric:
     config: CorotationalConfig = CorotationalConfig()
     name: ClassVar[str] = "corotational"
     stable_by_construction: ClassVar[bool] = True   # no step creates energy: guard for finiteness only
+    large_deformations: ClassVar[bool] = True       # exact under rotation, its volume kept at any strain: the demo
+                                                    # presses it by depth, past its data's loads (`tignn demo`)
 
     def prepare(self, stored: dict, mesh: dict) -> dict:
         """The arrays the step reads: the stored ones; the centred rest element coordinates ``x0e`` [K, n_e, 3]
