@@ -7,7 +7,8 @@ returns that same compiled program without the checks, for loops that hold the s
 requirement: the checks cost at most 10 % of a step, i.e. "checks overhead" = step / stepper − 1 ≤ 0.10.
 
 Rows: the shipped ``beam`` (one body, 756 nodes), two beams (a graph of 2 copies of the beam, 1512 nodes: `step`
-checks a batched graph's edges by value) and the shipped ``bunny`` (1330 nodes). For each row the state is the
+`rest_graph(params, 2)`, whose edges `step` knows by identity), the shipped ``bunny`` (1330 nodes) and the corotational ``beam-corot``
+(the beam's mesh; its frame iterates, so its time depends on the state more than the linear models'). For each row the state is the
 rest state advanced by 10 frames under a load at half the model's largest training force (``envelope["f_max"]``)
 on the free node farthest from the clamps; each call steps that state under that load (numpy float32 forces, as
 a real-time loop hands them over). Times: milliseconds per call after a compiling call, ``--repeats`` samples
@@ -18,7 +19,7 @@ over T frames divided by T).
 
 Writes model_step.{json,md} to ``--out`` (default benchmarks/results).
 
-    python benchmarks/model_step.py [--repeats 200] [--rollout-frames 20] [--rows beam:1,beam:2,bunny:1]
+    python benchmarks/model_step.py [--repeats 200] [--rollout-frames 20] [--rows beam:1,beam:2,bunny:1,beam-corot:1]
     python benchmarks/model_step.py --quick --out /tmp/model_step     # smoke run, ~30 s
 """
 from __future__ import annotations
@@ -32,7 +33,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _machine import RESULTS_DIR, describe, interleaved_ms, write_results  # noqa: E402
 
-ROWS = "beam:1,beam:2,bunny:1"
+ROWS = "beam:1,beam:2,bunny:1,beam-corot:1"
 CHECKS_BUDGET = 0.10     # the checks may cost at most 10 % of a step
 WARM_FRAMES = 10         # frames from rest before the timed state
 
@@ -137,7 +138,8 @@ def report(result: dict) -> str:
               "and of the ratio of the step and stepper calls of one round (they follow each other, so a change of "
               "the machine's load hits both). `step` and `stepper` run the same compiled "
               "program on the same state and forces; the difference is `step`'s checks (the graph's edges against the "
-              "model's mesh: by identity for the mesh's own one-body graph, by value for a batched one; the forces' "
+              "model's mesh: by identity for `rest_graph`'s graphs and those `step` returns, one body or several, "
+              "by value for any other; the forces' "
               "shape and finiteness) and wrapping the result in a graph. All three variants return the same frame: "
               + ", ".join(f"{row_label(r['model'], r['copies'])} {'yes' if r['same_frame'] else 'NO'}"
                           for r in result["rows"]) + "."]

@@ -66,6 +66,24 @@ def test_several_bodies_step_each_as_alone(beam):
     assert np.allclose(np.asarray(fn(two.nodes["z"], jnp.asarray(np.concatenate([f, 0.5 * f])))), out, atol=1e-6)
 
 
+def test_a_batched_rest_graph_is_known_by_its_arrays_and_any_other_checked_by_value(beam, monkeypatch):
+    # step checks a several-body graph's edges against the mesh: rest_graph's own arrays (and the graphs step
+    # returns, which carry them) at once, an equal graph built otherwise by value, a wrong one is refused
+    params, graph = beam
+    two = T.rest_graph(params, 2)
+    f = np.zeros((2 * 756, 3), np.float32)
+    calls, real = [], np.array_equal
+    monkeypatch.setattr(np, "array_equal", lambda *a, **k: calls.append(1) or real(*a, **k))
+    after = T.step(params, T.step(params, two, f), f)
+    assert not calls and after.senders is two.senders      # known by identity: nothing compared
+    T.step(params, G.batch([graph, graph]), f)             # the same edges in other arrays: compared
+    assert calls
+    monkeypatch.undo()
+    wrong = two._replace(senders=jnp.roll(two.senders, 1))
+    with pytest.raises(ValueError, match="edges of the model's mesh"):
+        T.step(params, wrong, f)
+
+
 def test_bad_input_is_named(beam):
     params, graph = beam
     with pytest.raises(ValueError, match=r"forces has shape \[756, 2\]"):

@@ -47,8 +47,9 @@ def step(params: dict, graph: jraph.GraphsTuple, forces) -> jraph.GraphsTuple:
       ValueError: the graph is not the model's mesh (or k copies of it), or ``forces`` has another shape or
         non-finite values.
     """
-    forces, _ = _check(params, graph, forces, seq=False)
+    forces, host, k = _check(params, graph, forces, seq=False)
     z = _advance(params["model"], _nodes(params), params["arrays"], graph.nodes["z"], forces)
+    _check_values(params, graph, host, k, "forces")   # while the frame computes: a bad input discards it
     return G.with_state(graph, z)
 
 
@@ -66,8 +67,10 @@ def rollout(params: dict, graph: jraph.GraphsTuple, forces_seq) -> jax.Array:
     Raises:
       ValueError: as `step`.
     """
-    forces_seq, _ = _check(params, graph, forces_seq, seq=True)
-    return _rollout(params["model"], _nodes(params), params["arrays"], graph.nodes["z"], forces_seq)
+    forces_seq, host, k = _check(params, graph, forces_seq, seq=True)
+    zs = _rollout(params["model"], _nodes(params), params["arrays"], graph.nodes["z"], forces_seq)
+    _check_values(params, graph, host, k, "forces_seq")
+    return zs
 
 
 def stepper(params: dict, copies: int = 1):
@@ -146,7 +149,26 @@ def rest_graph(params: dict, copies: int = 1) -> jraph.GraphsTuple:
         nodes={"z": jnp.asarray(G.rest_state(mesh["q0"])), "node_type": jnp.asarray(mesh["node_type"])},
         edges=None, senders=params["edges"][0], receivers=params["edges"][1], globals=None,
         n_node=jnp.array([n], jnp.int32), n_edge=jnp.array([len(mesh["senders"])], jnp.int32))
-    return one if copies == 1 else G.batch([one] * int(copies))
+    if copies == 1:
+        return one
+    graph = G.batch([one] * int(copies))
+    _remember_batched_edges(params, int(copies), graph)
+    return graph
+
+
+_BATCHED_EDGES: dict = {}    # (id of a model's sender array, copies) -> (that array, ((senders, receivers), ...))
+_BATCHED_EDGES_KEPT = 16     # rest graphs of that many (model, copies) pairs are recognised by identity
+
+
+def _remember_batched_edges(params, copies: int, graph) -> None:
+    """Keep the edge arrays of a batched rest graph, so `step` recognises them (and the graphs it returns, which
+    carry them) by identity, as it does the one-body graph's. The model's own sender array is kept with them, so
+    its id cannot be reused by another model's while the entry lives."""
+    key = (id(params["edges"][0]), copies)
+    if key not in _BATCHED_EDGES and len(_BATCHED_EDGES) >= _BATCHED_EDGES_KEPT:
+        _BATCHED_EDGES.pop(next(iter(_BATCHED_EDGES)))
+    model_senders, pairs = _BATCHED_EDGES.get(key, (params["edges"][0], ()))
+    _BATCHED_EDGES[key] = (model_senders, ((graph.senders, graph.receivers),) + pairs[:3])   # the 4 latest
 
 
 def make_params(model, stored: dict, mesh: dict, envelope: dict, info: dict | None = None) -> dict:
@@ -262,8 +284,9 @@ def _rollout(model, n: int, arrays: dict, z0, forces_seq):
 
 
 def _check(params, graph, forces, seq: bool):
-    """Check the graph against the model's mesh (by identity where it is the mesh's own graph, else by value) and
-    the forces' shape and values; returns (forces as a numpy or jax array of the state's dtype, copies)."""
+    """Check the graph's and the forces' types and shapes against the model's mesh; returns (the forces as a numpy
+    or jax array of the state's dtype, the forces as a numpy array, copies). The checks of values
+    (`_check_values`) follow the frame's dispatch, so they run while it computes."""
     name = "forces_seq" if seq else "forces"
     if not isinstance(graph, jraph.GraphsTuple) or not isinstance(graph.nodes, dict) or "z" not in graph.nodes:
         raise ValueError(f"graph must be a jraph.GraphsTuple with nodes {{'z': [N, {STATE_DIM}], ...}}, got "
@@ -275,21 +298,33 @@ def _check(params, graph, forces, seq: bool):
         raise ValueError(f"graph.nodes['z'] has shape {tuple(z.shape)}, expected [k·{n_mesh}, {STATE_DIM}] "
                          f"for the model's mesh of {n_mesh} nodes")
     k = n // n_mesh
-    _check_edges(params, graph, k)
+    if tuple(np.shape(graph.senders)) != (k * len(params["mesh"]["senders"]),) \
+            or tuple(np.shape(graph.receivers)) != tuple(np.shape(graph.senders)):
+        raise ValueError("graph.senders / graph.receivers are not the edges of the model's mesh")
     shape = tuple(np.shape(forces))
     want = ((shape[0] if len(shape) == 3 else -1,) if seq else ()) + (n, 3)
     if shape != want:
         raise ValueError(f"{name} has shape {list(shape)}, expected {'[T, ' if seq else '['}{n}, 3]")
     host = np.asarray(forces)   # a jax array on the CPU: a view, no reduction dispatched to the device
+    if host.dtype.kind not in "fiu":
+        raise ValueError(f"{name} must be numbers, got dtype {host.dtype}")
+    return (forces if isinstance(forces, jax.Array) else host.astype(np.float32, copy=False)), host, k
+
+
+def _check_values(params, graph, host, k: int, name: str):
+    """The graph's edges are the model's mesh's (`_check_edges`) and the forces ``host`` are finite."""
+    _check_edges(params, graph, k)
     if not np.isfinite(host).all():
         raise ValueError(f"{name} contains NaN or infinite values")
-    return (forces if isinstance(forces, jax.Array) else host.astype(np.float32, copy=False)), k
 
 
 def _check_edges(params, graph, k: int):
     """The graph's edges and node types are the model's mesh's (k copies): at once where the graph carries the
-    mesh's own edge arrays (`rest_graph`'s, kept by `step`), else by value."""
+    mesh's own edge arrays or those of a recent `rest_graph` of k copies (kept by `step`), else by value."""
     if k == 1 and graph.senders is params["edges"][0] and graph.receivers is params["edges"][1]:
+        return
+    model_senders, pairs = _BATCHED_EDGES.get((id(params["edges"][0]), k), (None, ()))
+    if model_senders is params["edges"][0] and any(graph.senders is a and graph.receivers is b for a, b in pairs):
         return
     mesh = params["mesh"]
     offsets = np.repeat(np.arange(k) * len(mesh["node_type"]), len(mesh["senders"]))
