@@ -6,16 +6,16 @@ returns that same compiled program without the checks, for loops that hold the s
 `tignn_jax.rollout(params, graph, forces_seq)` checks once and runs T frames in one ``lax.scan``. The product
 requirement: the checks cost at most 10 % of a step, i.e. "checks overhead" = step / stepper − 1 ≤ 0.10.
 
-Rows: the shipped ``beam`` (one body, 756 nodes), two beams (a graph of 2 copies of the beam, 1512 nodes: `step`
-`rest_graph(params, 2)`, whose edges `step` knows by identity), the shipped ``bunny`` (1330 nodes) and the corotational ``beam-corot``
-(the beam's mesh; its frame iterates, so its time depends on the state more than the linear models'). For each row the state is the
-rest state advanced by 10 frames under a load at half the model's largest training force (``envelope["f_max"]``)
-on the free node farthest from the clamps; each call steps that state under that load (numpy float32 forces, as
-a real-time loop hands them over). Times: milliseconds per call after a compiling call, ``--repeats`` samples
-of each variant with the variants called in turn (`_machine.interleaved_ms`: a change of the machine's load hits
-all alike); reported are medians and 90th percentiles, and the median over rounds of the step and stepper calls'
-difference and ratio (paired: robust to load changes between rounds); the rollout's time is per frame (its call
-over T frames divided by T).
+Rows: the shipped ``beam`` (one body, 756 nodes), two beams (a graph of 2 copies of the beam, 1512 nodes:
+`rest_graph(params, 2)`, whose edges `step` knows by identity), the shipped ``bunny`` (1330 nodes) and the
+corotational ``beam-corot`` (the beam's mesh; its frame iterates, so its time depends on the state more than the
+linear models'). For each row the state is the rest state advanced by 10 frames under a load at half the model's
+largest training force (``envelope["f_max"]``) on the free node farthest from the clamps; each call steps that state
+under that load (numpy float32 forces, as a real-time loop hands them over). Times: milliseconds per call after a
+compiling call, ``--repeats`` samples of each variant with the variants called in turn (`_machine.interleaved_ms`: a
+change of the machine's load hits all alike); reported are medians and 90th percentiles, and the median over rounds
+of the step and stepper calls' difference and ratio (paired: robust to load changes between rounds); the rollout's
+time is per frame (its call over T frames divided by T).
 
 Writes model_step.{json,md} to ``--out`` (default benchmarks/results).
 
