@@ -29,6 +29,12 @@ def describe() -> dict:
             "note": "load_average_1m > cores means other processes shared the CPU during the run"}
 
 
+def machine_line(m: dict) -> str:
+    """The report line's start that names the machine of ``describe()``: "Machine: CPU, N cores, jax V (backend)";
+    each report adds its own details (load average, flags)."""
+    return f"Machine: {m['cpu']}, {m['cores']} cores, jax {m['jax']} ({m['backend']})"
+
+
 def interleaved_ms(fns: dict, repeats: int) -> dict:
     """Milliseconds per call of each zero-argument function, ``repeats`` samples each ({name: [ms]}): each is
     called once first (to compile), then the functions are called in turn, so a change of the machine's load

@@ -25,7 +25,7 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _machine import RESULTS_DIR, describe, interleaved_ms, write_results  # noqa: E402
+from _machine import RESULTS_DIR, describe, machine_line, interleaved_ms, write_results  # noqa: E402
 
 
 def model_on_grid(nx: int, ny: int, nz: int, hidden: int, passes: int):
@@ -116,7 +116,7 @@ def report(result: dict) -> str:
     if r.get("quick"):
         lines += ["QUICK RUN (smoke test settings): not a measurement.", ""]
     m = r["machine"]
-    lines += [f"Machine: {m['cpu']}, {m['cores']} cores, jax {m['jax']} ({m['backend']}), load average "
+    lines += [machine_line(m) + ", load average "
               f"{m['load_average_1m']} at the start."]
     return "\n".join(lines) + "\n"
 

@@ -38,7 +38,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-from _machine import RESULTS_DIR, describe, interleaved_ms, write_results  # noqa: E402
+from _machine import RESULTS_DIR, describe, machine_line, interleaved_ms, write_results  # noqa: E402
 
 CASE = 9
 LOADS = (("1x hold", 1.0, "hold"), ("2x hold", 2.0, "hold"), ("3x hold", 3.0, "hold"), ("2x release", 2.0, "release"))
@@ -181,7 +181,7 @@ def report(result) -> str:
     for name, t in result["frame_ms"].items():
         lines.append(f"| {name} | {t['frames']} | {t['p50']:.2f} | {t['p99']:.2f} | {t['max']:.2f} | "
                      f"{t['p99'] / t['p50']:.2f} |")
-    lines += ["", f"Machine: {m['cpu']}, {m['cores']} cores, jax {m['jax']} ({m['backend']}), load average "
+    lines += ["", machine_line(m) + ", load average "
               f"{m['load_average_1m']} at the start. FEM reference: {result['reference']}."]
     return "\n".join(lines) + "\n"
 

@@ -31,7 +31,7 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _machine import RESULTS_DIR, describe, interleaved_ms, write_results  # noqa: E402
+from _machine import RESULTS_DIR, describe, machine_line, interleaved_ms, write_results  # noqa: E402
 
 ROWS = "beam:1,beam:2,bunny:1,beam-corot:1"
 CHECKS_BUDGET = 0.10     # the checks may cost at most 10 % of a step
@@ -120,7 +120,7 @@ def summarise(times: dict, frames: int) -> dict:
 def report(result: dict) -> str:
     m = result["machine"]
     lines = ["# The public API's cost: `step` (checked) against `stepper` (unchecked) and `rollout`", "",
-             f"Machine: {m['cpu']}, {m['cores']} cores, jax {m['jax']} ({m['backend']}); load average "
+             machine_line(m) + "; load average "
              f"{m['load_average_1m']} at the start, {result['load_average_1m_end']} at the end (above {m['cores']}: "
              f"other processes shared the CPU). Median (p90) of {result['repeats']} calls per variant after "
              f"compilation, variants interleaved; rollout: one call over {result['rollout_frames']} frames, per frame."

@@ -42,7 +42,7 @@ import jax.numpy as jnp
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _machine import RESULTS_DIR, describe  # noqa: E402
+from _machine import RESULTS_DIR, describe, machine_line  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 RUNS = ROOT / "runs" / "pareto"
@@ -568,7 +568,7 @@ def report(result: dict) -> str:
     lines = [
         "# Run time against error: the shipped models and the FEM (beam, test sims "
         f"{', '.join(map(str, result['test_sims']))})", "",
-        f"Machine: {m['cpu']}, {m['cores']} cores, jax {m['jax']} ({m['backend']}), XLA_FLAGS="
+        machine_line(m) + ", XLA_FLAGS="
         f"`{result['xla_flags'] or '(unset)'}`; load average 1/5/15 min at the start {result['load_average_start']}, "
         f"after the model steps {result['load_average_after_steps']}, at the end {result['load_average_end']} "
         "(above the core count: other processes shared the CPU; times are upper bounds for an idle machine). "

@@ -49,7 +49,7 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _machine import RESULTS_DIR, describe, interleaved_ms, write_results  # noqa: E402
+from _machine import RESULTS_DIR, describe, machine_line, interleaved_ms, write_results  # noqa: E402
 
 BUDGET_MS = {"beam": 9.0, "two-beams": 18.0, "bunny": 11.0}
 FRAME_BUDGET_MS = 1e3 / 30
@@ -383,7 +383,7 @@ def format_md(result: dict) -> str:
               "core against two: `pinning.md`)" if m.get("pinned_cpus") else
               f"not pinned, {m.get('cpu_devices', '?')} CPU device(s)")
     lines = ["# Real-time budget: the demo's loop per frame, and the public step", "",
-             f"Machine: {m['cpu']}, {m['cores']} cores, jax {m['jax']} ({m['backend']}); load average "
+             machine_line(m) + "; load average "
              f"{m['load_average_1m']} at start, {m['load_average_1m_at_end']} at end ({m['note']}). "
              f"{result['frames']} timed frames per scene and round after {result['warmup']} warm-up frames, "
              f"{result['rounds']} round(s), 640×480; XLA_FLAGS `{m['xla_flags']}`; the process {pinned}."

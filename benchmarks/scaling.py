@@ -40,7 +40,7 @@ import jax.numpy as jnp
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _machine import RESULTS_DIR, describe  # noqa: E402
+from _machine import RESULTS_DIR, describe, machine_line  # noqa: E402
 
 BEAM_SIZE = (40.0, 10.0, 10.0)
 LINEAR_MESHES = "5x2x2,10x3x3,14x4x4,20x5x5,24x6x6,28x7x7"
@@ -245,7 +245,7 @@ def format_md(result: dict) -> str:
     clock, other = ("CPU", "wall") if cpu else ("wall", "CPU")
     cfg = result["gnn_config"]
     lines = ["# Scaling: step time against mesh size" + (" (QUICK smoke run)" if result["quick"] else ""), "",
-             f"Machine: {m['cpu']}, {m['cores']} cores, jax {m['jax']} ({m['backend']}); accelerator: "
+             machine_line(m) + "; accelerator: "
              f"{m['accelerator']}; load average {m['load_average_1m']} at the start, {result['load_average_1m_end']} "
              f"at the end (above the core count: other processes shared the CPU); "
              f"XLA_FLAGS=`{m['xla_flags'] or '(unset)'}`. "

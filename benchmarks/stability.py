@@ -50,7 +50,7 @@ import jax.numpy as jnp
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _machine import RESULTS_DIR, describe  # noqa: E402
+from _machine import RESULTS_DIR, describe, machine_line  # noqa: E402
 
 SCENARIOS = ("release", "constant", "fingertip", "3x load", "noise")
 POLICIES = ("clip", "reset", "fallback")
@@ -393,7 +393,7 @@ def _fmt(x, spec=".3g"):
 def report(result: dict) -> str:
     m = result["machine"]
     lines = ["# Stress tests of the shipped models", "",
-             f"Machine: {m['cpu']}, {m['cores']} cores, jax {m['jax']} ({m['backend']}); load average "
+             machine_line(m) + "; load average "
              f"{m['load_average_1m']} at the start. {result['steps']}-frame rollouts from rest (Δt = 0.05; the "
              f"training horizon is 20); the FEM reference ("
              + ("`tignn_jax.fem_stepper`, the FEM's backward-Euler step by Newton–CG"
