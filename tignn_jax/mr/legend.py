@@ -9,6 +9,11 @@ import numpy as np
 from tignn_jax.mr.render import colour_map
 
 
+def rgb255(colour) -> tuple:
+    """An RGB colour in [0, 1] as a tuple of three 0–255 ints (Pillow's and viser's colour format)."""
+    return tuple(int(round(255 * float(c))) for c in colour)
+
+
 def with_legend(rgb, vmin: float, vmax: float, label: str, width: int = 14, height: int | None = None,
                 swatches: tuple = ()):
     """The frame with a vertical colour bar in its top-right corner, labelled with ``label`` and the values at
@@ -58,6 +63,6 @@ def with_legend(rgb, vmin: float, vmax: float, label: str, width: int = 14, heig
         y = top + height + 10 + 18 * k
         x = min(right, w - 4 - width - 3 - int(draw.textlength(str(name), font=font)))   # its name inside the frame
         draw.rectangle([x - 1, y - 1, x + width, y + width],
-                       fill=tuple(int(round(255 * c)) for c in colour), outline=(0, 0, 0))
+                       fill=rgb255(colour), outline=(0, 0, 0))
         draw.text((x + width + 3, y), str(name), fill=(0, 0, 0), font=font)
     return np.asarray(image)

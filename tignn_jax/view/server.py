@@ -227,6 +227,7 @@ class Page:
                     cast_shadow=False, receive_shadow=False)
                 handle.on_drag("left")(self._on_drag)
                 self._meshes.append(handle)
+        from tignn_jax.mr.legend import rgb255
         from tignn_jax.mr.scene import CLAMP_COLOUR
 
         for k, body in enumerate(scene.bodies):    # the supports: the clamped nodes, which never move
@@ -234,7 +235,7 @@ class Page:
             if len(fixed):
                 self._meshes.append(self.client.scene.add_point_cloud(
                     f"/body{k}/clamps", fixed.astype(np.float32),
-                    colors=tuple(int(round(255 * c)) for c in CLAMP_COLOUR),
+                    colors=rgb255(CLAMP_COLOUR),
                     point_size=0.012 * self.interaction.size, point_shape="square", point_shading="flat"))
         self._tip = self.client.scene.add_icosphere("/fingertip", radius=0.015 * self.interaction.size,
                                                     color=(230, 60, 40), visible=False)
@@ -385,10 +386,10 @@ def frame_camera(camera, centre, size: float) -> None:
 
 
 def _band_colour(j: int) -> tuple:
+    from tignn_jax.mr.legend import rgb255
     from tignn_jax.mr.render import colour_map
 
-    rgb = np.asarray(colour_map(np.asarray((j + 0.5) / BANDS), 0.0, 1.0))
-    return tuple(int(round(255 * c)) for c in rgb)
+    return rgb255(np.asarray(colour_map(np.asarray((j + 0.5) / BANDS), 0.0, 1.0)))
 
 
 def _legend(value_range, quantity: str, width: int = 300, height: int = 58) -> np.ndarray:
@@ -409,10 +410,10 @@ def _legend(value_range, quantity: str, width: int = 300, height: int = 58) -> n
         draw.rectangle([left + j * step, top, left + (j + 1) * step, bottom], fill=_band_colour(j))
     draw.rectangle([left, top, right, bottom], outline=(0, 0, 0))
     draw.text((left, 2), f"{quantity} (model units)", fill=(0, 0, 0), font=font)
+    from tignn_jax.mr.legend import rgb255
     from tignn_jax.mr.scene import CLAMP_COLOUR   # the supports' markers (`_build_scene`)
 
-    draw.rectangle([right - 62, 4, right - 52, 14], fill=tuple(int(round(255 * c)) for c in CLAMP_COLOUR),
-                   outline=(0, 0, 0))
+    draw.rectangle([right - 62, 4, right - 52, 14], fill=rgb255(CLAMP_COLOUR), outline=(0, 0, 0))
     draw.text((right - 48, 2), "clamped", fill=(0, 0, 0), font=font)
     for x, v, anchor in ((left, lo, "la"), ((left + right) / 2, (lo + hi) / 2, "ma"), (right, hi, "ra")):
         draw.text((x, bottom + 4), f"{v:.3g}", fill=(0, 0, 0), font=font, anchor=anchor)
