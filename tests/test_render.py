@@ -339,6 +339,43 @@ def test_press_track_fingertip_unprojects_onto_the_pressed_point():
     np.testing.assert_allclose(world[0], top_end - np.array([0.0, 0.01, 0.0]), atol=1e-5)
 
 
+def test_fingertip_proxy_rests_on_the_surface_it_is_pressed_into():
+    # A flat surface at depth 0.5 m: a touching sphere of radius r behind it is moved to rest on it (centre r in
+    # front: its footprint's deepest point is the centre's d + r); one in front, one behind it that touches no
+    # body, a missing one and one over empty space stay where they are.
+    cam = mr.Camera(fx=150.0, fy=150.0, cx=80.0, cy=60.0, width=160, height=120, near=0.02, far=3.0,
+                    view=np.eye(4))
+    r = 0.01
+    depth = jnp.full((120, 160), 0.5).at[:, 120:].set(jnp.inf)
+    tips = jnp.array([[60.5, 60.5, 0.51], [60.5, 60.5, 0.45], [60.5, 60.5, 0.9], [np.nan] * 3,
+                      [150.5, 60.5, 0.7]])     # on pixel centres: the footprint's centre pixel is the sphere's
+    touching = jnp.array([True, True, False, True, True])
+    moved = np.asarray(mr.rest_on_surface(tips, depth, cam, r, touching))
+    np.testing.assert_allclose(moved[0], [60.5, 60.5, 0.5 - r], atol=1e-6)
+    np.testing.assert_array_equal(moved[1:3], np.asarray(tips[1:3]))
+    assert np.all(np.isnan(moved[3]))
+    np.testing.assert_array_equal(moved[4], np.asarray(tips[4]))
+    # the deepest part of the sphere then lies on the surface: no pixel of its footprint is behind it
+    np.testing.assert_array_equal(np.asarray(mr.rest_on_surface(jnp.asarray(moved[:1]), depth, cam, r)),
+                                  moved[:1])
+
+
+def test_pressing_fingertip_is_drawn_in_front_of_the_deformed_body():
+    # At mid-press the track is 1 cm inside the body: the fingertip touches it, and the proxy is drawn on the
+    # body's surface, so the pixel under the fingertip shows skin, not the body it would otherwise sink into.
+    scene, _ = _demo_scene(frames=11)
+    from tignn_jax.mr.scene import make_render_fn
+
+    render = make_render_fn(scene, 65536)
+    zs = tuple(jnp.asarray(b.z) for b in scene.bodies)
+    tip = jnp.asarray(scene.track[5])
+    u, v = np.floor(np.asarray(tip[0, :2])).astype(int)
+    rgb, _ = render(zs, tip)
+    skin = np.array([0.93, 0.72, 0.6])
+    colour = np.asarray(rgb)[v, u] / 255.0
+    assert np.allclose(colour / colour.max(), skin / skin.max(), atol=0.05)
+
+
 def test_scene_validation_names_the_bad_array():
     scene, _ = _demo_scene(frames=2)
     bad = scene._replace(bodies=(scene.bodies[0]._replace(z=np.zeros((3, 12))),))

@@ -18,7 +18,7 @@ Everything is exported here, e.g. ``from tignn_jax import mr; mr.run(scene)``. T
 """
 from __future__ import annotations
 
-from tignn_jax.mr.background import Background, hand_proxy, table_background
+from tignn_jax.mr.background import Background, hand_proxy, rest_on_surface, table_background
 from tignn_jax.mr.camera import (Camera, camera_projection, clip_coordinates, look_at, model_matrix, mvp_matrix,
                                  perspective, project, projection_from_intrinsics, rotation_matrix,
                                  transform_points, unproject)
@@ -44,7 +44,7 @@ __all__ = [
     "Raster", "colour_map", "draw_mesh", "fragment_capacity", "occlude", "phong", "rasterize", "von_mises",
     "with_legend",
     # background
-    "Background", "hand_proxy", "table_background",
+    "Background", "hand_proxy", "rest_on_surface", "table_background",
     # track
     "load_track", "press_track", "save_track", "hand_to_tips",
     # scene

@@ -1,4 +1,5 @@
-"""The real image a scene is drawn over: a camera's RGB and depth, a synthetic table, and a hand proxy.
+"""The real image a scene is drawn over: a camera's RGB and depth, a synthetic table, and a hand proxy that rests
+on the bodies' deformed surface.
 
 Depths are in metres along the camera's optical axis (the depth camera's unit and `tignn_jax.mr.camera`'s
 ``depth``).
@@ -102,3 +103,48 @@ def hand_proxy(rgb, depth, tips, camera: Camera, radius: float):
         shaded = (0.35 + 0.6 * cos)[..., None] * skin
         rgb = jax.lax.dynamic_update_slice(rgb, jnp.where(hit[..., None], shaded, colour), (j0, i0, 0))
     return rgb, depth
+
+
+def rest_on_surface(tips, depth, camera: Camera, radius: float, touching=None):
+    """Move each fingertip that touches a body towards the camera until its sphere rests on the rendered surface
+    instead of sinking into it.
+
+    A fingertip pressing a soft body is tracked into it (the press goes deeper than the body gives way), but a
+    finger cannot be inside the body: it touches the deformed surface. Along each pixel p of the sphere's
+    footprint (radius ρ = f r / d pixels, ρ(p) its distance from the centre over ρ) the sphere reaches depth
+    d + r √(1 − ρ(p)²); it rests on the surface s(p) at
+
+        d* = min_p [s(p) − r √(1 − ρ(p)²)],
+
+    and a touching tip's depth becomes min(d, d*); the image coordinates are kept. A tip that does not touch a body
+    and lies behind one stays behind it. Jit-able (``camera`` and ``radius`` static).
+
+    Args:
+      tips: [K, 3] fingertips as (u, v, depth_m); rows with a non-finite value are returned unchanged.
+      depth: [H, W] rendered depth of the bodies (m; inf where none, `tignn_jax.mr.render.Raster`).
+      camera: the camera.
+      radius: the proxy spheres' radius (m); <= 0 returns ``tips`` unchanged.
+      touching: [K] bool, the fingertips in contact with a body (as the scene's forces see it: a node within the
+        body's ``tip_radius``); None: all.
+
+    Returns:
+      [K, 3] the fingertips, touching ones moved onto the surface.
+    """
+    if radius <= 0:
+        return tips
+    touching = jnp.ones(tips.shape[0], bool) if touching is None else jnp.asarray(touching, bool)
+    win = int(min(camera.height, camera.width, 2 * np.ceil(max(camera.fx, camera.fy) * radius / 0.1) + 4))
+    offs = jnp.arange(win, dtype=jnp.float32)
+
+    def one(tip, touch):
+        ok = jnp.all(jnp.isfinite(tip)) & (tip[2] > camera.near)
+        i0 = jnp.clip(jnp.nan_to_num(jnp.floor(tip[0]) - win // 2), 0, camera.width - win).astype(jnp.int32)
+        j0 = jnp.clip(jnp.nan_to_num(jnp.floor(tip[1]) - win // 2), 0, camera.height - win).astype(jnp.int32)
+        d = jnp.where(ok, tip[2], 1.0)
+        rho = camera.fx * radius / d
+        r2 = (((i0 + offs + 0.5)[None, :] - tip[0]) ** 2 + ((j0 + offs + 0.5)[:, None] - tip[1]) ** 2) / rho ** 2
+        surface = jax.lax.dynamic_slice(depth, (j0, i0), (win, win))
+        rest = jnp.min(jnp.where(r2 < 1.0, surface - radius * jnp.sqrt(jnp.maximum(1.0 - r2, 0.0)), jnp.inf))
+        return tip.at[2].set(jnp.where(ok & touch & (d > rest), rest, tip[2]))
+
+    return jax.vmap(one)(tips, touching)

@@ -25,7 +25,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from tignn_jax.mr.background import Background, hand_proxy
+from tignn_jax.mr.background import Background, hand_proxy, rest_on_surface
 from tignn_jax.mr.camera import Camera, camera_projection, project, transform_points, unproject
 from tignn_jax.mr.forcing import contact_forces, fingertip_forces
 from tignn_jax.mr.render import colour_map, draw_mesh, fragment_capacity, occlude, von_mises
@@ -565,7 +565,7 @@ def _places(scene: Scene) -> list:
 
 def make_render_fn(scene: Scene, capacity: int):
     """The jitted render stage: bodies shaded, rasterised and occluded by the real depth (the background with the
-    hand proxy drawn at the fingertips).
+    hand proxy drawn at the fingertips, those pressing a body resting on its deformed surface: `rest_on_surface`).
 
     Args:
       scene: the scene.
@@ -580,12 +580,25 @@ def make_render_fn(scene: Scene, capacity: int):
     light = jnp.array([0.3, -1.0, -0.4], jnp.float32)
     triangles = jnp.asarray(_all_triangles(scene))
     background = (jnp.asarray(scene.background.rgb, jnp.float32), jnp.asarray(scene.background.depth, jnp.float32))
+    viewport = (0.0, 0.0, float(cam.width), float(cam.height))
+    inverses = [jnp.linalg.inv(jnp.asarray(b.model, jnp.float32)) for b in scene.bodies]
+
+    def touching(zs, tips):   # as `fingertip_forces` sees it: a node of a body within its tip_radius
+        world = unproject(tips[:, :2], tips[:, 2], vp, viewport)
+        world = jnp.where(jnp.isfinite(tips[:, 2:3]) & (tips[:, 2:3] > 0), world, jnp.nan)
+        near = jnp.zeros(tips.shape[0], bool)
+        for b, z, inv in zip(scene.bodies, zs, inverses):
+            local = transform_points(inv, world)
+            distance = jnp.linalg.norm(z[None, :, :3] - local[:, None, :], axis=-1)        # [K, N]
+            near = near | jnp.any(distance < b.tip_radius, axis=1)
+        return near
 
     @jax.jit
     def render(zs, tips, background):  # the image-sized background is an argument, not a baked-in constant
         positions, colours = _world_mesh(scene, zs)
         raster = draw_mesh(positions, triangles, colours, vp, eye, light, width=cam.width, height=cam.height,
                            capacity=capacity)
+        tips = rest_on_surface(tips, raster.depth, cam, scene.hand_radius, touching(zs, tips))
         real_rgb, real_depth = hand_proxy(*background, tips, cam, scene.hand_radius)
         rgb = occlude(raster.rgb, raster.depth, real_rgb, real_depth)
         return (jnp.clip(rgb, 0.0, 1.0) * 255.0 + 0.5).astype(jnp.uint8), raster.overflow
