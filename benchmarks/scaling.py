@@ -1,4 +1,4 @@
-"""How the step cost grows with the mesh: step time against the number of nodes for the two model classes.
+"""How the step cost grows with the mesh: step time against the number of nodes for the three model classes.
 
 Meshes: the 40×10×10 beam, clamped at x = 0, as structured hex8 meshes of growing size (``fem.box_hex_mesh``: from
 5×2×2 elements, 54 nodes, through the paper's 20×5×5, 756 nodes, upwards); the graph is both directions of every
@@ -9,6 +9,10 @@ hex edge (``fem.meshes.mesh_edges``), as for the paper's beam.
   by ``tignn_jax.simulators.linear.from_rest_linearization``). Its step multiplies by the dense A⁻¹ [3N, 3N], so
   its time and memory grow as N² for large meshes; the linearisation itself is dense Jacobian columns (its build
   time is reported), which limits the meshes (``--linear``) to a few thousand nodes.
+* `CorotationalGeneric` (the class of the shipped ``beam-corot``) with the FEM's element operators of the mesh
+  (``tignn_jax.simulators.corotational.from_fem``): its element work grows as N, but its preconditioner is the
+  dense inverse of the rest operator (4 products of [3N, 3N] a frame at 3 CG iterations), so it grows as N² and
+  its memory as N² (``--corot``: a few thousand nodes).
 * `GenericGNN` (the paper's graph network) with random weights (``GenericGNN(config).init``; values do not change
   the time) and statistics of the right scale, on meshes up to ``--gnn`` (default up to 53 568 nodes).
 
@@ -21,7 +25,7 @@ log-log over the meshes with at least ``--fit-from`` nodes (small meshes are dom
 Writes scaling.{json,md,png} (scaling_gpu.* on a GPU backend, scaling_<backend>.* on another) to ``--out``
 (default benchmarks/results).
 
-    python benchmarks/scaling.py [--linear 10x3x3,...] [--gnn 5x2x2,...] [--seconds 2]
+    python benchmarks/scaling.py [--linear 10x3x3,...] [--corot 10x3x3,...] [--gnn 5x2x2,...] [--seconds 2]
     python benchmarks/scaling.py --quick --out /tmp/scaling      # smoke run: small meshes, ~40 s
     python benchmarks/scaling.py --render RESULT.json             # tables and plot of a result measured elsewhere
 """
@@ -46,10 +50,13 @@ BEAM_SIZE = (40.0, 10.0, 10.0)
 LINEAR_MESHES = "5x2x2,10x3x3,14x4x4,20x5x5,24x6x6,28x7x7"
 GNN_MESHES = "5x2x2,10x3x3,20x5x5,28x7x7,40x10x10,56x14x14,80x20x20,92x23x23"
 QUICK_LINEAR = "5x2x2,10x3x3"
+COROT_MESHES = "5x2x2,10x3x3,14x4x4,20x5x5,24x6x6,28x7x7,32x8x8"
+QUICK_COROT = "5x2x2,10x3x3"
 QUICK_GNN = "5x2x2,10x3x3,20x5x5"
 FIT_FROM_NODES = 700
-CLASSES = ("linear", "gnn")
-LABELS = {"linear": "LinearGeneric (FEM rest linearisation)", "gnn": "GenericGNN (random weights)"}
+CLASSES = ("linear", "corot", "gnn")
+LABELS = {"linear": "LinearGeneric (FEM rest linearisation)", "corot": "CorotationalGeneric (FEM element operators)",
+          "gnn": "GenericGNN (random weights)"}
 
 
 def parse_meshes(text: str) -> list:
@@ -118,6 +125,23 @@ def linear_params(divisions) -> tuple:
     norm = statistics(mesh)
     params = tignn_jax.make_params(tignn_jax.LinearGeneric(), stored, mesh, envelope_of(norm),
                                    {"kind": "rest-linearised FEM of a refined beam"})
+    return params, time.perf_counter() - t0
+
+
+def corot_params(divisions) -> tuple:
+    """(the corotational model of the refined beam, from the FEM's element operators, build seconds)."""
+    import tignn_jax
+    from fem import scenes
+    from tignn_jax.simulators import corotational as C
+
+    mesh, cells = beam_mesh_of(divisions)
+    base = scenes.beam_scene(prony=False)
+    scene = base._replace(name=f"beam {divisions}", points=mesh["q0"], cells=cells,
+                          edges=np.stack([mesh["senders"], mesh["receivers"]]), node_type=mesh["node_type"])
+    t0 = time.perf_counter()
+    stored = C.from_fem(scenes.setup_scene(scene), scene.material, scene.frame_dt)
+    params = tignn_jax.make_params(C.CorotationalGeneric(), stored, mesh, envelope_of(statistics(mesh)),
+                                   {"kind": "corotational FEM element operators of a refined beam"})
     return params, time.perf_counter() - t0
 
 
@@ -190,14 +214,15 @@ def measure(kind: str, meshes, seconds: float, config=None, log=print) -> list:
     for d in meshes:
         name = "x".join(map(str, d))
         log(f"  {kind} {name}: {nodes_of(d)} nodes, building ...")
-        params, build_s = linear_params(d) if kind == "linear" else gnn_params(d, config)
+        params, build_s = (linear_params(d) if kind == "linear" else corot_params(d) if kind == "corot"
+                           else gnn_params(d, config))
         step = tignn_jax.stepper(params)
         z, f = sample_state(params)
         fns[name] = lambda step=step, z=z, f=f: step(z, f)
         arrays = params["arrays"]
         row = {"elements": list(d), "nodes": nodes_of(d), "edges": int(len(params["mesh"]["senders"])),
                "build_s": build_s}
-        if kind == "linear":
+        if kind in ("linear", "corot"):
             row["ainv"] = "blocks" if "ainv_blocks" in arrays else "dense"
             row["operator_mb"] = float(sum(np.asarray(a).nbytes for a in jax.tree_util.tree_leaves(arrays)) / 2 ** 20)
         rows.append(row)
@@ -256,7 +281,7 @@ def format_md(result: dict) -> str:
         rows = result.get(kind, [])
         if not rows:
             continue
-        extra = " | A⁻¹ | arrays (MB)" if kind == "linear" else ""
+        extra = " | A⁻¹ | arrays (MB)" if kind in ("linear", "corot") else ""
         title = LABELS[kind] + (f", hidden {cfg['hidden']}, {cfg['mlp_layers']} layers, {cfg['passes']} passes"
                                 if kind == "gnn" else "")
         lines += [f"## {title}", "", f"| elements | nodes | edges | build s | step ms, {clock} ({other}) | calls | "
@@ -269,13 +294,25 @@ def format_md(result: dict) -> str:
         lines += ["", f"Fitted exponent a of time ∝ nodes^a: {_exp(f[f'{kind}_ms'], result['fit_from_nodes'])}; from "
                   f"the {'wall' if cpu else 'CPU'}-time medians "
                   f"{_exp(f[f'{kind}_wall_ms' if cpu else f'{kind}_ms'], result['fit_from_nodes'])}.", ""]
-    lines += ["Build: for LinearGeneric the FEM's rest linearisation (dense Jacobian columns by `jax.jvp`, compilation "
-              "included) and the dense inverse of A = K + (1 + αΔt)/Δt² M; for GenericGNN the weights' initialisation "
-              "and the mesh's slot topology. LinearGeneric keeps A⁻¹ whole below 32 MB and as the upper blocks of a "
-              "4 × 4 split above (`tignn_jax.simulators.linear.ainv_blocks`).", ""]
+    lines += ["Build: for LinearGeneric the FEM's rest linearisation (dense Jacobian columns by `jax.jvp`, "
+              "compilation included) and the dense inverse of A = K + (1 + αΔt)/Δt² M; for CorotationalGeneric the "
+              "FEM's element stiffness and stress columns (`jax.jvp`) and the dense inverse of its rest operator; for "
+              "GenericGNN the weights' initialisation and the mesh's slot topology. The first two keep A⁻¹ whole "
+              "below 32 MB and as the upper blocks of a 4 × 4 split above "
+              "(`tignn_jax.simulators.linear.ainv_blocks`).", ""]
+    ratios = corot_ratios(result)
+    if ratios:
+        lines += ["Corotational step time over the linear one's on the same mesh, measured in the same run: "
+                  + ", ".join(f"{n} nodes {r:.1f}×" for n, r in ratios) + ".", ""]
     if cpu:
         lines += ["On a GPU machine `python benchmarks/scaling.py` writes scaling_gpu.* (wall-clock times).", ""]
     return "\n".join(lines)
+
+
+def corot_ratios(result: dict) -> list:
+    """[(nodes, corotational ms / linear ms)] on the meshes both classes were timed on."""
+    linear = {r["nodes"]: r["ms"] for r in result.get("linear", [])}
+    return [(r["nodes"], r["ms"] / linear[r["nodes"]]) for r in result.get("corot", []) if r["nodes"] in linear]
 
 
 def plot(result: dict, path: Path) -> None:
@@ -286,7 +323,7 @@ def plot(result: dict, path: Path) -> None:
     m = result["machine"]
     clock = "CPU" if m["backend"] == "cpu" else "wall"
     fig, ax = plt.subplots(figsize=(7.5, 5))
-    for kind, colour in zip(CLASSES, ("C0", "C3")):
+    for kind, colour in zip(CLASSES, ("C0", "C2", "C3")):
         rows = result.get(kind, [])
         if not rows:
             continue
@@ -329,6 +366,8 @@ def main(argv=None) -> int:
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--linear", default=None, help=f"LinearGeneric meshes, NXxNYxNZ elements (default "
                                                    f"{LINEAR_MESHES}; --quick {QUICK_LINEAR}; '' for none)")
+    ap.add_argument("--corot", default=None, help=f"CorotationalGeneric meshes (default {COROT_MESHES}; --quick "
+                                                  f"{QUICK_COROT}; '' for none)")
     ap.add_argument("--gnn", default=None, help=f"GenericGNN meshes (default {GNN_MESHES}; --quick {QUICK_GNN}; "
                                                 "'' for none)")
     ap.add_argument("--hidden", type=int, default=64, help="GenericGNN width (default %(default)s)")
@@ -353,6 +392,7 @@ def main(argv=None) -> int:
         return 0
     try:
         linear = parse_meshes(args.linear if args.linear is not None else QUICK_LINEAR if args.quick else LINEAR_MESHES)
+        corot = parse_meshes(args.corot if args.corot is not None else QUICK_COROT if args.quick else COROT_MESHES)
         gnn = parse_meshes(args.gnn if args.gnn is not None else QUICK_GNN if args.quick else GNN_MESHES)
         config = GNNConfig(hidden=args.hidden, passes=args.passes).check()
     except ValueError as err:
@@ -367,6 +407,9 @@ def main(argv=None) -> int:
     if linear:
         print(f"LinearGeneric on {len(linear)} meshes ...", flush=True)
         result["linear"] = measure("linear", linear, seconds)
+    if corot:
+        print(f"CorotationalGeneric on {len(corot)} meshes ...", flush=True)
+        result["corot"] = measure("corot", corot, seconds)
     if gnn:
         print(f"GenericGNN on {len(gnn)} meshes ...", flush=True)
         result["gnn"] = measure("gnn", gnn, seconds, config)
