@@ -107,16 +107,24 @@ def statistics(mesh: dict) -> dict:
         "dqn_mean": np.array([length]), "dqn_std": np.array([0.1 * length])}.items()}
 
 
+def beam_scene_of(divisions) -> tuple:
+    """(the refined beam's model mesh, the beam's elastic FEM scene on it)."""
+    from fem import scenes
+
+    mesh, cells = beam_mesh_of(divisions)
+    scene = scenes.beam_scene(prony=False)._replace(
+        name=f"beam {divisions}", points=mesh["q0"], cells=cells, edges=np.stack([mesh["senders"], mesh["receivers"]]),
+        node_type=mesh["node_type"])
+    return mesh, scene
+
+
 def linear_params(divisions) -> tuple:
     """(a LinearGeneric model on the refined beam with the FEM's rest linearisation, build seconds)."""
     import tignn_jax
     from fem import implicit, scenes
     from tignn_jax.simulators import linear as LG
 
-    mesh, cells = beam_mesh_of(divisions)
-    base = scenes.beam_scene(prony=False)
-    scene = base._replace(name=f"beam {divisions}", points=mesh["q0"], cells=cells,
-                          edges=np.stack([mesh["senders"], mesh["receivers"]]), node_type=mesh["node_type"])
+    mesh, scene = beam_scene_of(divisions)
     t0 = time.perf_counter()
     problem = scenes.setup_scene(scene)
     n = len(mesh["q0"])
@@ -134,10 +142,7 @@ def corot_params(divisions) -> tuple:
     from fem import scenes
     from tignn_jax.simulators import corotational as C
 
-    mesh, cells = beam_mesh_of(divisions)
-    base = scenes.beam_scene(prony=False)
-    scene = base._replace(name=f"beam {divisions}", points=mesh["q0"], cells=cells,
-                          edges=np.stack([mesh["senders"], mesh["receivers"]]), node_type=mesh["node_type"])
+    mesh, scene = beam_scene_of(divisions)
     t0 = time.perf_counter()
     stored = C.from_fem(scenes.setup_scene(scene), scene.material, scene.frame_dt)
     params = tignn_jax.make_params(C.CorotationalGeneric(), stored, mesh, envelope_of(statistics(mesh)),
