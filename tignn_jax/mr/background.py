@@ -83,13 +83,12 @@ def hand_proxy(rgb, depth, tips, camera: Camera, radius: float):
     d = tips[:, None, 2] + steps[None, :, 2]
     centres = jnp.stack([tips[:, None, 0] + 0.0 * d,
                          tips[:, None, 1] + steps[None, :, 1] * camera.fy / tips[:, None, 2], d], -1)
-    win = int(min(camera.height, camera.width, 2 * np.ceil(max(camera.fx, camera.fy) * radius / 0.1) + 4))
+    win = _window(camera, radius)
     offs = jnp.arange(win, dtype=jnp.float32)
     skin = jnp.array([0.93, 0.72, 0.6], jnp.float32)
     for c in centres.reshape(-1, 3):
         ok = jnp.all(jnp.isfinite(c)) & (c[2] > camera.near)
-        i0 = jnp.clip(jnp.nan_to_num(jnp.floor(c[0]) - win // 2), 0, camera.width - win).astype(jnp.int32)
-        j0 = jnp.clip(jnp.nan_to_num(jnp.floor(c[1]) - win // 2), 0, camera.height - win).astype(jnp.int32)
+        i0, j0 = _corner(c, win, camera)
         u = i0 + offs + 0.5
         v = j0 + offs + 0.5
         rho = camera.fx * radius / c[2]
@@ -133,13 +132,12 @@ def rest_on_surface(tips, depth, camera: Camera, radius: float, touching=None):
     if radius <= 0:
         return tips
     touching = jnp.ones(tips.shape[0], bool) if touching is None else jnp.asarray(touching, bool)
-    win = int(min(camera.height, camera.width, 2 * np.ceil(max(camera.fx, camera.fy) * radius / 0.1) + 4))
+    win = _window(camera, radius)
     offs = jnp.arange(win, dtype=jnp.float32)
 
     def one(tip, touch):
         ok = jnp.all(jnp.isfinite(tip)) & (tip[2] > camera.near)
-        i0 = jnp.clip(jnp.nan_to_num(jnp.floor(tip[0]) - win // 2), 0, camera.width - win).astype(jnp.int32)
-        j0 = jnp.clip(jnp.nan_to_num(jnp.floor(tip[1]) - win // 2), 0, camera.height - win).astype(jnp.int32)
+        i0, j0 = _corner(tip, win, camera)
         d = jnp.where(ok, tip[2], 1.0)
         rho = camera.fx * radius / d
         r2 = (((i0 + offs + 0.5)[None, :] - tip[0]) ** 2 + ((j0 + offs + 0.5)[:, None] - tip[1]) ** 2) / rho ** 2
@@ -148,3 +146,17 @@ def rest_on_surface(tips, depth, camera: Camera, radius: float, touching=None):
         return tip.at[2].set(jnp.where(ok & touch & (d > rest), rest, tip[2]))
 
     return jax.vmap(one)(tips, touching)
+
+
+def _window(camera: Camera, radius: float) -> int:
+    """The side (pixels) of the square window a sphere of ``radius`` is drawn or sampled in, sized for spheres at
+    >= 0.1 m from the camera, at most the image."""
+    return int(min(camera.height, camera.width, 2 * np.ceil(max(camera.fx, camera.fy) * radius / 0.1) + 4))
+
+
+def _corner(centre, win: int, camera: Camera):
+    """(column, row) int32 of the top-left pixel of the ``win``-pixel window around ``centre`` (u, v, ...), kept
+    inside the image (a non-finite centre gives some window: its caller masks it)."""
+    i0 = jnp.clip(jnp.nan_to_num(jnp.floor(centre[0]) - win // 2), 0, camera.width - win).astype(jnp.int32)
+    j0 = jnp.clip(jnp.nan_to_num(jnp.floor(centre[1]) - win // 2), 0, camera.height - win).astype(jnp.int32)
+    return i0, j0

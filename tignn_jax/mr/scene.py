@@ -513,8 +513,7 @@ def build(scene: Scene):
 
     @jax.jit
     def forces_fn(zs, tips):
-        world_tips = unproject(tips[:, :2], tips[:, 2], vp, viewport)
-        world_tips = jnp.where(jnp.isfinite(tips[:, 2:3]) & (tips[:, 2:3] > 0), world_tips, jnp.nan)
+        world_tips = _world_tips(tips, vp, viewport)
         out = []
         for b, z, inv, tri in zip(scene.bodies, zs, inverses, tris):
             q = z[:, :3]
@@ -558,6 +557,13 @@ def _concurrent_step(scene: Scene):
     return step_fn
 
 
+def _world_tips(tips, vp, viewport):
+    """[K, 3] world points of the fingertips (u, v, depth_m) [K, 3]; NaN rows for missing ones (a non-finite or
+    non-positive depth)."""
+    world = unproject(tips[:, :2], tips[:, 2], vp, viewport)
+    return jnp.where(jnp.isfinite(tips[:, 2:3]) & (tips[:, 2:3] > 0), world, jnp.nan)
+
+
 def _places(scene: Scene) -> list:
     """The device of each body: body k on ``scene.devices[k % D]``."""
     return [scene.devices[k % len(scene.devices)] for k in range(len(scene.bodies))]
@@ -584,8 +590,7 @@ def make_render_fn(scene: Scene, capacity: int):
     inverses = [jnp.linalg.inv(jnp.asarray(b.model, jnp.float32)) for b in scene.bodies]
 
     def touching(zs, tips):   # as `fingertip_forces` sees it: a node of a body within its tip_radius
-        world = unproject(tips[:, :2], tips[:, 2], vp, viewport)
-        world = jnp.where(jnp.isfinite(tips[:, 2:3]) & (tips[:, 2:3] > 0), world, jnp.nan)
+        world = _world_tips(tips, vp, viewport)
         near = jnp.zeros(tips.shape[0], bool)
         for b, z, inv in zip(scene.bodies, zs, inverses):
             local = transform_points(inv, world)
