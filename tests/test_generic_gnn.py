@@ -209,8 +209,10 @@ def test_jitted_step_equals_the_step_without_jit(toy):
     jitted = step(model, arrays, z, f)
     with jax.disable_jit():
         eager = model.step_state(arrays, z, f)
-    np.testing.assert_allclose(np.asarray(jitted), np.asarray(eager), rtol=1e-6,
-                               atol=1e-6 * float(jnp.max(jnp.abs(z))))
+    # float32: XLA fuses and reorders the compiled program's sums, so the two agree to round-off amplified by the
+    # message passes (a few 1e-6 of the state's scale), not bit for bit
+    np.testing.assert_allclose(np.asarray(jitted), np.asarray(eager), rtol=1e-5,
+                               atol=1e-5 * float(jnp.max(jnp.abs(z))))
 
 
 def test_loss_gradient_matches_finite_differences_on_weights(toy):
