@@ -10,9 +10,9 @@ hex edge (``fem.meshes.mesh_edges``), as for the paper's beam.
   its time and memory grow as N² for large meshes; the linearisation itself is dense Jacobian columns (its build
   time is reported), which limits the meshes (``--linear``) to a few thousand nodes.
 * `CorotationalGeneric` (the class of the shipped ``beam-corot``) with the FEM's element operators of the mesh
-  (``tignn_jax.simulators.corotational.from_fem``): its element work grows as N, but its preconditioner is the
-  dense inverse of the rest operator (4 products of [3N, 3N] a frame at 3 CG iterations), so it grows as N² and
-  its memory as N² (``--corot``: a few thousand nodes).
+  (``tignn_jax.simulators.corotational.from_fem``): its element work grows as N, and so does its preconditioner
+  (the rest operator's 32 lowest eigenmodes and its 3 × 3 node blocks, `rest_preconditioner`: 3N · 35 numbers);
+  the CG iterations a frame needs may grow with the mesh (``--corot``: up to about 20 000 nodes).
 * `GenericGNN` (the paper's graph network) with random weights (``GenericGNN(config).init``; values do not change
   the time) and statistics of the right scale, on meshes up to ``--gnn`` (default up to 53 568 nodes).
 
@@ -50,7 +50,7 @@ BEAM_SIZE = (40.0, 10.0, 10.0)
 LINEAR_MESHES = "5x2x2,10x3x3,14x4x4,20x5x5,24x6x6,28x7x7"
 GNN_MESHES = "5x2x2,10x3x3,20x5x5,28x7x7,40x10x10,56x14x14,80x20x20,92x23x23"
 QUICK_LINEAR = "5x2x2,10x3x3"
-COROT_MESHES = "5x2x2,10x3x3,14x4x4,20x5x5,24x6x6,28x7x7,32x8x8"
+COROT_MESHES = "5x2x2,10x3x3,20x5x5,28x7x7,40x10x10,52x13x13,68x17x17"
 QUICK_COROT = "5x2x2,10x3x3"
 QUICK_GNN = "5x2x2,10x3x3,20x5x5"
 FIT_FROM_NODES = 700
@@ -227,8 +227,10 @@ def measure(kind: str, meshes, seconds: float, config=None, log=print) -> list:
         arrays = params["arrays"]
         row = {"elements": list(d), "nodes": nodes_of(d), "edges": int(len(params["mesh"]["senders"])),
                "build_s": build_s}
+        if kind == "corot":
+            row["ainv"] = f"{arrays['modes'].shape[1]} modes + 3×3 blocks"
         if kind in ("linear", "corot"):
-            row["ainv"] = "blocks" if "ainv_blocks" in arrays else "dense"
+            row["ainv"] = row.get("ainv") or ("blocks" if "ainv_blocks" in arrays else "dense")
             row["operator_mb"] = float(sum(np.asarray(a).nbytes for a in jax.tree_util.tree_leaves(arrays)) / 2 ** 20)
         rows.append(row)
     timed = time_interleaved(fns, seconds)
@@ -286,7 +288,8 @@ def format_md(result: dict) -> str:
         rows = result.get(kind, [])
         if not rows:
             continue
-        extra = " | A⁻¹ | arrays (MB)" if kind in ("linear", "corot") else ""
+        extra = (" | A⁻¹ | arrays (MB)" if kind == "linear" else " | preconditioner | arrays (MB)" if kind == "corot"
+                 else "")
         title = LABELS[kind] + (f", hidden {cfg['hidden']}, {cfg['mlp_layers']} layers, {cfg['passes']} passes"
                                 if kind == "gnn" else "")
         lines += [f"## {title}", "", f"| elements | nodes | edges | build s | step ms, {clock} ({other}) | calls | "
@@ -301,8 +304,9 @@ def format_md(result: dict) -> str:
                   f"{_exp(f[f'{kind}_wall_ms' if cpu else f'{kind}_ms'], result['fit_from_nodes'])}.", ""]
     lines += ["Build: for LinearGeneric the FEM's rest linearisation (dense Jacobian columns by `jax.jvp`, "
               "compilation included) and the dense inverse of A = K + (1 + αΔt)/Δt² M; for CorotationalGeneric the "
-              "FEM's element stiffness and stress columns (`jax.jvp`) and the dense inverse of its rest operator; for "
-              "GenericGNN the weights' initialisation and the mesh's slot topology. The first two keep A⁻¹ whole "
+              "FEM's element stiffness and stress columns (`jax.jvp`), the sparse rest operator and its lowest "
+              "eigenmodes (shift-invert Lanczos, `scipy.sparse.linalg.eigsh`); for "
+              "GenericGNN the weights' initialisation and the mesh's slot topology. LinearGeneric keeps A⁻¹ whole "
               "below 32 MB and as the upper blocks of a 4 × 4 split above "
               "(`tignn_jax.simulators.linear.ainv_blocks`).", ""]
     ratios = corot_ratios(result)

@@ -172,10 +172,43 @@ def test_tet_meshes_nodal_volume_rigid_rest_step_and_energy(models):
     assert peak > 0.5
 
 
+def test_the_preconditioner_inverts_the_rest_operator_on_its_lowest_modes_and_is_positive_definite():
+    # P₀ = Φ Λ⁻¹ Φᵀ + (I − ΦΦᵀ) B⁻¹ (I − ΦΦᵀ) on a bar with more free unknowns (216) than modes (8): symmetric,
+    # positive definite on the free unknowns, exactly A₀⁻¹ on A₀'s lowest modes, and all of A₀⁻¹ given all modes
+    problem, material, _ = bar()
+    q0, cells = mesh.box_hex_mesh(size=(8.0, 2.0, 2.0), divisions=(8, 2, 2))
+    clamp = np.where(q0[:, 0] == 0.0)[0]
+    problem = sv.setup(q0, cells, material=material, frame_dt=0.05, n_frames=1, clamped=clamp,
+                       cell_type="hexahedron", damping=18.0, n_sub=1)
+    node_type = np.zeros(len(q0), np.int8)
+    node_type[clamp] = 1
+    edges = np.asarray(meshes.mesh_edges(cells))
+    mesh_dict = {"q0": q0, "senders": edges[0], "receivers": edges[1], "node_type": node_type}
+    stored = C.from_fem(problem, material)
+    params = tignn_jax.make_params(C.CorotationalGeneric(C.CorotationalConfig(modes=8)), stored, mesh_dict,
+                                   ENVELOPE, {})
+    A = C.rest_operator(params["arrays"], node_type).toarray()
+    free = np.repeat(node_type == 0, 3)
+    assert free.sum() == 216 and np.allclose(A, A.T) and np.array_equal(A[~free][:, ~free], np.eye((~free).sum()))
+    eye = jnp.eye(A.shape[0], dtype=jnp.float32)
+    P = np.asarray(jax.vmap(lambda r: C.apply_rest_preconditioner(params["arrays"], r))(eye), np.float64)
+    np.testing.assert_allclose(P, P.T, atol=1e-6 * np.abs(P).max())
+    assert np.linalg.eigvalsh(P[free][:, free]).min() > 0
+    lam, vec = np.linalg.eigh(A[free][:, free])
+    phi = np.zeros((A.shape[0], 8))
+    phi[free] = vec[:, :8]
+    np.testing.assert_allclose(P @ (A @ phi), phi, atol=1e-4)
+    assert np.abs(P[free][:, free] - np.linalg.inv(A[free][:, free])).max() > 1e-2 * np.abs(P).max()
+    every = jax.tree_util.tree_map(jnp.asarray, C.rest_preconditioner(A, node_type, modes=216))
+    P_all = np.asarray(jax.vmap(lambda r: C.apply_rest_preconditioner(every, r))(eye), np.float64)
+    np.testing.assert_allclose(P_all[free][:, free], np.linalg.inv(A[free][:, free]),
+                               atol=1e-4 * np.abs(P_all).max())
+
+
 def test_bad_options_are_refused_naming_the_value(models):
     corot = models[0]
     for bad, said in (({"cg_max_iterations": 2}, "cg_max_iterations.*>= cg_iterations"),
-                      ({"cg_tolerance": 0.0}, "cg_tolerance.*0.0")):
+                      ({"cg_tolerance": 0.0}, "cg_tolerance.*0.0"), ({"modes": 0}, "modes.*0")):
         with pytest.raises(ValueError, match=said):
             C.CorotationalGeneric(C.CorotationalConfig(**bad)).prepare(corot["model"].stored(corot["arrays"]),
                                                                        corot["mesh"])

@@ -31,9 +31,18 @@ the volumetric term by its Gauss–Newton tangent, κ V g gᵀ with g = ∂J/∂
     [(1 + αh)/h² M + K_R + K_J] v' = M v / h² + (f − f_int(q)) / h,   q' = q + h v',
 
 solved by at least ``cg_iterations`` conjugate-gradient iterations from v' = v (up to ``cg_max_iterations`` while
-the residual is large: `CorotationalConfig`), preconditioned with the rest operator
-turned with the body, R A₀⁻¹ Rᵀ (R each node's rotation, the polar factor of the mean of its elements' R_e;
-A₀ = (1 + αh)/h² M + K₀ the FEM's rest operator, inverted once when the model is prepared). The stress
+the residual is large: `CorotationalConfig`), preconditioned with an approximate inverse of the rest operator
+turned with the body, R P₀ Rᵀ (R each node's rotation, the polar factor of the mean of its elements' R_e). With
+A₀ = (1 + αh)/h² M + K₀ the FEM's rest operator (sparse) and Φ [3N, m] its m lowest eigenvectors (A₀ Φ = Φ Λ,
+ΦᵀΦ = I, computed once when the model is prepared)::
+
+    P₀ = Φ Λ⁻¹ Φᵀ + (I − ΦΦᵀ) B⁻¹ (I − ΦΦᵀ),   B = the 3 × 3 diagonal blocks of A₀,
+
+exact on the slow, global modes a fingertip excites (bending, twisting), block-Jacobi on the rest (a two-level
+preconditioner; symmetric positive definite). It holds 3N(m + 3) numbers, no N × N operator, and costs O(Nm) a
+product. A nearly incompressible body's volumetric stiffness leaves block-Jacobi alone useless (condition number
+5e5 after it on the beam, and A₀⁻¹ is not local at this frame step); the modes make a few iterations enough
+(docs/research_log.md). The stress
 observable σ' = R_e (S_e ũ_e) R_eᵀ + κ (J_e − 1 + g_e · Δu_e) I, averaged to the nodes by volume (S_e the
 element's deviatoric stress at rest; for tets that average is J̄'s): the pressure is the step's own linearised
 one. Taken from J_e(q') it would carry
@@ -78,16 +87,19 @@ class CorotationalConfig(NamedTuple):
 
     Attributes:
       cg_iterations: conjugate-gradient iterations every frame's linear solve makes (preconditioned by the turned
-        rest operator; from rest one iteration is exact).
+        rest operator's approximate inverse, module docstring).
       cg_max_iterations: the most iterations a frame may make: past ``cg_iterations`` the solve goes on while the
         preconditioned residual rᵀP r is above ``cg_tolerance``² times the right-hand side's bᵀA⁻¹b (a state far
         from the rest operator's, e.g. a noisy or fast-turning one, needs more than the few iterations a smooth
         frame does).
       cg_tolerance: that relative residual.
+      modes: m, the rest operator's lowest eigenmodes the preconditioner inverts exactly (all of them on a mesh
+        with at most m free degrees of freedom, where the preconditioner is A₀⁻¹).
     """
     cg_iterations: int = 3
     cg_max_iterations: int = 12
     cg_tolerance: float = 1e-2
+    modes: int = 32
 
 
 @dataclasses.dataclass(frozen=True)
@@ -109,8 +121,8 @@ class CorotationalGeneric:
         """The arrays the step reads: the stored ones; the centred rest element coordinates ``x0e`` [K, n_e, 3]
         and the averaging weights ``wnode`` [K, n_e] (V_e over the volume of the node's elements), and all element
         arrays again in the step's element-last
-        layout (`element_last`); the rest operator's inverse (``ainv``, or ``ainv_blocks`` when large, as
-        `tignn_jax.simulators.linear`), ``q0`` and the free-node mask ``free`` [N, 1].
+        layout (`element_last`); the preconditioner's ``modes``, ``mode_inv`` and ``block_inv``
+        (`rest_preconditioner`), ``q0`` and the free-node mask ``free`` [N, 1].
 
         Raises:
           ValueError: an array is missing or sized for another mesh, or the CG options are out of range.
@@ -123,6 +135,8 @@ class CorotationalGeneric:
                              f"got {c.cg_max_iterations!r}")
         if not (isinstance(c.cg_tolerance, (int, float, np.floating)) and 0.0 < c.cg_tolerance < 1.0):
             raise ValueError(f"cg_tolerance must be a number in (0, 1), got {c.cg_tolerance!r}")
+        if not (isinstance(c.modes, (int, np.integer)) and c.modes >= 1):
+            raise ValueError(f"modes must be a positive integer, got {c.modes!r}")
         stored = {"mu_nodes": np.zeros(1, np.float32), **stored}
         missing = [k for k in STORED if k not in stored]
         if missing:
@@ -143,17 +157,14 @@ class CorotationalGeneric:
         out["wnode"] = (share / total[out["cells"].reshape(-1)]).reshape(k, per).astype(np.float32)
         out.update(element_last(out, n))
         out["q0"] = q0.astype(np.float32)
-        ainv = np.linalg.inv(rest_operator(out, node_type)).astype(np.float32)
-        blocks = LG.ainv_blocks(ainv, n) if 4 * ainv.size >= LG.AINV_BLOCK_BYTES else {}
-        out["ainv_blocks" if blocks else "ainv"] = blocks or ainv
-        out["q0"] = q0.astype(np.float32)
+        out.update(rest_preconditioner(rest_operator(out, node_type), node_type, int(c.modes)))
         out["free"] = (node_type == 0)[:, None].astype(np.float32)
         for key in ("ke", "se", "b", "volume", "kappa", "mass", "alpha", "dt", "mu_nodes"):
             out[key] = out[key].astype(np.float32)
         return jax.tree_util.tree_map(jnp.asarray, out)
 
     def stored(self, arrays: dict) -> dict:
-        """The arrays a model file keeps (``STORED``); the rest operator's inverse is derived when loading."""
+        """The arrays a model file keeps (``STORED``); the preconditioner is derived when loading."""
         return {k: np.asarray(arrays[k]) for k in STORED}
 
     def step_state(self, arrays: dict, z, f):
@@ -246,10 +257,14 @@ def element_last(stored: dict, n: int) -> dict:
             "wnode_t": np.ascontiguousarray(np.asarray(stored["wnode"], np.float32).T)}
 
 
-def rest_operator(stored: dict, node_type) -> np.ndarray:
-    """A₀ = (1 + αΔt)/Δt² M + K₀ [3N, 3N] float64, K₀ = Σ_e K_e + the volumetric stiffness at rest (κ V_e b_e b_eᵀ
-    per hex, κ V_i ḡ_i ḡ_iᵀ per node of a tet mesh), identity on the clamped nodes' rows and columns. ``stored``
-    needs ``wnode`` for tets (`CorotationalGeneric.prepare`)."""
+def rest_operator(stored: dict, node_type):
+    """A₀ = (1 + αΔt)/Δt² M + K₀, a `scipy.sparse.csr_matrix` [3N, 3N] float64, K₀ = Σ_e K_e + the volumetric
+    stiffness at rest (κ V_e b_e b_eᵀ per hex, κ V_i ḡ_i ḡ_iᵀ per node of a tet mesh), identity on the clamped nodes'
+    rows and columns; row 3a + i is component i of node a. ``stored`` needs ``wnode`` for tets
+    (`CorotationalGeneric.prepare`), whose nodal terms are derived as dense columns (O(N²) memory while preparing;
+    hexes are assembled sparse)."""
+    import scipy.sparse as sparse
+
     cells = np.asarray(stored["cells"]).astype(np.int64)
     n = len(np.asarray(node_type))
     k, per = cells.shape
@@ -260,11 +275,63 @@ def rest_operator(stored: dict, node_type) -> np.ndarray:
     ke = np.asarray(stored["ke"], np.float64)
     if per == 8:
         ke = ke + (kappa * volume)[:, None, None] * b[:, :, None] * b[:, None, :]
-    K = np.zeros((3 * n, 3 * n))
-    np.add.at(K, (dof[:, :, None], dof[:, None, :]), ke)
+    rows, cols = np.broadcast_arrays(dof[:, :, None], dof[:, None, :])
+    K = sparse.coo_matrix((ke.ravel(), (rows.ravel(), cols.ravel())), shape=(3 * n, 3 * n)).tocsr()
     if per == 4:      # the nodes' volumetric and deviatoric stiffness at rest, column by column (float64)
-        K += _nodal_rest_stiffness(stored, n)
-    return LG.with_mass_and_clamps(K, stored, node_type)
+        K = K + sparse.csr_matrix(_nodal_rest_stiffness(stored, n))
+    h = float(np.asarray(stored["dt"]).reshape(-1)[0])
+    alpha = float(np.asarray(stored["alpha"]).reshape(-1)[0])
+    mass = np.repeat(np.asarray(stored["mass"], np.float64), 3)
+    free = np.repeat(np.asarray(node_type) == 0, 3).astype(np.float64)
+    keep = sparse.diags(free)
+    return (keep @ (K + sparse.diags((1.0 + alpha * h) / h ** 2 * mass)) @ keep + sparse.diags(1.0 - free)).tocsr()
+
+
+def rest_preconditioner(A, node_type, modes: int) -> dict:
+    """The arrays of P₀ = Φ Λ⁻¹ Φᵀ + (I − ΦΦᵀ) B⁻¹ (I − ΦΦᵀ) (module docstring) for the rest operator A
+    (`rest_operator`): its ``modes`` lowest eigenpairs on the free degrees of freedom, by shift-invert Lanczos
+    (`scipy.sparse.linalg.eigsh` about 0; dense on small meshes), and the inverses of its 3 × 3 node blocks.
+
+    Args:
+      A: the rest operator [3N, 3N] (sparse or dense, symmetric positive definite on the free nodes).
+      node_type: [N] (0 free; the clamped nodes' rows of every array are 0).
+      modes: m, at most the number of free degrees of freedom used.
+
+    Returns:
+      {"modes": Φ [3N, m], "mode_inv": 1/λ [m], "block_inv": B⁻¹ [N, 3, 3]}, float32.
+    """
+    import scipy.sparse as sparse
+    from scipy.sparse.linalg import eigsh
+
+    A = sparse.csr_matrix(A)
+    n = len(np.asarray(node_type))
+    free = np.repeat(np.asarray(node_type) == 0, 3)
+    af = A[free][:, free]
+    m = min(int(modes), af.shape[0])
+    if af.shape[0] <= max(4 * m, 600):
+        lam, vec = np.linalg.eigh(af.toarray())
+        lam, vec = lam[:m], vec[:, :m]
+    else:
+        lam, vec = eigsh(af.tocsc(), k=m, sigma=0.0, which="LM", v0=np.ones(af.shape[0]))
+        order = np.argsort(lam)
+        lam, vec = lam[order], vec[:, order]
+    phi = np.zeros((3 * n, m))
+    phi[free] = vec
+    coo = A.tocoo()
+    same = coo.row // 3 == coo.col // 3
+    blocks = np.zeros((n, 3, 3))
+    np.add.at(blocks, (coo.row[same] // 3, coo.row[same] % 3, coo.col[same] % 3), coo.data[same])
+    block_inv = np.linalg.inv(blocks) * (np.asarray(node_type) == 0)[:, None, None]
+    return {"modes": phi.astype(np.float32), "mode_inv": (1.0 / lam).astype(np.float32),
+            "block_inv": block_inv.astype(np.float32)}
+
+
+def apply_rest_preconditioner(arrays: dict, r):
+    """P₀ r (`rest_preconditioner`) for a flat [3N] r, in the rest frame."""
+    phi = arrays["modes"].astype(r.dtype)
+    c = r @ phi
+    y = jnp.einsum("nij,nj->ni", arrays["block_inv"].astype(r.dtype), (r - phi @ c).reshape(-1, 3)).reshape(-1)
+    return phi @ (c * arrays["mode_inv"].astype(r.dtype)) + y - phi @ (y @ phi)
 
 
 def _nodal_rest_stiffness(stored: dict, n: int, chunk: int = 192) -> np.ndarray:
@@ -516,7 +583,7 @@ def _step(arrays: dict, z, f, config: CorotationalConfig, h):
                                                                     # the [N, 3] layout the dense one reads
     def precondition(r):
         back = jnp.einsum("nji,nj->ni", rn, r * free).reshape(-1)
-        return jnp.einsum("nij,nj->ni", rn, LG.apply_ainv(arrays, back).reshape(n, 3)) * free
+        return jnp.einsum("nij,nj->ni", rn, apply_rest_preconditioner(arrays, back).reshape(n, 3)) * free
 
     rhs = (m * v / h ** 2 + (f - internal_force(arrays, kin, n)) / h) * free
     x, r = v, rhs - apply_a(v)
