@@ -45,4 +45,6 @@ def test_the_corotational_beam_beats_the_published_network_on_the_test_split(ref
     report, _ = EV.evaluate(params, reference, ("test",), structure=False)
     got = [report["test"]["all"][v]["mean"] for v in EV.VARIABLES]
     assert all(g < p for g, p in zip(got, PUBLISHED_TEST)), got
-    np.testing.assert_allclose(got, (0.000670, 0.01027, 0.02295, 0.01446), rtol=0.02)   # as measured at the build
+    # as measured with the two-level preconditioner (1c81442; the dense A₀⁻¹ gave σ 0.0230: the stress's pressure
+    # is κ times the step's linearised volume change, which a solve to 1 % carries into σ)
+    np.testing.assert_allclose(got, (0.000626, 0.00980, 0.02699, 0.01385), rtol=0.02)
