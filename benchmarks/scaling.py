@@ -227,10 +227,11 @@ def measure(kind: str, meshes, seconds: float, config=None, log=print) -> list:
         arrays = params["arrays"]
         row = {"elements": list(d), "nodes": nodes_of(d), "edges": int(len(params["mesh"]["senders"])),
                "build_s": build_s}
-        if kind == "corot":
+        if kind == "linear":
+            row["ainv"] = "blocks" if "ainv_blocks" in arrays else "dense"
+        elif kind == "corot":
             row["ainv"] = f"{arrays['modes'].shape[1]} modes + 3×3 blocks"
         if kind in ("linear", "corot"):
-            row["ainv"] = row.get("ainv") or ("blocks" if "ainv_blocks" in arrays else "dense")
             row["operator_mb"] = float(sum(np.asarray(a).nbytes for a in jax.tree_util.tree_leaves(arrays)) / 2 ** 20)
         rows.append(row)
     timed = time_interleaved(fns, seconds)

@@ -18,8 +18,8 @@ ENVELOPE = {"z_mean": np.zeros(12), "z_std": np.ones(12), "z_dev_max": np.ones(1
 LOAD = 300.0   # tip force per node added each frame
 
 
-def bar(clamped=True):
-    q0, cells = mesh.box_hex_mesh(size=(8.0, 2.0, 2.0), divisions=(4, 1, 1))
+def bar(clamped=True, divisions=(4, 1, 1)):
+    q0, cells = mesh.box_hex_mesh(size=(8.0, 2.0, 2.0), divisions=divisions)
     material = scenes.beam_scene().material
     clamp = np.where(q0[:, 0] == 0.0)[0] if clamped else ()
     problem = sv.setup(q0, cells, material=material, frame_dt=0.05, n_frames=1, clamped=clamp,
@@ -175,15 +175,8 @@ def test_tet_meshes_nodal_volume_rigid_rest_step_and_energy(models):
 def test_the_preconditioner_inverts_the_rest_operator_on_its_lowest_modes_and_is_positive_definite():
     # P₀ = Φ Λ⁻¹ Φᵀ + (I − ΦΦᵀ) B⁻¹ (I − ΦΦᵀ) on a bar with more free unknowns (216) than modes (8): symmetric,
     # positive definite on the free unknowns, exactly A₀⁻¹ on A₀'s lowest modes, and all of A₀⁻¹ given all modes
-    problem, material, _ = bar()
-    q0, cells = mesh.box_hex_mesh(size=(8.0, 2.0, 2.0), divisions=(8, 2, 2))
-    clamp = np.where(q0[:, 0] == 0.0)[0]
-    problem = sv.setup(q0, cells, material=material, frame_dt=0.05, n_frames=1, clamped=clamp,
-                       cell_type="hexahedron", damping=18.0, n_sub=1)
-    node_type = np.zeros(len(q0), np.int8)
-    node_type[clamp] = 1
-    edges = np.asarray(meshes.mesh_edges(cells))
-    mesh_dict = {"q0": q0, "senders": edges[0], "receivers": edges[1], "node_type": node_type}
+    problem, material, mesh_dict = bar(divisions=(8, 2, 2))
+    node_type = mesh_dict["node_type"]
     stored = C.from_fem(problem, material)
     params = tignn_jax.make_params(C.CorotationalGeneric(C.CorotationalConfig(modes=8)), stored, mesh_dict,
                                    ENVELOPE, {})
