@@ -54,8 +54,10 @@ Energy never created, by construction: with W = f · (q' − q) the work of the 
 h v' with θ the longest of 1, ½, …, 1/32, 0 whose potential energy fits that budget (θ = 1 unless the body turns fast,
 e.g. released from a large deformation: a linearised step moves nodes along straight lines, which stretches turning
 elements); v' is then scaled down to the budget left (an extra dissipation: M ≥ 0 still). θ = 0 always fits. A frame
-whose step had to be shortened is stepped again from its start as four steps of Δt/4, each kept within its own budget
-(`frame`). Clamped nodes (node_type ≠ 0) keep q and v.
+whose step had to be shortened is stepped again from its start with the step linearised about the first one's end
+(a Newton iteration of the backward-Euler equations: rotations and volume gradients taken there), and if that one
+falls short too, as four steps of Δt/4, each kept within its own budget (`frame`). Clamped nodes (node_type ≠ 0)
+keep q and v.
 
 Made from the FEM's own element operators (`from_fem`): not learned. Accuracy against the FEM at loads past the
 training range: ``benchmarks/large_deformation.py``.
@@ -548,32 +550,43 @@ def stress(arrays: dict, kin: _Kinematics, volume_change, n: int):
 
 def frame(arrays: dict, z, f, config: CorotationalConfig):
     """z' [N, 12] of one frame (module docstring), its CG iterations as ``config`` says. Where the frame's
-    step would have to be shortened to keep the energy budget (θ < 1), the frame is stepped instead as ``SPLIT``
-    steps of Δt / ``SPLIT`` (each with its own budget), so a fast turn is followed rather than damped. One loop
-    runs both (a single copy of the step in the compiled program): one step of Δt, or that step's restart as
-    ``SPLIT`` short ones."""
+    step would have to be shortened to keep the energy budget (θ < 1), the frame is stepped again from its start
+    with the step linearised about the end of the first (one Newton iteration of the backward-Euler equations,
+    `_step`'s ``x_lin``); where that one falls short as well, as ``SPLIT`` steps of Δt / ``SPLIT`` (each with its
+    own budget), so a fast turn is followed rather than damped. One loop runs all three (a single copy of the step
+    in the compiled program)."""
     h = arrays["dt"].reshape(-1)[0].astype(z.dtype)
+    zero = jnp.zeros_like(z[:, :3])
 
     def body(carry):
-        zk, k, split = carry
-        z1, theta = _step(arrays, zk, f, config, jnp.where(split, h / SPLIT, h))
-        redo = jnp.logical_not(split) & (theta < 1.0)     # the full step fell short: start again, split
-        return jnp.where(redo, z, z1), jnp.where(redo, 0, k + 1), split | redo
+        zk, k, mode, x_lin, e_start = carry      # mode 0: one step, 1: that step refined, 2: split
+        split = mode == 2
+        z1, theta, v_full, e0 = _step(arrays, jnp.where(split, zk, z), f, config, jnp.where(split, h / SPLIT, h),
+                                      x_lin, mode == 1, e_start)
+        short = (mode < 2) & (theta < 1.0)       # fell short: refine the step, or split the frame
+        return (jnp.where(short, z, z1), jnp.where(short, 0, k + 1), jnp.where(short, mode + 1, mode),
+                jnp.where(short & (mode == 0), v_full, zero), jnp.where(mode == 0, e0, e_start))
 
     def more(carry):
-        _, k, split = carry
-        return k < jnp.where(split, SPLIT, 1)
+        _, k, mode = carry[:3]
+        return k < jnp.where(mode == 2, SPLIT, 1)
 
-    return jax.lax.while_loop(more, body, (z, jnp.zeros((), jnp.int32), jnp.zeros((), bool)))[0]
+    start = (z, jnp.zeros((), jnp.int32), jnp.zeros((), jnp.int32), zero, jnp.zeros((), z.dtype))
+    return jax.lax.while_loop(more, body, start)[0]
 
 
-def _step(arrays: dict, z, f, config: CorotationalConfig, h):
-    """(z' after a step h, the step length θ the energy budget allowed)."""
+def _step(arrays: dict, z, f, config: CorotationalConfig, h, x_lin=None, refine=False, e_start=None):
+    """(z' after a step h, the step length θ the energy budget allowed, the solve's v' before θ, E(z)).
+
+    The frame's equations M(v' − v)/h + αMv' + f_int(u + hv') = f are linearised about u + h x_lin (x_lin = 0: about
+    the start; ``refine``: about the end of a previous solve x_lin, whose start energy ``e_start`` is E(z)),
+    [(1 + αh)/h² M + K] v' = M v / h² + (f − f_int(u + h x_lin)) / h + K x_lin, K the stiffness there."""
     _, alpha, free, m = LG._constants(arrays, z.dtype)
     n = z.shape[0]
     c = (1.0 + alpha * h) / h ** 2
     u, v = (z[:, :3] - arrays["q0"].astype(z.dtype)) * free, z[:, 3:6] * free
-    kin = kinematics(arrays, u)
+    x_lin = jnp.zeros_like(u) if x_lin is None else x_lin * free
+    kin = kinematics(arrays, u + h * x_lin)
     rn = node_rotations(arrays, kin.R, n)
 
     def apply_a(w):
@@ -585,15 +598,17 @@ def _step(arrays: dict, z, f, config: CorotationalConfig, h):
         back = jnp.einsum("nji,nj->ni", rn, r * free).reshape(-1)
         return jnp.einsum("nij,nj->ni", rn, apply_rest_preconditioner(arrays, back).reshape(n, 3)) * free
 
-    rhs = (m * v / h ** 2 + (f - internal_force(arrays, kin, n)) / h) * free
-    x, r = v, rhs - apply_a(v)
+    f_int = internal_force(arrays, kin, n)
+    rhs = (m * v / h ** 2 + (f - f_int) / h) * free       # b − K x_lin: r = b − A x = rhs − c M x − K (x − x_lin)
+    x = jnp.where(refine, x_lin, v)
+    r = (rhs - c * m * x - tangent(arrays, kin, (x - x_lin) * free)) * free
     p = precondition(r)
     d, rz = p, jnp.vdot(r, p)
     first, most = int(config.cg_iterations), int(config.cg_max_iterations)
     # the solve goes on while rᵀPr > tol² bᵀA⁻¹b, with bᵀA⁻¹b ≈ bᵀ(P r₀ + x₀) (P ≈ A⁻¹, r₀ = b − A x₀): relative
     # to the right-hand side, not to the first residual, which is at round-off in a held frame (x₀ = v is the
     # answer) and could never be reduced by tol there
-    bound = jnp.asarray(config.cg_tolerance, z.dtype) ** 2 * jnp.maximum(rz, jnp.vdot(rhs, p + v))
+    bound = jnp.asarray(config.cg_tolerance, z.dtype) ** 2 * jnp.maximum(rz, jnp.vdot(rhs, p + x))
 
     def iteration(carry):
         x, r, d, rz, i = carry
@@ -614,6 +629,8 @@ def _step(arrays: dict, z, f, config: CorotationalConfig, h):
     # energy never created, E(z') ≤ E(z) + W: the longest of the steps θ h v' (θ in BACKTRACK) whose potential
     # fits the budget, P(u + θ h v') ≤ E(z) + θ W with W = f · h v' (θ = 0 always fits)
     e0 = 0.5 * jnp.sum(m * v * v) + potential(arrays, kin)
+    e0 = e0 if e_start is None else jnp.where(refine, e_start, e0)
+    energy_start = e0
     work = jnp.sum(f * h * v1 * free)
     # the energies' round-off (float32 sums over the elements): a held frame's true change is far below it, and
     # without this allowance half such frames would be shortened for nothing
@@ -626,13 +643,15 @@ def _step(arrays: dict, z, f, config: CorotationalConfig, h):
         return thetas[jnp.argmax(trial <= e0 + thetas * work)]   # the first that fits: thetas decrease to 0
 
     theta = jax.lax.cond(potential(arrays, full) <= e0 + work, lambda _: jnp.ones((), z.dtype), shorten, None)
+    v_full = v1
     v1 = theta * v1
     u1 = u + h * v1
     kin1 = jax.lax.cond(theta == 1.0, lambda _: full, lambda _: kinematics(arrays, u1), None)
     budget = e0 + theta * work - potential(arrays, kin1)
     kinetic = 0.5 * jnp.sum(m * v1 * v1)
     v1 = v1 * jnp.where(kinetic > budget, jnp.sqrt(jnp.maximum(budget, 0.0) / jnp.maximum(kinetic, 1e-30)), 1.0)
-    change = kin.jm1 + jnp.sum(kin.g * _gather(arrays, u1 - u), axis=(0, 1))
+    change = kin.jm1 + jnp.sum(kin.g * _gather(arrays, u1 - u - h * x_lin), axis=(0, 1))
     q1 = arrays["q0"].astype(z.dtype) + u1
     q1 = jnp.where(free > 0, q1, z[:, :3])
-    return jnp.concatenate([q1, v1 + (1.0 - free) * z[:, 3:6], stress(arrays, kin1, change, n)], axis=1), theta
+    return jnp.concatenate([q1, v1 + (1.0 - free) * z[:, 3:6], stress(arrays, kin1, change, n)],
+                           axis=1), theta, v_full, energy_start
