@@ -157,7 +157,7 @@ class CorotationalGeneric:
         share = np.repeat(out["volume"], per)
         total = np.bincount(out["cells"].reshape(-1), share, minlength=n)
         out["wnode"] = (share / total[out["cells"].reshape(-1)]).reshape(k, per).astype(np.float32)
-        out.update(element_last(out, n))
+        out.update(element_last(out))
         out["q0"] = q0.astype(np.float32)
         out.update(rest_preconditioner(rest_operator(out, node_type), node_type, int(c.modes)))
         out["free"] = (node_type == 0)[:, None].astype(np.float32)
@@ -239,19 +239,17 @@ def from_fem(problem, material, frame_dt: float | None = None) -> dict:
             "dt": np.array([h], np.float32), "mu_nodes": np.array([mu_nodes], np.float32)}
 
 
-def element_last(stored: dict, n: int) -> dict:
+def element_last(stored: dict) -> dict:
     """The step's layouts of the element arrays, components first and elements last: ``cells_t`` [n_e, K],
-    ``incidence`` [N, w] (`fem.elements.incidence_table`), ``b_t`` and ``x0e_t`` [3, n_e, K], ``ke_f``
+    ``b_t`` and ``x0e_t`` [3, n_e, K], ``ke_f``
     [K, 3n_e, 3n_e] (elements first: applied by one batched product, three times faster here than element-last
     multiply-adds) and ``se_t`` [6, 3n_e, K], with rows and columns n_e i + a (component i of node a),
     ``wnode_t`` [n_e, K]."""
-    from fem.elements import incidence_table
-
     cells = np.asarray(stored["cells"]).astype(np.int32)
     k, per = cells.shape
     ke = np.asarray(stored["ke"], np.float32).reshape(k, per, 3, per, 3).transpose(0, 2, 1, 4, 3)
     se = np.asarray(stored["se"], np.float32).reshape(k, 6, per, 3).transpose(1, 3, 2, 0)
-    return {"cells_t": np.ascontiguousarray(cells.T), "incidence": incidence_table(cells, n),
+    return {"cells_t": np.ascontiguousarray(cells.T),
             "b_t": np.ascontiguousarray(np.asarray(stored["b"], np.float32).transpose(2, 1, 0)),
             "x0e_t": np.ascontiguousarray(np.asarray(stored["x0e"], np.float32).transpose(2, 1, 0)),
             "ke_f": np.ascontiguousarray(ke.reshape(k, 3 * per, 3 * per)),
@@ -339,7 +337,7 @@ def apply_rest_preconditioner(arrays: dict, r):
 def _nodal_rest_stiffness(stored: dict, n: int, chunk: int = 192) -> np.ndarray:
     """[3N, 3N] float64: the tangent at rest of the tet nodes' energies, Σ_i κ V_i ḡ_i ḡ_iᵀ + the nodal
     deviatoric term, by forward derivatives of `internal_force` (the element part left out)."""
-    keys = ("cells_t", "incidence", "b_t", "x0e_t", "wnode_t", "volume", "kappa", "mu_nodes", "q0")
+    keys = ("cells_t", "b_t", "x0e_t", "wnode_t", "volume", "kappa", "mu_nodes", "q0")
     with jax.enable_x64(True):
         arrays = {k: jnp.asarray(np.asarray(stored[k], np.float64) if np.asarray(stored[k]).dtype.kind == "f"
                                  else np.asarray(stored[k])) for k in keys}
@@ -373,9 +371,9 @@ def _gather(arrays, u):
 
 
 def _assemble(arrays, fe, n: int):
-    """Nodal sums [N, C] of element nodal values fe [C, n_e, K] (gathered through the incidence table)."""
-    flat = fe.reshape(fe.shape[0], -1).T
-    return jnp.concatenate([flat, jnp.zeros((1, flat.shape[1]), flat.dtype)])[arrays["incidence"]].sum(axis=1)
+    """Nodal sums [N, C] of element nodal values fe [C, n_e, K], by a scatter-add over the element nodes (on a CPU
+    faster than gathering each node's elements through an incidence table: docs/research_log.md)."""
+    return jax.ops.segment_sum(fe.reshape(fe.shape[0], -1).T, arrays["cells_t"].reshape(-1), num_segments=n)
 
 
 def _rotate(R, x, transpose: bool = False):
