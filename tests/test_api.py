@@ -37,7 +37,7 @@ def test_public_names_are_listed_and_documented():
 
 def test_default_model_is_the_demos_beam():
     params, graph = T.load_pretrained()
-    assert isinstance(params["model"], T.LinearGeneric)
+    assert isinstance(params["model"], T.CorotationalGeneric)
     assert graph.nodes["z"].shape == (756, 12)
 
 

@@ -103,6 +103,29 @@ def test_fingertip_forces_push_inwards_within_radius_only():
     np.testing.assert_allclose(f, [[0, 0, -7.0], [0, 0, -7.0], [0, 0, 0], [0, 0, 0]], atol=0)
 
 
+def test_a_spring_fingertip_pushes_its_pad_with_stiffness_times_depth_and_never_the_far_side():
+    # a 3 x 3 x 2 block of nodes (top layer z = 2, bottom z = 0), pressed down (−z) at its centre
+    x, y, z = np.meshgrid([-1.0, 0.0, 1.0], [-1.0, 0.0, 1.0], [0.0, 2.0], indexing="ij")
+    positions = jnp.asarray(np.stack([x.ravel(), y.ravel(), z.ravel()], 1), jnp.float32)
+    surface = jnp.ones(len(positions), bool)
+    down = jnp.asarray([0.0, 0.0, -1.0])
+    tips = jnp.asarray([[0.0, 0.0, 1.25], [0.0, 0.0, 2.5], [np.nan] * 3], jnp.float32)   # 0.75 deep, above, missing
+    pad, depth = jax.jit(mr.fingertip_pads)(tips, positions, surface, down, 1.1)
+    top_near = np.asarray((positions[:, 2] == 2.0) & (jnp.linalg.norm(positions[:, :2], axis=1) < 1.1))
+    np.testing.assert_array_equal(np.asarray(pad[0]), top_near)        # the centre and its 4 neighbours, top only
+    np.testing.assert_allclose(np.asarray(depth[:2]), [0.75, -0.5], atol=1e-6)
+    assert not np.asarray(pad[2]).any()
+    f = np.asarray(jax.jit(mr.fingertip_spring_forces)(tips, positions, surface, down, 1.1, 40.0))
+    np.testing.assert_allclose(f.sum(0), [0.0, 0.0, -40.0 * 0.75], rtol=1e-6)   # F = stiffness · depth
+    np.testing.assert_allclose(f[top_near], np.tile([0.0, 0.0, -6.0], (5, 1)), rtol=1e-6)
+    assert np.all(f[~top_near] == 0.0)
+    # past the whole block the finger still pushes the top layer down, harder: it cannot pass through
+    deep = np.asarray(mr.fingertip_spring_forces(jnp.asarray([[0.0, 0.0, -3.0]]), positions, surface, down, 1.1,
+                                                 40.0))
+    np.testing.assert_allclose(deep.sum(0), [0.0, 0.0, -200.0], rtol=1e-6)
+    assert np.all(deep[:, 2] <= 0.0)
+
+
 def test_contact_forces_are_equal_and_opposite():
     # Newton's third law: internal contact forces of the pair sum to zero.
     a = _points(300, 1) * 0.1

@@ -68,12 +68,12 @@ def test_help_lists_every_option_with_its_help(capsys):
         assert " ".join(action.help.split("(default")[0].split())[:30] in text, action.dest
 
 
-def test_small_run_of_the_learned_beam_writes_gif_timings_and_track(tmp_path, capsys):
+def test_small_run_of_the_default_beam_writes_gif_timings_and_track(tmp_path, capsys):
     assert cli.main(["demo", "--scene", "beam", "--frames", "3", "--size", "128x96", "--cores", _all_cpus(),
                      "--out", str(tmp_path)]) == 0
     out = capsys.readouterr().out
     summary = json.loads((tmp_path / "beam_timings.json").read_text())
-    assert summary["dynamics"] == "model beam" and summary["image"] == [128, 96]
+    assert summary["dynamics"] == "model beam-corot" and summary["image"] == [128, 96]
     assert summary["frames"] == 2 and summary["guard_trips"] == 0 and summary["guard"] == "reset"
     assert {"p50_ms", "p99_ms"} <= set(summary["render"])
     assert (tmp_path / "beam.gif").stat().st_size > 0

@@ -14,7 +14,7 @@ SHIPPED = {"beam": (0.10, 0.15), "beam-linear": (0.10, 0.15), "beam-corot": (0.0
 
 def test_the_shipped_models_are_the_documented_ones():
     assert sorted(T.shipped_models()) == sorted(SHIPPED)
-    assert T.api.DEFAULT_MODEL == "beam"
+    assert T.api.DEFAULT_MODEL == "beam-corot"
 
 
 def press(name):

@@ -22,7 +22,7 @@ from tignn_jax.data import STATE_DIM
 from tignn_jax.simulators import CLASSES
 
 PRETRAINED_DIR = Path(__file__).resolve().parent / "pretrained"
-DEFAULT_MODEL = "beam"
+DEFAULT_MODEL = "beam-corot"
 ENVELOPE = ("z_mean", "z_std", "z_dev_max", "u_max", "f_max")
 FORMAT = 2   # the model file's layout version (`save_model`)
 

@@ -4,12 +4,15 @@ Scenes:
 
 * ``two-beams``: the paper's configuration (`fem.scenes.two_beams_scene`): two copies of the 40x10x10 beam (shown
   0.2 m long), the lower one A clamped at x = 0, the upper one B turned 90° about the vertical and lying across A's
-  free half with a gap of 10 (5 cm). The fingertip presses B's free end down onto A; each body steps in its own
-  model frame, and they interact through `tignn_jax.mr.forcing.contact_forces`. The demo runs on ``--cores``
+  free half with a gap of 10 (5 cm). The fingertip presses B's free end 0.1 m deep, a spring from the surface
+  under it (`tignn_jax.mr.forcing.fingertip_spring_forces`), so B bends down onto A, which the contact pushes
+  down too; each body steps in its own model frame, and they interact through
+  `tignn_jax.mr.forcing.contact_forces` (a soft penalty: stepped explicitly between the bodies' implicit frames, a
+  stiffer one rings; docs/research_log.md). The demo runs on ``--cores``
   cores (default 1), the process pinned to them (`tignn_jax.mr.runtime.pin_cores`). With two or more, each beam
   steps on its own CPU device, concurrently (``Scene.devices``); with one, both bodies' frames run in one
   program, each body its own step in its own ``lax.cond``.
-* ``beam``: beam A alone, pressed down at its free end.
+* ``beam``: beam A alone, pressed down at its free end (as B above).
 * ``bunny``: the Stanford bunny (10 cm tall) standing on the table, base clamped, pushed on the top of its head
   with about the unit point load of the training cases.
 * ``own``: the mesh of the ``--model`` (a model trained with ``tignn train`` on a mesh of your own, which keeps its
@@ -18,10 +21,11 @@ Scenes:
   half the largest nodal force of the model's training data (`own_scene`). The default scene of a ``--model``
   path whose mesh is not one of the paper's.
 
-Dynamics (``--model``): a shipped model (`tignn_jax.api.shipped_models`; default per scene: ``beam`` for the beams,
-``bunny`` for the bunny, both learned linear GENERIC models stepped by backward Euler, guarded for finiteness
-only), a model folder or ``.npz`` file on the scene's mesh (a non-linear model is guarded by its training
-envelope, `tignn_jax.guards.state_guard`, and a flagged body handed to the scene's rest-linearised model,
+Dynamics (``--model``): a shipped model (`tignn_jax.api.shipped_models`; default per scene: ``beam-corot`` for the
+beams, the corotational GENERIC model, and ``bunny`` for the bunny, the learned linear GENERIC model, both stepped
+by backward Euler and never creating energy, so guarded for finiteness only), a model folder or ``.npz`` file on
+the scene's mesh (another non-linear model is guarded by its training envelope, `tignn_jax.guards.state_guard`,
+and a flagged body handed to the scene's rest-linearised model,
 `tignn_jax.guards.fallback_step`), or ``fem-newton``: the FEM's own backward-Euler frame step
 (`tignn_jax.newton.fem_stepper`, not learned). ``--stand-in`` runs a clearly labelled placeholder instead (damped
 springs between all nodes of each element, neither learned nor physically calibrated); its output files say so.
@@ -36,8 +40,16 @@ from pathlib import Path
 from tignn_jax.cli import UsageError
 
 BUNNY_PRESS_NODE = 917
-# the shipped learned linear GENERIC models (`tignn_jax.simulators.LinearGeneric`): stable without a guard
-DEFAULT_MODELS = {"beam": "beam", "two-beams": "beam", "bunny": "bunny"}
+# the beams: the corotational GENERIC beam (large deflections keep volume and length); the bunny: the learned linear
+# GENERIC bunny. Both classes never create energy, so they run without a guard
+DEFAULT_MODELS = {"beam": "beam-corot", "two-beams": "beam-corot", "bunny": "bunny"}
+# the beams' fingertip: a spring from the surface under it (`tignn_jax.mr.forcing.fingertip_spring_forces`; force per
+# beam unit of depth) and how deep the synthetic press goes past the rest surface (m; the upper beam lies 0.05 m
+# above the lower one)
+BEAM_TIP_STIFFNESS = 4.0e4
+BEAM_PRESS = 0.1
+# the two beams' penalty contact (`tignn_jax.mr.forcing.contact_forces`): radius (m) and stiffness (force per metre)
+BEAM_CONTACT = (0.015, 1e5)
 # ``--model fem-newton``: the FEM's own backward-Euler frame step (`tignn_jax.newton.fem_stepper`, 2 Newton
 # iterations of 3 CG each), not learned, on the mesh of the scene's rest-linearised model
 FEM_NEWTON = "fem-newton"
@@ -54,7 +66,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     """Add the ``demo`` subcommand to ``sub`` (the ``tignn`` parser's subparsers)."""
     p = sub.add_parser("demo", help="mixed reality: a fingertip pushes virtual solids (GIF + timings)",
                        description="Mixed reality: a fingertip in a (synthetic) camera image pushes virtual solids "
-                                   "simulated by a learned model; writes a GIF, the fingertip track (JSON lines) "
+                                   "simulated by a GENERIC model; writes a GIF, the fingertip track (JSON lines) "
                                    "and per-stage timings (p50/p99).")
     p.add_argument("--scene", choices=SCENES, default=None,
                    help="two cantilevers pushed into each other, one beam, the bunny on a table, or the --model's "
@@ -65,7 +77,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="image width x height in pixels, each 32..4096; the field of view follows the width "
                         "(default: %(default)s)")
     p.add_argument("--model", default=None,
-                   help="a shipped model name (default: beam for the beam scenes, bunny for the bunny), a model "
+                   help="a shipped model name (default: beam-corot for the beam scenes, bunny for the bunny), a model "
                         f"folder or .npz file on the scene's mesh, or {FEM_NEWTON!r}: the FEM's own backward-Euler "
                         "step by 2 Newton iterations of 3 CG each (tignn_jax.newton; not learned)")
     p.add_argument("--track", default=None,
@@ -205,6 +217,7 @@ def build_scene(name: str, frames: int, model: str | None = None, stand_in: bool
             poses = poses[:1]
             press_body = 0
         tip_radius, tip_force, vmax = 3.0, 2.0e4, 6.0e4
+        tip_stiffness, press = BEAM_TIP_STIFFNESS, BEAM_PRESS
     elif name == "bunny":
         q0, cells, edges = bunny_mesh()
         clamped = np.zeros(len(q0), bool)
@@ -216,6 +229,7 @@ def build_scene(name: str, frames: int, model: str | None = None, stand_in: bool
         # the bunny's 49; such cases are left out of the bunny model's training), the head deflects by about 1
         press_body, press_at, normal = 0, q0[BUNNY_PRESS_NODE], [0.0, 0.0, 1.0]
         tip_radius, tip_force, vmax = 0.35, 1.0, 0.5   # about one node at the training loads' unit force
+        tip_stiffness, press = 0.0, 0.012
     else:
         raise ValueError(f"scene must be one of {SCENES}, got {name!r}")
     q0 = np.asarray(q0, np.float32)
@@ -236,15 +250,15 @@ def build_scene(name: str, frames: int, model: str | None = None, stand_in: bool
                     far=5.0, view=view)
     z0 = np.concatenate([q0, np.zeros((len(q0), 9), np.float32)], axis=1)
     bodies = tuple(mr.Body(q0=q0, triangles=triangles, model=np.asarray(m), z=z0, step_fn=step_fn,
-                           tip_radius=tip_radius, tip_force=tip_force, vmax=vmax,
+                           tip_radius=tip_radius, tip_force=tip_force, vmax=vmax, tip_stiffness=tip_stiffness,
                            guard=getattr(step_fn, "guard", None), clamped=clamped) for m in poses)
     world_point = np.asarray(mr.transform_points(poses[press_body], jnp.asarray([press_at], jnp.float32)))[0]
     world_normal = np.asarray(poses[press_body])[:3, :3] @ np.asarray(normal, np.float64)
     world_normal /= np.linalg.norm(world_normal)
-    track = mr.press_track(cam, world_point, world_normal, frames, approach=0.03, press=0.012)
+    track = mr.press_track(cam, world_point, world_normal, frames, approach=0.03, press=press)
     fallback = getattr(step_fn, "fallback", None)
     scene = mr.Scene(bodies=bodies, camera=cam, background=mr.table_background(cam), track=track,
-                     contact_radius=0.006, contact_stiffness=5e7,
+                     contact_radius=BEAM_CONTACT[0], contact_stiffness=BEAM_CONTACT[1],
                      fallback=(fallback,) * len(bodies) if fallback is not None else (),
                      handover="next-frame")   # a trip frame runs one learned step, not that and a fallback step
     if len(devices) > 1 and len(bodies) > 1:

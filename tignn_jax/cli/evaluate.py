@@ -12,7 +12,8 @@ def register(sub) -> None:
                        description="Roll a model out from each case's first state under the case's forces and "
                                    "report relative L2 errors of q, v, σ and u per split (mean and median over "
                                    "cases and snapshots), with the model class's structure diagnostics.")
-    p.add_argument("--model", default="beam", help="shipped model name or model folder/file (default: %(default)s)")
+    p.add_argument("--model", default="beam-corot",
+                   help="shipped model name or model folder/file (default: %(default)s)")
     p.add_argument("--data", required=True, metavar="FILE", help="data file on the model's mesh")
     p.add_argument("--splits", default="train,val,test", help="comma-separated split names (default: %(default)s)")
     p.add_argument("--out", default=None, help="folder for report.json, report.md and boxplot.png")

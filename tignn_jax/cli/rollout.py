@@ -13,7 +13,8 @@ def register(sub) -> None:
                        description="Roll a model out from each selected case's first state under the case's "
                                    "forces and write the predicted states z [cases, frames+1, nodes, 12] with "
                                    "their sim ids to an .npz file.")
-    p.add_argument("--model", default="beam", help="shipped model name or model folder/file (default: %(default)s)")
+    p.add_argument("--model", default="beam-corot",
+                   help="shipped model name or model folder/file (default: %(default)s)")
     p.add_argument("--data", required=True, metavar="FILE", help="data file on the model's mesh")
     p.add_argument("--sims", required=True, help="a split name (test) or 1-based sim ids, e.g. 9,10,12")
     p.add_argument("--out", required=True, help="output .npz with z and sim_id")

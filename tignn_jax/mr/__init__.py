@@ -22,7 +22,8 @@ from tignn_jax.mr.background import Background, hand_proxy, rest_on_surface, tab
 from tignn_jax.mr.camera import (Camera, camera_projection, clip_coordinates, look_at, model_matrix, mvp_matrix,
                                  perspective, project, projection_from_intrinsics, rotation_matrix,
                                  transform_points, unproject)
-from tignn_jax.mr.forcing import contact_energy, contact_forces, fingertip_forces
+from tignn_jax.mr.forcing import (contact_energy, contact_forces, fingertip_forces, fingertip_pads,
+                                  fingertip_spring_forces)
 from tignn_jax.mr.legend import with_legend
 from tignn_jax.mr.render import (Raster, colour_map, draw_mesh, fragment_capacity, occlude, phong, rasterize,
                                  von_mises)
@@ -39,7 +40,7 @@ __all__ = [
     # surface
     "HEX8_FACES", "TET4_FACES", "surface_nodes", "surface_triangles", "vertex_normals",
     # forcing
-    "contact_energy", "contact_forces", "fingertip_forces",
+    "contact_energy", "contact_forces", "fingertip_forces", "fingertip_pads", "fingertip_spring_forces",
     # render
     "Raster", "colour_map", "draw_mesh", "fragment_capacity", "occlude", "phong", "rasterize", "von_mises",
     "with_legend",

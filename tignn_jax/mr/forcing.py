@@ -38,6 +38,69 @@ def fingertip_forces(tips, positions, normals, radius, magnitude) -> Array:
     return -magnitude * touched[:, None] * normals
 
 
+def fingertip_pads(tips, positions, surface, direction, radius):
+    """Where fingertips pressing along ``direction`` meet a body's surface (`fingertip_spring_forces`).
+
+    A fingertip's pad is the set of surface nodes within ``radius`` of the line through the fingertip along
+    ``direction`` d and within ``radius`` of the first of them along d (the top layer it meets, not the far side
+    of the body); its depth is how far the fingertip has gone past that first node along d::
+
+        pad_k = {i ∈ surface : |(x_i − t_k) − ((x_i − t_k)·d) d| < radius,  x_i·d < s_k + radius},
+        s_k = min over the cylinder's surface nodes of x_i·d,   depth_k = t_k·d − s_k.
+
+    Args:
+      tips: [K, 3] fingertip positions (model frame); a missing fingertip is a row of NaN (no pad).
+      positions: [N, 3] current nodal positions.
+      surface: [N] bool, the surface nodes.
+      direction: [3] unit press direction (model frame).
+      radius: the pad's radius (model units).
+
+    Returns:
+      (pad [K, N] bool, depth [K]: −inf where the cylinder holds no surface node).
+    """
+    d = jnp.asarray(direction, positions.dtype)
+    rel = positions[None, :, :] - tips[:, None, :]                                     # [K, N, 3]
+    along = rel @ d
+    lateral = jnp.linalg.norm(rel - along[..., None] * d, axis=-1)
+    inside = (lateral < radius) & surface[None, :]                                     # NaN compares false
+    level = positions @ d                                                              # [N]
+    first = jnp.min(jnp.where(inside, level[None, :], jnp.inf), axis=1)               # [K]
+    pad = inside & (level[None, :] < first[:, None] + radius)
+    depth = jnp.where(jnp.isfinite(first), tips @ d - first, -jnp.inf)
+    return pad, depth
+
+
+def fingertip_spring_forces(tips, positions, surface, direction, radius, stiffness) -> Array:
+    """The external nodal forces of fingertips that push like springs from the surface under them.
+
+    A tracked fingertip presses deeper than the body gives way; here it pulls the point of the surface it meets
+    towards itself with a spring of ``stiffness`` (force per length), the total force spread evenly over its pad
+    (`fingertip_pads`) along the press direction d::
+
+        F_k = stiffness · max(depth_k, 0),   f_i = Σ_k F_k · [i ∈ pad_k] / |pad_k| · d.
+
+    Unlike a fixed force per touched node (`fingertip_forces`), the force follows how far the finger has gone
+    past the surface, so a finger that goes deep cannot pass through the body between its nodes: the body settles
+    where its elastic force balances the spring (with stiffness · compliance ≲ 1, the body's compliance at the
+    pad, without overshooting in a quasi-static press).
+
+    Args:
+      tips: [K, 3] fingertip positions (model frame); NaN rows contribute nothing.
+      positions: [N, 3] current nodal positions (model units).
+      surface: [N] bool, the surface nodes.
+      direction: [3] unit press direction (model frame).
+      radius: the pad's radius (model units).
+      stiffness: force per length of depth (model units).
+
+    Returns:
+      [N, 3] nodal forces.
+    """
+    pad, depth = fingertip_pads(tips, positions, surface, direction, radius)
+    count = jnp.maximum(jnp.sum(pad, axis=1), 1)
+    share = stiffness * jnp.maximum(depth, 0.0) / count                                # [K]
+    return jnp.sum(jnp.where(pad, share[:, None], 0.0), axis=0)[:, None] * jnp.asarray(direction, positions.dtype)
+
+
 def contact_forces(positions_a, positions_b, radius, stiffness, capacity: int | None = None):
     """Penalty contact between two bodies.
 

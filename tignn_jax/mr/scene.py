@@ -27,7 +27,7 @@ import numpy as np
 
 from tignn_jax.mr.background import Background, hand_proxy, rest_on_surface
 from tignn_jax.mr.camera import Camera, camera_projection, project, transform_points, unproject
-from tignn_jax.mr.forcing import contact_forces, fingertip_forces
+from tignn_jax.mr.forcing import contact_forces, fingertip_forces, fingertip_pads, fingertip_spring_forces
 from tignn_jax.mr.render import colour_map, draw_mesh, fragment_capacity, occlude, von_mises
 from tignn_jax.mr.surface import surface_nodes, vertex_normals
 
@@ -57,6 +57,11 @@ class Body(NamedTuple):
         device).
       clamped: optional [N] bool, the nodes held fixed (the model's node_type ≠ 0): drawn in ``CLAMP_COLOUR``
         instead of the colour map, so the supports show.
+      tip_stiffness: 0: the fingertip puts ``tip_force`` on every node within ``tip_radius`` (the training loads'
+        law, `tignn_jax.mr.forcing.fingertip_forces`); positive: it pushes along ``Scene.press_direction`` as a
+        spring of this stiffness (model force units per model length) from the surface under it, spread over a
+        pad of radius ``tip_radius`` (`tignn_jax.mr.forcing.fingertip_spring_forces`), so a deep press bends the
+        body instead of passing through it.
     """
     q0: np.ndarray
     triangles: np.ndarray
@@ -68,6 +73,7 @@ class Body(NamedTuple):
     vmax: float
     guard: Callable | None = None
     clamped: np.ndarray | None = None
+    tip_stiffness: float = 0.0
 
 
 class Scene(NamedTuple):
@@ -119,6 +125,8 @@ class Scene(NamedTuple):
         ``lax.cond``, which also keeps XLA:CPU from running the bodies' steps together); a scene with devices
         and a ``Scene.guard`` over all bodies runs its guard after the steps. False: each stage is dispatched
         and awaited in turn, so the forces are timed on their own (see benchmarks/realtime.py).
+      press_direction: [3] the direction (world space) in which the fingertips of bodies with a ``tip_stiffness``
+        push (default: down, −y).
     """
     bodies: tuple
     camera: Camera
@@ -136,6 +144,7 @@ class Scene(NamedTuple):
     fallback_hold: int = 30
     fuse: bool = True
     handover: str = "same-frame"
+    press_direction: tuple = (0.0, -1.0, 0.0)
 
 
 class Timings(NamedTuple):
@@ -509,17 +518,21 @@ def build(scene: Scene):
     surfaces = [jnp.asarray(surface_nodes(b.triangles)) for b in scene.bodies]
     capacities = [max(64, len(s) // 2) for s in surfaces]
     rotations = [m[:3, :3] / jnp.linalg.norm(m[:3, :3], axis=0, keepdims=True) for m in models]
+    masks, presses = _press_frames(scene)
     n = len(scene.bodies)
 
     @jax.jit
     def forces_fn(zs, tips):
         world_tips = _world_tips(tips, vp, viewport)
         out = []
-        for b, z, inv, tri in zip(scene.bodies, zs, inverses, tris):
+        for b, z, inv, tri, mask, press in zip(scene.bodies, zs, inverses, tris, masks, presses):
             q = z[:, :3]
-            normals = vertex_normals(q, tri)
-            out.append(fingertip_forces(transform_points(inv, world_tips), q, normals,
-                                           b.tip_radius, b.tip_force))
+            if b.tip_stiffness > 0:
+                out.append(fingertip_spring_forces(transform_points(inv, world_tips), q, mask, press, b.tip_radius,
+                                                   b.tip_stiffness))
+            else:
+                out.append(fingertip_forces(transform_points(inv, world_tips), q, vertex_normals(q, tri),
+                                            b.tip_radius, b.tip_force))
         world = [transform_points(m, z[:, :3])[s] for m, z, s in zip(models, zs, surfaces)]
         for i in range(n if scene.contact_radius > 0 else 0):   # no contact: no neighbour search at all
             for j in range(i + 1, n):
@@ -557,6 +570,19 @@ def _concurrent_step(scene: Scene):
     return step_fn
 
 
+def _press_frames(scene: Scene):
+    """Per body: its surface-node mask [N] and ``Scene.press_direction`` in its model frame (unit [3])."""
+    masks, presses = [], []
+    world = np.asarray(scene.press_direction, np.float64)
+    for b in scene.bodies:
+        mask = np.zeros(len(b.q0), bool)
+        mask[surface_nodes(b.triangles)] = True
+        d = np.linalg.solve(np.asarray(b.model, np.float64)[:3, :3], world)
+        masks.append(jnp.asarray(mask))
+        presses.append(jnp.asarray(d / np.linalg.norm(d), jnp.float32))
+    return masks, presses
+
+
 def _world_tips(tips, vp, viewport):
     """[K, 3] world points of the fingertips (u, v, depth_m) [K, 3]; NaN rows for missing ones (a non-finite or
     non-positive depth)."""
@@ -589,13 +615,19 @@ def make_render_fn(scene: Scene, capacity: int):
     viewport = (0.0, 0.0, float(cam.width), float(cam.height))
     inverses = [jnp.linalg.inv(jnp.asarray(b.model, jnp.float32)) for b in scene.bodies]
 
-    def touching(zs, tips):   # as `fingertip_forces` sees it: a node of a body within its tip_radius
+    masks, presses = _press_frames(scene)
+
+    def touching(zs, tips):   # as the forces see it: a node within tip_radius, or a spring fingertip past the surface
         world = _world_tips(tips, vp, viewport)
         near = jnp.zeros(tips.shape[0], bool)
-        for b, z, inv in zip(scene.bodies, zs, inverses):
+        for b, z, inv, mask, press in zip(scene.bodies, zs, inverses, masks, presses):
             local = transform_points(inv, world)
-            distance = jnp.linalg.norm(z[None, :, :3] - local[:, None, :], axis=-1)        # [K, N]
-            near = near | jnp.any(distance < b.tip_radius, axis=1)
+            if b.tip_stiffness > 0:
+                pad, depth = fingertip_pads(local, z[:, :3], mask, press, b.tip_radius)
+                near = near | (jnp.any(pad, axis=1) & (depth > 0))
+            else:
+                distance = jnp.linalg.norm(z[None, :, :3] - local[:, None, :], axis=-1)    # [K, N]
+                near = near | jnp.any(distance < b.tip_radius, axis=1)
         return near
 
     @jax.jit
@@ -646,6 +678,9 @@ def validate(scene: Scene) -> None:
         raise ValueError(f"fallback_hold must be a non-negative integer, got {scene.fallback_hold!r}")
     if scene.handover not in ("same-frame", "next-frame"):
         raise ValueError(f"handover must be 'same-frame' or 'next-frame', got {scene.handover!r}")
+    press = np.asarray(scene.press_direction, np.float64)
+    if press.shape != (3,) or not np.all(np.isfinite(press)) or not np.linalg.norm(press) > 0:
+        raise ValueError(f"press_direction must be a finite, non-zero [3] vector, got {scene.press_direction!r}")
     for k, b in enumerate(scene.bodies):
         n = len(b.q0)
         if np.asarray(b.z).shape != (n, 12):
@@ -659,6 +694,8 @@ def validate(scene: Scene) -> None:
             raise ValueError(f"bodies[{k}].step_fn must be callable (or give the scene a step), got {b.step_fn!r}")
         if not (b.tip_radius > 0 and b.vmax > 0):
             raise ValueError(f"bodies[{k}] needs tip_radius > 0 and vmax > 0, got {b.tip_radius}, {b.vmax}")
+        if not b.tip_stiffness >= 0:
+            raise ValueError(f"bodies[{k}].tip_stiffness must be >= 0, got {b.tip_stiffness}")
         if b.clamped is not None and np.asarray(b.clamped).shape != (n,):
             raise ValueError(f"bodies[{k}].clamped must be [{n}] (one flag per node), got "
                              f"{np.asarray(b.clamped).shape}")
