@@ -37,12 +37,13 @@ import json
 import time
 from pathlib import Path
 
+from tignn_jax.api import DEFAULT_MODEL
 from tignn_jax.cli import UsageError
 
 BUNNY_PRESS_NODE = 917
-# the beams: the corotational GENERIC beam (large deflections keep volume and length); the bunny: the learned linear
-# GENERIC bunny. Both classes never create energy, so they run without a guard
-DEFAULT_MODELS = {"beam": "beam-corot", "two-beams": "beam-corot", "bunny": "bunny"}
+# the beams: `load_pretrained()`'s default, the corotational GENERIC beam (large deflections keep volume and
+# length); the bunny: the learned linear GENERIC bunny. Both classes never create energy, so they run without a guard
+DEFAULT_MODELS = {"beam": DEFAULT_MODEL, "two-beams": DEFAULT_MODEL, "bunny": "bunny"}
 # the beams' fingertip: a spring from the surface under it (`tignn_jax.mr.forcing.fingertip_spring_forces`; force per
 # beam unit of depth) and how deep the synthetic press goes past the rest surface (m; the upper beam lies 0.05 m
 # above the lower one)

@@ -4,6 +4,7 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+from tignn_jax.api import DEFAULT_MODEL
 from tignn_jax.cli import UsageError
 
 
@@ -12,7 +13,7 @@ def register(sub) -> None:
                        description="Roll a model out from each case's first state under the case's forces and "
                                    "report relative L2 errors of q, v, σ and u per split (mean and median over "
                                    "cases and snapshots), with the model class's structure diagnostics.")
-    p.add_argument("--model", default="beam-corot",
+    p.add_argument("--model", default=DEFAULT_MODEL,
                    help="shipped model name or model folder/file (default: %(default)s)")
     p.add_argument("--data", required=True, metavar="FILE", help="data file on the model's mesh")
     p.add_argument("--splits", default="train,val,test", help="comma-separated split names (default: %(default)s)")

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from tignn_jax.api import DEFAULT_MODEL
 from tignn_jax.cli import UsageError
 
 
@@ -13,7 +14,7 @@ def register(sub) -> None:
                        description="Roll a model out from each selected case's first state under the case's "
                                    "forces and write the predicted states z [cases, frames+1, nodes, 12] with "
                                    "their sim ids to an .npz file.")
-    p.add_argument("--model", default="beam-corot",
+    p.add_argument("--model", default=DEFAULT_MODEL,
                    help="shipped model name or model folder/file (default: %(default)s)")
     p.add_argument("--data", required=True, metavar="FILE", help="data file on the model's mesh")
     p.add_argument("--sims", required=True, help="a split name (test) or 1-based sim ids, e.g. 9,10,12")
