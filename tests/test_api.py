@@ -84,6 +84,28 @@ def test_a_batched_rest_graph_is_known_by_its_arrays_and_any_other_checked_by_va
         T.step(params, wrong, f)
 
 
+def test_non_finite_forces_are_refused_and_huge_finite_ones_are_not(beam):
+    # the finiteness check reads a sum of squares first: a NaN or an infinity anywhere (in the float32 forces a
+    # real-time loop hands over, in float64, in a jax array, in a sequence) is refused; finite forces whose squares
+    # overflow float32 are still accepted
+    params, graph = beam
+    for bad_value in (np.nan, np.inf, -np.inf):
+        for dtype in (np.float32, np.float64):
+            bad = np.zeros((756, 3), dtype)
+            bad[700, 2] = bad_value
+            with pytest.raises(ValueError, match="forces contains NaN or infinite values"):
+                T.step(params, graph, bad)
+            with pytest.raises(ValueError, match="forces contains NaN or infinite values"):
+                T.step(params, graph, jnp.asarray(bad))
+    seq = np.zeros((3, 756, 3), np.float32)
+    seq[2, 5, 0] = np.nan
+    with pytest.raises(ValueError, match="forces_seq contains NaN or infinite values"):
+        T.rollout(params, graph, seq)
+    huge = np.zeros((756, 3), np.float32)
+    huge[:3] = 1e30                       # Σ f² overflows float32; every entry is finite
+    assert T.step(params, graph, huge).nodes["z"].shape == (756, 12)
+
+
 def test_bad_input_is_named(beam):
     params, graph = beam
     with pytest.raises(ValueError, match=r"forces has shape \[756, 2\]"):

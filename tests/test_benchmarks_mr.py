@@ -36,12 +36,12 @@ def test_every_option_has_help(script):
 
 
 def test_realtime_quick_writes_the_loop_and_the_public_step_against_the_stepper(tmp_path):
-    done = _bench("realtime", tmp_path, "--scenes", "two-beams")
+    done = _bench("realtime", tmp_path, "--scenes", "beam")   # one body: tests/test_render.py plays the two beams
     assert done.returncode == 0, done.stderr[-3000:]
     result, md = _results(tmp_path, "realtime")
-    assert list(result["scenes"]) == ["two-beams"] and result["quick"]
-    s = result["scenes"]["two-beams"]
-    assert s["dynamics"].startswith("model beam") and s["bodies"] == 2 and s["frames"] == 10
+    assert list(result["scenes"]) == ["beam"] and result["quick"]
+    s = result["scenes"]["beam"]
+    assert s["dynamics"].startswith("model beam") and s["bodies"] == 1 and s["frames"] == 10
     programs = s["step_programs"][s["judged_round"]]
     for variant in ("loop's step program", "tignn_jax.stepper", "tignn_jax.step, device forces",
                     "tignn_jax.step, host forces"):
@@ -51,7 +51,7 @@ def test_realtime_quick_writes_the_loop_and_the_public_step_against_the_stepper(
     if hasattr(os, "sched_setaffinity"):
         assert result["machine"]["pinned_cpus"] == sorted(os.sched_getaffinity(0))[:1]   # as `tignn demo`
     assert "load_average_1m" in result["machine"] and "load_average_1m_at_end" in result["machine"]
-    assert md.count("| two-beams |") == 2 and "QUICK RUN" in md   # the loop's table and the step's
+    assert md.count("| beam |") == 2 and "QUICK RUN" in md   # the loop's table and the step's
 
 
 @pytest.mark.long

@@ -81,17 +81,6 @@ def test_small_run_of_the_default_beam_writes_gif_timings_and_track(tmp_path, ca
     assert "STAND-IN" not in out and "wrote" in out
 
 
-def test_stand_in_run_is_labelled_as_such(tmp_path, capsys):
-    # the two beams on the placeholder dynamics: the output files and the summary say it is a stand-in
-    args = ["demo", "--scene", "two-beams", "--frames", "3", "--size", "96x72", "--stand-in", "--cores",
-            _all_cpus(), "--out", str(tmp_path)]
-    assert cli.main(args) == 0
-    summary = json.loads((tmp_path / "two-beams_STAND-IN_timings.json").read_text())
-    assert summary["dynamics"].startswith("STAND-IN") and summary["frames"] == 2
-    assert (tmp_path / "two-beams_STAND-IN.gif").stat().st_size > 0
-    assert "NOTE" in capsys.readouterr().out
-
-
 def test_build_scene_refuses_an_unknown_scene():
     with pytest.raises(ValueError, match="'cube'"):
         demo.build_scene("cube", 2)

@@ -150,6 +150,7 @@ def test_a_model_file_round_trip_steps_the_same(models, tmp_path):
                                   np.asarray(tignn_jax.stepper(corot)(state(q0), f)))
 
 
+@pytest.mark.long   # another cell type: the hex tests above make each of these checks on the class
 def test_tet_meshes_nodal_volume_rigid_rest_step_and_energy(models):
     """A tet4 bar (nodal volume change and shared deviatoric energy, as the FEM's nodal tet4): a rigid turn
     stores nothing; from rest the first frame is the FEM's rest-linearised backward-Euler step; a large load

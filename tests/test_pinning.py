@@ -100,6 +100,9 @@ def test_demo_runs_pinned_to_one_core_by_default(tmp_path):
     summary = json.loads((tmp_path / "beam_STAND-IN_timings.json").read_text())
     assert summary["cores"] == 1 and summary["pinned_cpus"] == [allowed[0]]
     assert f"pinned to CPU {allowed[0]}" in done.stdout
+    # the placeholder dynamics are labelled as such in the files' names, the summary and the output
+    assert summary["dynamics"].startswith("STAND-IN") and summary["frames"] == 2
+    assert (tmp_path / "beam_STAND-IN.gif").stat().st_size > 0 and "NOTE" in done.stdout
 
 
 @linux

@@ -8,6 +8,7 @@ model object static and the arrays as arguments.
 from __future__ import annotations
 
 import json
+import math
 from functools import partial
 from pathlib import Path
 
@@ -47,10 +48,13 @@ def step(params: dict, graph: jraph.GraphsTuple, forces) -> jraph.GraphsTuple:
       ValueError: the graph is not the model's mesh (or k copies of it), or ``forces`` has another shape or
         non-finite values.
     """
-    forces, host, k = _check(params, graph, forces, seq=False)
+    k = _bodies(params, graph)
+    forces, host = _forces(forces, graph.nodes["z"].shape[0], "forces")
     z = _advance(params["model"], _nodes(params), params["arrays"], graph.nodes["z"], forces)
-    _check_values(params, graph, host, k, "forces")   # while the frame computes: a bad input discards it
-    return G.with_state(graph, z)
+    _finite(host, "forces")     # while the frame computes: a bad input discards it
+    return jraph.GraphsTuple(nodes={**graph.nodes, "z": z}, edges=graph.edges, receivers=graph.receivers,
+                             senders=graph.senders, globals=graph.globals, n_node=graph.n_node,
+                             n_edge=graph.n_edge)
 
 
 def rollout(params: dict, graph: jraph.GraphsTuple, forces_seq) -> jax.Array:
@@ -67,9 +71,10 @@ def rollout(params: dict, graph: jraph.GraphsTuple, forces_seq) -> jax.Array:
     Raises:
       ValueError: as `step`.
     """
-    forces_seq, host, k = _check(params, graph, forces_seq, seq=True)
+    _bodies(params, graph)
+    forces_seq, host = _forces(forces_seq, graph.nodes["z"].shape[0], "forces_seq", seq=True)
     zs = _rollout(params["model"], _nodes(params), params["arrays"], graph.nodes["z"], forces_seq)
-    _check_values(params, graph, host, k, "forces_seq")
+    _finite(host, "forces_seq")
     return zs
 
 
@@ -283,24 +288,34 @@ def _rollout(model, n: int, arrays: dict, z0, forces_seq):
     return jnp.concatenate([z0[None], zs])
 
 
-def _check(params, graph, forces, seq: bool):
-    """Check the graph's and the forces' types and shapes against the model's mesh; returns (the forces as a numpy
-    or jax array of the state's dtype, the forces as a numpy array, copies). The checks of values
-    (`_check_values`) follow the frame's dispatch, so they run while it computes."""
-    name = "forces_seq" if seq else "forces"
+def _bodies(params, graph) -> int:
+    """The number of bodies k of the model's mesh in ``graph``, after checking its type, its state's shape and its
+    edges. The model's own edge arrays, and those of a recent `rest_graph` of k copies, are known by identity
+    (no comparison of values): `step` returns graphs that carry them, so a loop pays a few attribute look-ups."""
     if not isinstance(graph, jraph.GraphsTuple) or not isinstance(graph.nodes, dict) or "z" not in graph.nodes:
         raise ValueError(f"graph must be a jraph.GraphsTuple with nodes {{'z': [N, {STATE_DIM}], ...}}, got "
                          f"{type(graph).__name__}")
+    edges, shape = params["edges"], graph.nodes["z"].shape
+    if graph.senders is edges[0] and graph.receivers is edges[1] and shape == (_nodes(params), STATE_DIM):
+        return 1
     n_mesh = _nodes(params)
-    z = graph.nodes["z"]
-    n = z.shape[0]
-    if n % n_mesh or tuple(z.shape) != (n, STATE_DIM):
-        raise ValueError(f"graph.nodes['z'] has shape {tuple(z.shape)}, expected [k·{n_mesh}, {STATE_DIM}] "
+    n = shape[0]
+    if n % n_mesh or tuple(shape) != (n, STATE_DIM):
+        raise ValueError(f"graph.nodes['z'] has shape {tuple(shape)}, expected [k·{n_mesh}, {STATE_DIM}] "
                          f"for the model's mesh of {n_mesh} nodes")
     k = n // n_mesh
     if tuple(np.shape(graph.senders)) != (k * len(params["mesh"]["senders"]),) \
             or tuple(np.shape(graph.receivers)) != tuple(np.shape(graph.senders)):
         raise ValueError("graph.senders / graph.receivers are not the edges of the model's mesh")
+    _check_edges(params, graph, k)
+    return k
+
+
+def _forces(forces, n: int, name: str, seq: bool = False):
+    """Check the forces' shape ([n, 3], or [T, n, 3] with ``seq``) and type; returns (the forces as a numpy or jax
+    array of the state's dtype, the forces as a numpy array for `_finite`)."""
+    if type(forces) is np.ndarray and forces.dtype is _FLOAT32 and forces.shape == (n, 3) and not seq:
+        return forces, forces     # what a real-time loop hands over: nothing to convert
     shape = tuple(np.shape(forces))
     want = ((shape[0] if len(shape) == 3 else -1,) if seq else ()) + (n, 3)
     if shape != want:
@@ -308,13 +323,17 @@ def _check(params, graph, forces, seq: bool):
     host = np.asarray(forces)   # a jax array on the CPU: a view, no reduction dispatched to the device
     if host.dtype.kind not in "fiu":
         raise ValueError(f"{name} must be numbers, got dtype {host.dtype}")
-    return (forces if isinstance(forces, jax.Array) else host.astype(np.float32, copy=False)), host, k
+    return (forces if isinstance(forces, jax.Array) else host.astype(np.float32, copy=False)), host
 
 
-def _check_values(params, graph, host, k: int, name: str):
-    """The graph's edges are the model's mesh's (`_check_edges`) and the forces ``host`` are finite."""
-    _check_edges(params, graph, k)
-    if not np.isfinite(host).all():
+_FLOAT32 = np.dtype(np.float32)
+
+
+def _finite(host, name: str) -> None:
+    """Raise if the forces ``host`` hold a NaN or an infinity. The sum of squares (one BLAS dot product, the
+    cheapest reduction numpy calls) is non-finite if an entry is; only then, since huge finite forces may overflow
+    it, are the entries tested one by one. Integer forces are always finite."""
+    if host.dtype.kind == "f" and not math.isfinite(np.vdot(host, host)) and not np.isfinite(host).all():
         raise ValueError(f"{name} contains NaN or infinite values")
 
 
