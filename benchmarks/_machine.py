@@ -8,6 +8,8 @@ import platform
 import time
 from pathlib import Path
 
+import numpy as np
+
 RESULTS_DIR = Path(__file__).resolve().parent / "results"
 
 
@@ -35,23 +37,25 @@ def machine_line(m: dict) -> str:
     return f"Machine: {m['cpu']}, {m['cores']} cores, jax {m['jax']} ({m['backend']})"
 
 
-def interleaved_ms(fns: dict, repeats: int) -> dict:
+def interleaved_ms(fns: dict, repeats: int, seed: int = 0) -> dict:
     """Milliseconds per call of each zero-argument function, ``repeats`` samples each ({name: [ms]}): each is
     called once first (to compile), then the functions are called in turn, so a change of the machine's load
-    hits all variants alike; the order rotates every round, so no variant always follows the same one (whose
-    memory traffic would otherwise cost it alone). A function's result is awaited with ``jax.block_until_ready``."""
+    hits all variants alike. Each round calls them in a new random order (seeded): a call runs slower after one
+    that swept the caches (a long rollout, a large mesh), and a fixed or merely rotated order would make the same
+    variant follow that one round after round. A function's result is awaited with ``jax.block_until_ready``."""
     import jax
 
     for fn in fns.values():
         jax.block_until_ready(fn())
     times = {k: [] for k in fns}
     names = list(fns)
-    for r in range(repeats):
-        for k in names[r % len(names):] + names[:r % len(names)]:
-            fn = fns[k]
+    rng = np.random.default_rng(seed)
+    for _ in range(repeats):
+        for i in rng.permutation(len(names)):
+            fn = fns[names[i]]
             t0 = time.perf_counter()
             jax.block_until_ready(fn())
-            times[k].append(1e3 * (time.perf_counter() - t0))
+            times[names[i]].append(1e3 * (time.perf_counter() - t0))
     return times
 
 

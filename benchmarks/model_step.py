@@ -12,8 +12,9 @@ corotational ``beam-corot`` (the beam's mesh; its frame iterates, so its time de
 linear models'). For each row the state is the rest state advanced by 10 frames under a load at half the model's
 largest training force (``envelope["f_max"]``) on the free node farthest from the clamps; each call steps that state
 under that load (numpy float32 forces, as a real-time loop hands them over). Times: milliseconds per call after a
-compiling call, ``--repeats`` samples of each variant with the variants called in turn (`_machine.interleaved_ms`: a
-change of the machine's load hits all alike); reported are medians and 90th percentiles, and the median over rounds
+compiling call, ``--repeats`` samples of each variant, the variants called in a new random order each round
+(`_machine.interleaved_ms`: a change of the machine's load hits all alike, and no variant always follows the
+rollout, whose 20 frames sweep the caches); reported are medians and 90th percentiles, and the median over rounds
 of the step and stepper calls' difference and ratio (paired: robust to load changes between rounds); the rollout's
 time is per frame (its call over T frames divided by T).
 
@@ -123,7 +124,8 @@ def report(result: dict) -> str:
              machine_line(m) + "; load average "
              f"{m['load_average_1m']} at the start, {result['load_average_1m_end']} at the end (above {m['cores']}: "
              f"other processes shared the CPU). Median (p90) of {result['repeats']} calls per variant after "
-             f"compilation, variants interleaved; rollout: one call over {result['rollout_frames']} frames, per frame."
+             f"compilation, variants interleaved in a new random order each round; rollout: one call over "
+             f"{result['rollout_frames']} frames, per frame."
              + (" QUICK run (few repeats): indicative only." if result["quick"] else ""), "",
              "| model | bodies | nodes | step ms | stepper ms | rollout ms / frame | step / stepper | checks overhead "
              f"(≤ {CHECKS_BUDGET:.0%}) | paired: checks ms, overhead |", "|---|---|---|---|---|---|---|---|---|"]

@@ -133,7 +133,8 @@ def test_report_only_rewrites_the_report_and_plot_from_the_stored_result(tmp_pat
     with pytest.raises(SystemExit):
         pareto.main(["--report-only", "--out", str(tmp_path)])
     assert "pareto.json" in capsys.readouterr().err
-    points = [_point("beam", "shipped", 1.1, 0.03), _point("beam-linear", "shipped-linear", 0.8, 0.04),
+    points = [_point("beam-corot", "shipped", 4.0, 0.014), _point("beam", "shipped-learned", 1.1, 0.03),
+              _point("beam-linear", "shipped-linear", 0.8, 0.04),
               _point("FEM 5×2×2", "fem", 19.0, 0.2, elements=20, n_sub=743, inverted=[-1]),
               _point("FEM Newton-CG 2×3", "fem-newton", 8.0, 0.02, newton=[2, 3])]
     front = pareto.pareto_front([p["ms"] for p in points], [p["u"] for p in points])
@@ -149,5 +150,6 @@ def test_report_only_rewrites_the_report_and_plot_from_the_stored_result(tmp_pat
     assert pareto.main(["--report-only", "--out", str(tmp_path)]) == 0
     md = (tmp_path / "pareto.md").read_text()
     assert md.startswith("# Run time against error") and "| published TIGNN (reference line) | — |" in md
-    assert "beam-linear → beam → FEM Newton-CG 2×3" in md
+    assert "beam-linear → beam → beam-corot" in md and "| beam-corot | 4.00 |" in md
+    assert "Against `beam`, the learned linear GENERIC model: 4.00 against 1.10 ms per step (3.64×)" in md
     assert (tmp_path / "pareto.png").stat().st_size > 0
