@@ -48,7 +48,7 @@ def step(params: dict, graph: jraph.GraphsTuple, forces) -> jraph.GraphsTuple:
       ValueError: the graph is not the model's mesh (or k copies of it), or ``forces`` has another shape or
         non-finite values.
     """
-    k = _bodies(params, graph)
+    _bodies(params, graph)
     forces, host = _forces(forces, graph.nodes["z"].shape[0], "forces")
     z = _advance(params["model"], _nodes(params), params["arrays"], graph.nodes["z"], forces)
     _finite(host, "forces")     # while the frame computes: a bad input discards it
