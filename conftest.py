@@ -18,22 +18,7 @@ def pytest_configure(config):
                                        "functions other tests call); runs with TIGNN_LONG_TESTS=1")
 
 
-# The files whose tests take longest (measured on a cold cache), heaviest first: pytest-xdist hands out whole files
-# (``--dist loadfile``) in collection order (``--no-loadscope-reorder``), so the two workers start on these and
-# finish together on the short files, instead of one worker ending alone on a notebook or an end-to-end check.
-HEAVIEST_FIRST = ("tests/test_render.py", "tests/test_benchmarks_mr.py", "tests/test_view.py",
-                  "tests/test_train_linear.py", "tests/test_user_mesh.py", "tests/test_fem_dynamics.py",
-                  "tests/test_shipped_models.py", "tests/test_corotational.py", "tests/test_fem_elements.py",
-                  "tests/test_generic_gnn.py", "tests/test_cli.py", "tests/test_fem_scenes.py",
-                  "notebooks/02_reference_beam.ipynb", "tests/test_fem_gradients.py",
-                  "notebooks/01_fem_verification.ipynb", "tests/test_stability.py", "tests/test_fem_implicit.py",
-                  "tests/test_cli_demo.py", "tests/test_pinning.py", "notebooks/03_train_small_model.ipynb",
-                  "notebooks/04_mixed_reality.ipynb")
-
-
 def pytest_collection_modifyitems(config, items):
-    rank = {name: i for i, name in enumerate(HEAVIEST_FIRST)}
-    items.sort(key=lambda item: rank.get(item.nodeid.split("::")[0], len(rank)))   # stable: file order kept
     if os.environ.get("TIGNN_LONG_TESTS") == "1":
         return
     import pytest
