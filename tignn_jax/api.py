@@ -48,13 +48,11 @@ def step(params: dict, graph: jraph.GraphsTuple, forces) -> jraph.GraphsTuple:
       ValueError: the graph is not the model's mesh (or k copies of it), or ``forces`` has another shape or
         non-finite values.
     """
-    _bodies(params, graph)
+    _check_graph(params, graph)
     forces, host = _forces(forces, graph.nodes["z"].shape[0], "forces")
     z = _advance(params["model"], _nodes(params), params["arrays"], graph.nodes["z"], forces)
     _finite(host, "forces")     # while the frame computes: a bad input discards it
-    return jraph.GraphsTuple(nodes={**graph.nodes, "z": z}, edges=graph.edges, receivers=graph.receivers,
-                             senders=graph.senders, globals=graph.globals, n_node=graph.n_node,
-                             n_edge=graph.n_edge)
+    return G.with_state(graph, z)
 
 
 def rollout(params: dict, graph: jraph.GraphsTuple, forces_seq) -> jax.Array:
@@ -71,7 +69,7 @@ def rollout(params: dict, graph: jraph.GraphsTuple, forces_seq) -> jax.Array:
     Raises:
       ValueError: as `step`.
     """
-    _bodies(params, graph)
+    _check_graph(params, graph)
     forces_seq, host = _forces(forces_seq, graph.nodes["z"].shape[0], "forces_seq", seq=True)
     zs = _rollout(params["model"], _nodes(params), params["arrays"], graph.nodes["z"], forces_seq)
     _finite(host, "forces_seq")
@@ -288,17 +286,16 @@ def _rollout(model, n: int, arrays: dict, z0, forces_seq):
     return jnp.concatenate([z0[None], zs])
 
 
-def _bodies(params, graph) -> int:
-    """The number of bodies k of the model's mesh in ``graph``, after checking its type, its state's shape and its
-    edges. The model's own edge arrays, and those of a recent `rest_graph` of k copies, are known by identity
-    (no comparison of values): `step` returns graphs that carry them, so a loop pays a few attribute look-ups."""
+def _check_graph(params, graph) -> None:
+    """Check the graph's type, its state's shape ([k·N, 12]) and its edges (k copies of the model's mesh). The
+    model's own edge arrays, and those of a recent `rest_graph` of k copies, are known by identity (no comparison
+    of values): `step` returns graphs that carry them, so a loop pays a few attribute look-ups."""
     if not isinstance(graph, jraph.GraphsTuple) or not isinstance(graph.nodes, dict) or "z" not in graph.nodes:
         raise ValueError(f"graph must be a jraph.GraphsTuple with nodes {{'z': [N, {STATE_DIM}], ...}}, got "
                          f"{type(graph).__name__}")
-    edges, shape = params["edges"], graph.nodes["z"].shape
-    if graph.senders is edges[0] and graph.receivers is edges[1] and shape == (_nodes(params), STATE_DIM):
-        return 1
-    n_mesh = _nodes(params)
+    edges, shape, n_mesh = params["edges"], graph.nodes["z"].shape, _nodes(params)
+    if graph.senders is edges[0] and graph.receivers is edges[1] and shape == (n_mesh, STATE_DIM):
+        return
     n = shape[0]
     if n % n_mesh or tuple(shape) != (n, STATE_DIM):
         raise ValueError(f"graph.nodes['z'] has shape {tuple(shape)}, expected [k·{n_mesh}, {STATE_DIM}] "
@@ -308,7 +305,6 @@ def _bodies(params, graph) -> int:
             or tuple(np.shape(graph.receivers)) != tuple(np.shape(graph.senders)):
         raise ValueError("graph.senders / graph.receivers are not the edges of the model's mesh")
     _check_edges(params, graph, k)
-    return k
 
 
 def _forces(forces, n: int, name: str, seq: bool = False):
@@ -338,10 +334,9 @@ def _finite(host, name: str) -> None:
 
 
 def _check_edges(params, graph, k: int):
-    """The graph's edges and node types are the model's mesh's (k copies): at once where the graph carries the
-    mesh's own edge arrays or those of a recent `rest_graph` of k copies (kept by `step`), else by value."""
-    if k == 1 and graph.senders is params["edges"][0] and graph.receivers is params["edges"][1]:
-        return
+    """The graph's edges and node types are the model's mesh's (k copies): at once where the graph carries the edge
+    arrays of a recent `rest_graph` of k copies (kept by `step`; the mesh's own arrays `_check_graph` knows), else
+    by value."""
     model_senders, pairs = _BATCHED_EDGES.get((id(params["edges"][0]), k), (None, ()))
     if model_senders is params["edges"][0] and any(graph.senders is a and graph.receivers is b for a, b in pairs):
         return
