@@ -158,6 +158,7 @@ class CorotationalGeneric:
         total = np.bincount(out["cells"].reshape(-1), share, minlength=n)
         out["wnode"] = (share / total[out["cells"].reshape(-1)]).reshape(k, per).astype(np.float32)
         out.update(element_last(out))
+        out.update(node_stars(out["cells"], out["wnode"], out["b"], out["volume"], n))
         out["q0"] = q0.astype(np.float32)
         out.update(rest_preconditioner(rest_operator(out, node_type), node_type, int(c.modes)))
         out["free"] = (node_type == 0)[:, None].astype(np.float32)
@@ -257,12 +258,48 @@ def element_last(stored: dict) -> dict:
             "wnode_t": np.ascontiguousarray(np.asarray(stored["wnode"], np.float32).T)}
 
 
+def node_stars(cells, wnode, b, volume, n: int) -> dict:
+    """The nodes' averaged displacement gradient as a stencil over each node's star (the nodes it shares an
+    element with, itself included): F̄_i − I = Σ_{e∋i} w_ei Σ_a u_{e,a} ⊗ b_ea = Σ_s u_{star[i, s]} ⊗ c_is, with
+    c_ij = Σ_{e∋i,j} w_ei b_e(j) (tets; w = ``wnode``). The star relation is symmetric, so the transposed product
+    Σ_i P_i c_ij (the nodes' forces of nodal stresses P_i) reads the same lists with ``star_ct``: ct_js = c_{star[j, s]
+    , j}. Lists are padded to the longest with the node itself and zero coefficients.
+
+    Returns:
+      {"star": [N, S] int32, "star_c" and "star_ct": [3, N, S] float32, "vnode": V_i = Σ_{e∋i} V_e / 4 [N]
+      float32}; for hexes (no nodal terms) S = 1 and the coefficients are zero.
+    """
+    cells = np.asarray(cells).astype(np.int64)
+    k, per = cells.shape
+    if per != 4:
+        return {"star": np.arange(n, dtype=np.int32)[:, None], "star_c": np.zeros((3, n, 1), np.float32),
+                "star_ct": np.zeros((3, n, 1), np.float32), "vnode": np.zeros(n, np.float32)}
+    i = np.repeat(cells, per, axis=1).ravel()
+    j = np.tile(cells, (1, per)).ravel()
+    coef = (np.asarray(wnode, np.float64)[:, :, None, None] * np.asarray(b, np.float64)[:, None]).reshape(-1, 3)
+    keys, inverse = np.unique(i * n + j, return_inverse=True)
+    c = np.zeros((len(keys), 3))
+    np.add.at(c, inverse, coef)
+    ii, jj = keys // n, keys % n
+    degree = np.bincount(ii, minlength=n)
+    slot = np.arange(len(keys)) - np.concatenate([[0], np.cumsum(degree)])[ii]
+    star = np.tile(np.arange(n)[:, None], (1, degree.max()))
+    star[ii, slot] = jj
+    cs, cts = np.zeros(star.shape + (3,)), np.zeros(star.shape + (3,))
+    cs[ii, slot] = c
+    # ct_{j, s} = c_{star[j, s], j}: the pair (i, j) sits in i's list at slot, and (j, i) in j's list at slot_t
+    slot_t = slot[np.searchsorted(keys, jj * n + ii)]
+    cts[jj, slot_t] = c
+    vnode = np.bincount(cells.ravel(), np.repeat(np.asarray(volume, np.float64) / per, per), minlength=n)
+    return {"star": star.astype(np.int32), "star_c": np.ascontiguousarray(cs.transpose(2, 0, 1), np.float32),
+            "star_ct": np.ascontiguousarray(cts.transpose(2, 0, 1), np.float32), "vnode": vnode.astype(np.float32)}
+
+
 def rest_operator(stored: dict, node_type):
     """A₀ = (1 + αΔt)/Δt² M + K₀, a `scipy.sparse.csr_matrix` [3N, 3N] float64, K₀ = Σ_e K_e + the volumetric
-    stiffness at rest (κ V_e b_e b_eᵀ per hex, κ V_i ḡ_i ḡ_iᵀ per node of a tet mesh), identity on the clamped nodes'
-    rows and columns; row 3a + i is component i of node a. ``stored`` needs ``wnode`` for tets
-    (`CorotationalGeneric.prepare`), whose nodal terms are derived as dense columns (O(N²) memory while preparing;
-    hexes are assembled sparse)."""
+    stiffness at rest (κ V_e b_e b_eᵀ per hex; per node of a tet mesh κ V_i ḡ_i ḡ_iᵀ and the nodes' deviatoric
+    share), identity on the clamped nodes' rows and columns; row 3a + i is component i of node a. For tets
+    ``stored`` needs the star stencils of `node_stars` (`CorotationalGeneric.prepare`). Assembled sparse."""
     import scipy.sparse as sparse
 
     cells = np.asarray(stored["cells"]).astype(np.int64)
@@ -277,8 +314,8 @@ def rest_operator(stored: dict, node_type):
         ke = ke + (kappa * volume)[:, None, None] * b[:, :, None] * b[:, None, :]
     rows, cols = np.broadcast_arrays(dof[:, :, None], dof[:, None, :])
     K = sparse.coo_matrix((ke.ravel(), (rows.ravel(), cols.ravel())), shape=(3 * n, 3 * n)).tocsr()
-    if per == 4:      # the nodes' volumetric and deviatoric stiffness at rest, column by column (float64)
-        K = K + sparse.csr_matrix(_nodal_rest_stiffness(stored, n))
+    if per == 4:      # the nodes' volumetric and deviatoric stiffness at rest
+        K = K + _nodal_rest_stiffness_sparse(stored, n)
     h = float(np.asarray(stored["dt"]).reshape(-1)[0])
     alpha = float(np.asarray(stored["alpha"]).reshape(-1)[0])
     mass = np.repeat(np.asarray(stored["mass"], np.float64), 3)
@@ -334,25 +371,27 @@ def apply_rest_preconditioner(arrays: dict, r):
     return phi @ (c * arrays["mode_inv"].astype(r.dtype)) + y - phi @ (y @ phi)
 
 
-def _nodal_rest_stiffness(stored: dict, n: int, chunk: int = 192) -> np.ndarray:
-    """[3N, 3N] float64: the tangent at rest of the tet nodes' energies, Σ_i κ V_i ḡ_i ḡ_iᵀ + the nodal
-    deviatoric term, by forward derivatives of `internal_force` (the element part left out)."""
-    keys = ("cells_t", "b_t", "x0e_t", "wnode_t", "volume", "kappa", "mu_nodes", "q0")
-    with jax.enable_x64(True):
-        arrays = {k: jnp.asarray(np.asarray(stored[k], np.float64) if np.asarray(stored[k]).dtype.kind == "f"
-                                 else np.asarray(stored[k])) for k in keys}
-        arrays["ke_f"] = jnp.zeros((arrays["cells_t"].shape[1], 12, 12), jnp.float64)
-        u0 = jnp.zeros((n, 3), jnp.float64)
-        fn = jax.jit(jax.vmap(lambda d: jax.jvp(lambda u: internal_force(arrays, kinematics(arrays, u), n),
-                                                (u0,), (d,))[1]))
-        cols = []
-        for start in range(0, 3 * n, chunk):
-            idx = np.arange(start, min(start + chunk, 3 * n))
-            d = np.zeros((len(idx), 3 * n))
-            d[np.arange(len(idx)), idx] = 1.0
-            cols.append(np.asarray(fn(jnp.asarray(d.reshape(-1, n, 3))), np.float64).reshape(len(idx), 3 * n))
-    K = np.concatenate(cols).T
-    return 0.5 * (K + K.T)
+def _nodal_rest_stiffness_sparse(stored: dict, n: int):
+    """[3N, 3N] `scipy.sparse.csr_matrix`: the tangent at rest of the tet nodes' energies, Ḡᵀ D Ḡ with Ḡ the
+    stencil of `node_stars` (dF̄_i = Ḡ_i u) and D_i = 2 μ̄ V_i (dev sym) + κ V_i vec(I) vec(I)ᵀ (at rest R̄ = I and
+    J̄_i − 1 = tr dF̄_i to first order)."""
+    import scipy.sparse as sparse
+
+    star = np.asarray(stored["star"]).astype(np.int64)
+    c = np.asarray(stored["star_c"], np.float64)                       # [3, N, S]
+    stars = star.shape[1]
+    node, s, a, b = np.meshgrid(np.arange(n), np.arange(stars), np.arange(3), np.arange(3), indexing="ij")
+    rows = 9 * node + 3 * a + b
+    cols = 3 * star[node, s] + a
+    G = sparse.csr_matrix((c[b, node, s].ravel(), (rows.ravel(), cols.ravel())), shape=(9 * n, 3 * n))
+    eye = np.eye(3).reshape(9)
+    swap = np.eye(9).reshape(3, 3, 9).transpose(1, 0, 2).reshape(9, 9)     # vec(H) → vec(Hᵀ)
+    dev_sym = 0.5 * (np.eye(9) + swap) - np.outer(eye, eye) / 3.0
+    mu = float(np.asarray(stored["mu_nodes"]).reshape(-1)[0])
+    kappa = float(np.asarray(stored["kappa"]).reshape(-1)[0])
+    vnode = np.asarray(stored["vnode"], np.float64)
+    D = sparse.block_diag([v * (2.0 * mu * dev_sym + kappa * np.outer(eye, eye)) for v in vnode], format="csr")
+    return (G.T @ D @ G).tocsr()
 
 
 class _Kinematics(NamedTuple):
@@ -405,7 +444,7 @@ def kinematics(arrays: dict, u) -> _Kinematics:
     if not _nodal(arrays):
         empty = jnp.zeros((3, 3, 0), u.dtype)
         return _Kinematics(R, jm1, g, local, empty, empty)
-    Fn = _node_average(arrays, F.reshape(9, -1), u.shape[0]).T.reshape(3, 3, -1)
+    Fn = _nodal_gradient(arrays, u) + jnp.eye(3, dtype=u.dtype)[:, :, None]
     Rn = polar(Fn, POLAR_ITERATIONS)
     Hn = matmul3(transpose3(Rn), Fn) - jnp.eye(3, dtype=u.dtype)[:, :, None]
     return _Kinematics(R, jm1, g, local, Rn, Hn)
@@ -425,9 +464,20 @@ def _node_average(arrays, x, n: int):
     return _assemble(arrays, x[:, None, :] * w[None], n)
 
 
-def _node_volume(arrays, dtype, n: int):
-    """V_i = Σ_{e∋i} V_e / 4 [N] (tets)."""
-    return _assemble(arrays, (0.25 * arrays["volume"].astype(dtype))[None, None] * jnp.ones((1, 4, 1), dtype), n)[:, 0]
+def _nodal_gradient(arrays, u):
+    """F̄_i − I [3, 3, N], the nodes' averaged displacement gradient of u [N, 3] (`node_stars`)."""
+    us = u.T[:, arrays["star"]]                                     # [3, N, S]
+    c = arrays["star_c"].astype(u.dtype)
+    return jnp.stack([jnp.stack([jnp.sum(us[i] * c[j], axis=-1) for j in range(3)]) for i in range(3)])
+
+
+def _nodal_force(arrays, P):
+    """The nodes' forces [N, 3] of nodal stresses P [3, 3, N], f_j = Σ_i P_i c_ij (the transpose of
+    `_nodal_gradient`)."""
+    n, stars = arrays["star"].shape
+    Ps = P.reshape(9, -1)[:, arrays["star"]].reshape(3, 3, n, stars)
+    ct = arrays["star_ct"].astype(P.dtype)
+    return jnp.stack([_sum(lambda j: jnp.sum(Ps[i, j] * ct[j], axis=-1), 3) for i in range(3)], axis=1)
 
 
 def _dev_sym(H):
@@ -436,24 +486,28 @@ def _dev_sym(H):
     return S - (trace3(S) / 3.0)[None, None] * jnp.eye(3, dtype=H.dtype)[:, :, None]
 
 
-def _nodes_to_elements(arrays, P, dtype):
-    """P̃_e = Σ_{a} w_ea P_{cells[e, a]} [3, 3, K] of nodal tensors P [3, 3, N]."""
-    w = arrays["wnode_t"].astype(dtype)                           # [4, K]
-    Pe = P[:, :, arrays["cells_t"]]                               # [3, 3, 4, K]
-    return jnp.sum(Pe * w[None, None], axis=2)
+def _gather_tensor(arrays, P):
+    """[3, 3, n_e, K] element nodal values of nodal tensors P [3, 3, N] (gathered as [9, N]: a gather along the
+    last axis of a three-dimensional array is many times slower on a CPU)."""
+    per, k = arrays["cells_t"].shape
+    return P.reshape(9, -1)[:, arrays["cells_t"]].reshape(3, 3, per, k)
 
 
 def _nodal_deviatoric_force(arrays, kin, dF_nodes=None):
-    """Element nodal forces [3, 4, K] of the nodes' deviatoric energy: with P_i = 2 μ̄ V_i R̄_i dev sym(H),
-    H = R̄_iᵀ F̄_i − I (or R̄_iᵀ dF̄_i for a tangent product with ``dF_nodes``), f_ea = P̃_e b_ea."""
+    """Nodal forces [N, 3] of the nodes' deviatoric energy: with P_i = 2 μ̄ V_i R̄_i dev sym(H), H = R̄_iᵀ F̄_i − I
+    (or R̄_iᵀ dF̄_i for a tangent product with ``dF_nodes``), f = Σ_i P_i c_ij (`_nodal_force`)."""
     dt = kin.local.dtype
-    n = kin.Rn.shape[-1]
     mu = arrays["mu_nodes"].reshape(-1)[0].astype(dt)
     H = kin.Hn if dF_nodes is None else matmul3(transpose3(kin.Rn), dF_nodes)
-    P = matmul3(kin.Rn, _dev_sym(H)) * (2.0 * mu * _node_volume(arrays, dt, n))[None, None]
-    Pe = _nodes_to_elements(arrays, P, dt)
-    b = arrays["b_t"].astype(dt)                                   # [3, 4, K]
-    return jnp.stack([_sum(lambda j: Pe[i, j][None] * b[j], 3) for i in range(3)])
+    P = _dot3(kin.Rn, _dev_sym(H) * (2.0 * mu * arrays["vnode"].astype(dt))[None, None])
+    return _nodal_force(arrays, P)
+
+
+def _dot3(A, B):
+    """A B for A, B [3, 3, M] as one batched XLA dot. Used where the product is then gathered (over stars or
+    elements): XLA:CPU would fuse the elementwise form into the gather and recompute it for every read, ~26 times
+    per node over the stars (about 6 times slower in the frame step); a dot is not fused into its consumer."""
+    return jnp.einsum("ijm,jkm->ikm", A, B)
 
 
 def _volumetric(arrays, x, n: int):
@@ -476,7 +530,7 @@ def potential(arrays: dict, kin: _Kinematics):
         return dev + 0.5 * kappa * jnp.sum(arrays["volume"].astype(dt) * kin.jm1 ** 2)
     n = arrays["q0"].shape[0]
     jn = _node_average(arrays, kin.jm1, n)
-    vnode = _node_volume(arrays, dt, n)
+    vnode = arrays["vnode"].astype(dt)
     dn = _dev_sym(kin.Hn)
     mu = arrays["mu_nodes"].reshape(-1)[0].astype(dt)
     return dev + 0.5 * kappa * jnp.sum(vnode * jn ** 2) + mu * jnp.sum(vnode * jnp.sum(dn * dn, axis=(0, 1)))
@@ -496,7 +550,7 @@ def internal_force(arrays: dict, kin: _Kinematics, n: int):
     fl = _apply_ke(arrays, kin.local).reshape(3, kin.g.shape[1], -1)
     fe = _rotate(kin.R, fl) + kin.g * _volumetric(arrays, kin.jm1, n)[None, None]
     if _nodal(arrays):
-        fe = fe + _nodal_deviatoric_force(arrays, kin)
+        return _assemble(arrays, fe, n) + _nodal_deviatoric_force(arrays, kin)
     return _assemble(arrays, fe, n)
 
 
@@ -509,10 +563,7 @@ def tangent(arrays: dict, kin: _Kinematics, w):
     gw = _volumetric(arrays, jnp.sum(kin.g * we, axis=(0, 1)), n)
     fe = _rotate(kin.R, fl) + kin.g * gw[None, None]
     if _nodal(arrays):
-        b = arrays["b_t"].astype(w.dtype)
-        dF = _sum(lambda a: we[:, None, a] * b[None, :, a], per)                        # [3, 3, K]
-        dFn = _node_average(arrays, dF.reshape(9, -1), n).T.reshape(3, 3, -1)
-        fe = fe + _nodal_deviatoric_force(arrays, kin, dFn)
+        return _assemble(arrays, fe, n) + _nodal_deviatoric_force(arrays, kin, _nodal_gradient(arrays, w))
     return _assemble(arrays, fe, n)
 
 
@@ -538,9 +589,9 @@ def stress(arrays: dict, kin: _Kinematics, volume_change, n: int):
     p = arrays["kappa"].reshape(-1)[0].astype(dt) * volume_change
     if _nodal(arrays):    # as the FEM's nodal tet4: each element adds the mean of its nodes' pressure and share
         mu = arrays["mu_nodes"].reshape(-1)[0].astype(dt)      # of the deviatoric stress, R̄ (2 μ̄ dev sym H̄) R̄ᵀ
-        Sn = matmul3(matmul3(kin.Rn, 2.0 * mu * _dev_sym(kin.Hn)), transpose3(kin.Rn))
+        Sn = _dot3(matmul3(kin.Rn, 2.0 * mu * _dev_sym(kin.Hn)), transpose3(kin.Rn))
         Sn = Sn + _node_average(arrays, p, n)[None, None] * jnp.eye(3, dtype=dt)[:, :, None]
-        S = S + jnp.mean(Sn[:, :, arrays["cells_t"]], axis=2)
+        S = S + jnp.mean(_gather_tensor(arrays, Sn), axis=2)
         p = jnp.zeros_like(p)
     sig = jnp.stack([S[a, c] + (p if a == c else 0.0) for a, c in _VOIGT])           # [6, K]
     return _assemble(arrays, sig[:, None, :] * arrays["wnode_t"].astype(dt)[None], n)
