@@ -443,11 +443,24 @@ def kinematics(arrays: dict, u) -> _Kinematics:
     local = (_rotate(R, xe, transpose=True) - x0e).reshape(3 * b.shape[1], -1)
     if not _nodal(arrays):
         empty = jnp.zeros((3, 3, 0), u.dtype)
-        return _Kinematics(R, jm1, g, local, empty, empty)
+        return _kept(_Kinematics(R, jm1, g, local, empty, empty))
     Fn = _nodal_gradient(arrays, u) + jnp.eye(3, dtype=u.dtype)[:, :, None]
     Rn = polar(Fn, POLAR_ITERATIONS)
     Hn = matmul3(transpose3(Rn), Fn) - jnp.eye(3, dtype=u.dtype)[:, :, None]
-    return _Kinematics(R, jm1, g, local, Rn, Hn)
+    return _kept(_Kinematics(R, jm1, g, local, Rn, Hn))
+
+
+def _kept(kin: _Kinematics) -> _Kinematics:
+    """The same kinematics, each tensor passed through a product with the identity (one batched XLA dot each).
+
+    XLA:CPU fuses an elementwise producer into every consumer, and the consumers here are gathers and products
+    that read each element's rotation many times: the polar iteration's last step would be recomputed in each of
+    them (the bunny's frame step took 1.6 times as long). A dot is never fused into its consumer, so each tensor is
+    computed once (``jax.lax.optimization_barrier`` does not survive XLA:CPU's passes)."""
+    def keep(x):
+        return jnp.einsum("ij,j...->i...", jnp.eye(3, dtype=x.dtype), x)
+    return kin._replace(R=keep(kin.R), g=keep(kin.g), local=keep(kin.local.reshape(3, -1)).reshape(kin.local.shape),
+                        Rn=keep(kin.Rn), Hn=keep(kin.Hn))
 
 
 def _nodal(arrays) -> bool:
@@ -506,7 +519,7 @@ def _nodal_deviatoric_force(arrays, kin, dF_nodes=None):
 def _dot3(A, B):
     """A B for A, B [3, 3, M] as one batched XLA dot. Used where the product is then gathered (over stars or
     elements): XLA:CPU would fuse the elementwise form into the gather and recompute it for every read, ~26 times
-    per node over the stars (about 6 times slower in the frame step); a dot is not fused into its consumer."""
+    per node over the stars; a dot is not fused into its consumer (`_kept`)."""
     return jnp.einsum("ijm,jkm->ikm", A, B)
 
 
