@@ -242,18 +242,20 @@ def from_fem(problem, material, frame_dt: float | None = None) -> dict:
 
 def element_last(stored: dict) -> dict:
     """The step's layouts of the element arrays, components first and elements last: ``cells_t`` [n_e, K],
-    ``b_t`` and ``x0e_t`` [3, n_e, K], ``ke_f``
-    [K, 3n_e, 3n_e] (elements first: applied by one batched product, three times faster here than element-last
-    multiply-adds) and ``se_t`` [6, 3n_e, K], with rows and columns n_e i + a (component i of node a),
-    ``wnode_t`` [n_e, K]."""
+    ``b_t`` and ``x0e_t`` [3, n_e, K], the stiffness as ``ke_f`` [K, 24, 24] for hexes (elements first: applied by
+    one batched product, three times faster on a CPU than element-last multiply-adds) or ``ke_t`` [12, 12, K] for
+    tets (element-last multiply-adds, faster than the batched product at that size), and ``se_t`` [6, 3n_e, K],
+    with rows and columns n_e i + a (component i of node a), ``wnode_t`` [n_e, K]."""
     cells = np.asarray(stored["cells"]).astype(np.int32)
     k, per = cells.shape
     ke = np.asarray(stored["ke"], np.float32).reshape(k, per, 3, per, 3).transpose(0, 2, 1, 4, 3)
+    ke = ke.reshape(k, 3 * per, 3 * per)
     se = np.asarray(stored["se"], np.float32).reshape(k, 6, per, 3).transpose(1, 3, 2, 0)
-    return {"cells_t": np.ascontiguousarray(cells.T),
+    stiffness = ({"ke_f": np.ascontiguousarray(ke)} if per == 8
+                 else {"ke_t": np.ascontiguousarray(ke.transpose(1, 2, 0))})
+    return {**stiffness, "cells_t": np.ascontiguousarray(cells.T),
             "b_t": np.ascontiguousarray(np.asarray(stored["b"], np.float32).transpose(2, 1, 0)),
             "x0e_t": np.ascontiguousarray(np.asarray(stored["x0e"], np.float32).transpose(2, 1, 0)),
-            "ke_f": np.ascontiguousarray(ke.reshape(k, 3 * per, 3 * per)),
             "se_t": np.ascontiguousarray(se.reshape(6, 3 * per, k)),
             "wnode_t": np.ascontiguousarray(np.asarray(stored["wnode"], np.float32).T)}
 
@@ -424,6 +426,9 @@ def _rotate(R, x, transpose: bool = False):
 
 def _apply_ke(arrays, x):
     """K_e x for x [3n_e, K] (the elements' deviatoric stiffness, element-last)."""
+    if "ke_t" in arrays:
+        ke = arrays["ke_t"].astype(x.dtype)
+        return jnp.stack([_sum(lambda j: ke[i, j] * x[j], ke.shape[1]) for i in range(ke.shape[0])])
     return jnp.einsum("kij,jk->ik", arrays["ke_f"].astype(x.dtype), x)
 
 
