@@ -14,7 +14,7 @@ import pytest
 ROOT = Path(__file__).resolve().parents[1]
 BENCHMARKS = ROOT / "benchmarks"
 REFERENCE = ROOT.parent / "shared" / "data" / "abaqus_beam.npz"
-QUICK = ("model_step", "stability", "pareto", "scaling", "fem_implicit", "large_deformation")
+QUICK = ("model_step", "stability", "pareto", "scaling", "fem_implicit", "large_deformation", "large_deformation_bunny")
 SCRIPTS = QUICK + ("fem_throughput", "abaqus_agreement", "datasets")
 needs_reference = pytest.mark.skipif(not REFERENCE.exists(), reason="reference data ../shared/data/abaqus_beam.npz "
                                                                     "not present")
@@ -163,3 +163,21 @@ def test_datasets_reads_the_generation_time_of_each_data_set(tmp_path):
     assert result["rows"] == [{"file": "beam_small.npz", "scene": "beam", "cases": 3, "frames": 4, "n_sub": 100,
                                "wall_time_s": 12.5, "paper_s": 795.0, "machine_load": ""}]
     assert "| beam_small.npz | beam | 3 | 4 | 100 | 12 | 795.0 |" in md
+
+
+def test_large_deformation_bunny_presses_are_the_held_out_patch_loads_scaled_held_and_released():
+    # its quick run needs the FEM's Newton preconditioner of the bunny (minutes): the loads are checked here
+    sys.path.insert(0, str(BENCHMARKS))
+    import large_deformation_bunny as B
+
+    sc = B.scene()
+    hold, nodes, inward = B.forces(sc, 30, 30.0, "hold", B.POSITIONS)
+    release, nodes_r, _ = B.forces(sc, 30, 30.0, "release", B.POSITIONS)
+    assert hold.shape == (2, 30, len(sc.points), 3) and np.array_equal(nodes, nodes_r)
+    np.testing.assert_allclose(np.linalg.norm(hold[:, -1].sum(axis=1), axis=-1), 30.0, rtol=1e-5)
+    np.testing.assert_allclose(np.linalg.norm(inward, axis=1), 1.0, rtol=1e-5)
+    for c in range(2):       # the total force points along the loaded node's inward normal
+        np.testing.assert_allclose(hold[c, -1].sum(axis=0) / 30.0, inward[c], atol=1e-5)
+    assert np.abs(release[:, B.RELEASE_AT:]).max() == 0.0
+    np.testing.assert_array_equal(release[:, :B.RELEASE_AT], hold[:, :B.RELEASE_AT])
+    assert hold[:, 0].sum() != 0 and np.abs(hold[:, 0]).max() < np.abs(hold[:, 10]).max()   # the 10-frame rise
