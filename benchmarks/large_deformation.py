@@ -153,7 +153,9 @@ def run_model(params, forces):
     return np.array(zs), created, ms[1:]   # the first call compiles
 
 
-def metrics(zs, q_ref, s_ref, q0, cells, line) -> dict:
+def field_metrics(zs, q_ref, s_ref, q0, cells) -> dict:
+    """Finiteness, the u and σ errors relative to the case's peak and the largest volume changes of the model's
+    states zs [T, N, 12] and the FEM's (q_ref, s_ref)."""
     from fem.meshes import cell_volumes
 
     u, u_ref = zs[..., :3] - q0, q_ref - q0
@@ -165,9 +167,16 @@ def metrics(zs, q_ref, s_ref, q0, cells, line) -> dict:
             "sigma_error": float(np.linalg.norm(zs[..., 6:] - s_ref, axis=(1, 2)).mean()
                                  / np.linalg.norm(s_ref, axis=(1, 2)).max()),
             "volume_change_max": float(np.abs(vol(zs[..., :3])).max()) if finite else None,
-            "fem_volume_change_max": float(np.abs(vol(q_ref)).max()),
+            "fem_volume_change_max": float(np.abs(vol(q_ref)).max())}
+
+
+def metrics(zs, q_ref, s_ref, q0, cells, line) -> dict:
+    """`field_metrics` and the beam's length difference and tip drop."""
+    out = field_metrics(zs, q_ref, s_ref, q0, cells)
+    u, u_ref = zs[..., :3] - q0, q_ref - q0
+    return {**out,
             "length_difference_max": float(np.abs(length(zs[..., :3], line) - length(q_ref, line)).max()
-                                           / length(q0, line)) if finite else None,
+                                           / length(q0, line)) if out["finite"] else None,
             "tip_drop": float(-u[-1, line[-1]].mean(axis=0)[1]),
             "fem_tip_drop": float(-u_ref[-1, line[-1]].mean(axis=0)[1])}
 

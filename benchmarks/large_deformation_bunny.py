@@ -31,7 +31,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from _machine import RESULTS_DIR, describe, interleaved_ms, machine_line, write_results  # noqa: E402
-from large_deformation import run_model  # noqa: E402
+from large_deformation import field_metrics, run_model  # noqa: E402
 
 POSITIONS = (93, 96)          # 1-based positions of the bunny data's farthest-point load sequence (test: 91–100)
 LOADS = (("1x hold", 1.0, "hold"), ("3x hold", 3.0, "hold"), ("10x hold", 10.0, "hold"),
@@ -79,18 +79,10 @@ def reference(sc, f):
 
 
 def metrics(zs, q_ref, s_ref, q0, cells, node, inward, hold_end: int) -> dict:
-    from fem.meshes import cell_volumes
-
+    """`large_deformation.field_metrics` and the dents (the loaded node's inward displacement at the end of the
+    hold) of the model and of the FEM."""
     u, u_ref = zs[..., :3] - q0, q_ref - q0
-    finite = bool(np.all(np.isfinite(zs)))
-    vol0 = cell_volumes(q0, cells).sum()
-    vol = lambda qs: np.array([cell_volumes(q, cells).sum() for q in qs]) / vol0 - 1.0
-    return {"finite": finite,
-            "u_error": float(np.linalg.norm(u - u_ref, axis=(1, 2)).mean() / np.linalg.norm(u_ref, axis=(1, 2)).max()),
-            "sigma_error": float(np.linalg.norm(zs[..., 6:] - s_ref, axis=(1, 2)).mean()
-                                 / np.linalg.norm(s_ref, axis=(1, 2)).max()),
-            "volume_change_max": float(np.abs(vol(zs[..., :3])).max()) if finite else None,
-            "fem_volume_change_max": float(np.abs(vol(q_ref)).max()),
+    return {**field_metrics(zs, q_ref, s_ref, q0, cells),
             "dent": float(u[hold_end - 1, node] @ inward), "fem_dent": float(u_ref[hold_end - 1, node] @ inward)}
 
 
