@@ -123,7 +123,8 @@ class CorotationalGeneric:
         """The arrays the step reads: the stored ones; the centred rest element coordinates ``x0e`` [K, n_e, 3]
         and the averaging weights ``wnode`` [K, n_e] (V_e over the volume of the node's elements), and all element
         arrays again in the step's element-last
-        layout (`element_last`); the preconditioner's ``modes``, ``mode_inv`` and ``block_inv``
+        layout (`element_last`); the nodes' star stencils ``star``, ``star_c``, ``star_ct`` and volumes ``vnode``
+        (`node_stars`); the preconditioner's ``modes``, ``mode_inv`` and ``block_inv``
         (`rest_preconditioner`), ``q0`` and the free-node mask ``free`` [N, 1].
 
         Raises:
