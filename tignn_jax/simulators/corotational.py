@@ -123,8 +123,8 @@ class CorotationalGeneric:
         """The arrays the step reads: the stored ones; the centred rest element coordinates ``x0e`` [K, n_e, 3]
         and the averaging weights ``wnode`` [K, n_e] (V_e over the volume of the node's elements), and all element
         arrays again in the step's element-last
-        layout (`element_last`); the nodes' star stencils ``star``, ``star_c``, ``star_ct`` and volumes ``vnode``
-        (`node_stars`); the preconditioner's ``modes``, ``mode_inv`` and ``block_inv``
+        layout (`element_last`); for tets the nodes' star stencils ``star``, ``star_c``, ``star_ct`` and volumes
+        ``vnode`` (`node_stars`); the preconditioner's ``modes``, ``mode_inv`` and ``block_inv``
         (`rest_preconditioner`), ``q0`` and the free-node mask ``free`` [N, 1].
 
         Raises:
@@ -270,13 +270,12 @@ def node_stars(cells, wnode, b, volume, n: int) -> dict:
 
     Returns:
       {"star": [N, S] int32, "star_c" and "star_ct": [3, N, S] float32, "vnode": V_i = Σ_{e∋i} V_e / 4 [N]
-      float32}; for hexes (no nodal terms) S = 1 and the coefficients are zero.
+      float32}; {} for hexes (no nodal terms).
     """
     cells = np.asarray(cells).astype(np.int64)
     k, per = cells.shape
     if per != 4:
-        return {"star": np.arange(n, dtype=np.int32)[:, None], "star_c": np.zeros((3, n, 1), np.float32),
-                "star_ct": np.zeros((3, n, 1), np.float32), "vnode": np.zeros(n, np.float32)}
+        return {}
     i = np.repeat(cells, per, axis=1).ravel()
     j = np.tile(cells, (1, per)).ravel()
     coef = (np.asarray(wnode, np.float64)[:, :, None, None] * np.asarray(b, np.float64)[:, None]).reshape(-1, 3)
@@ -318,7 +317,7 @@ def rest_operator(stored: dict, node_type):
     rows, cols = np.broadcast_arrays(dof[:, :, None], dof[:, None, :])
     K = sparse.coo_matrix((ke.ravel(), (rows.ravel(), cols.ravel())), shape=(3 * n, 3 * n)).tocsr()
     if per == 4:      # the nodes' volumetric and deviatoric stiffness at rest
-        K = K + _nodal_rest_stiffness_sparse(stored, n)
+        K = K + _nodal_rest_stiffness(stored, n)
     h = float(np.asarray(stored["dt"]).reshape(-1)[0])
     alpha = float(np.asarray(stored["alpha"]).reshape(-1)[0])
     mass = np.repeat(np.asarray(stored["mass"], np.float64), 3)
@@ -374,7 +373,7 @@ def apply_rest_preconditioner(arrays: dict, r):
     return phi @ (c * arrays["mode_inv"].astype(r.dtype)) + y - phi @ (y @ phi)
 
 
-def _nodal_rest_stiffness_sparse(stored: dict, n: int):
+def _nodal_rest_stiffness(stored: dict, n: int):
     """[3N, 3N] `scipy.sparse.csr_matrix`: the tangent at rest of the tet nodes' energies, Ḡᵀ D Ḡ with Ḡ the
     stencil of `node_stars` (dF̄_i = Ḡ_i u) and D_i = 2 μ̄ V_i (dev sym) + κ V_i vec(I) vec(I)ᵀ (at rest R̄ = I and
     J̄_i − 1 = tr dF̄_i to first order)."""
@@ -393,7 +392,7 @@ def _nodal_rest_stiffness_sparse(stored: dict, n: int):
     mu = float(np.asarray(stored["mu_nodes"]).reshape(-1)[0])
     kappa = float(np.asarray(stored["kappa"]).reshape(-1)[0])
     vnode = np.asarray(stored["vnode"], np.float64)
-    D = sparse.block_diag([v * (2.0 * mu * dev_sym + kappa * np.outer(eye, eye)) for v in vnode], format="csr")
+    D = sparse.kron(sparse.diags(vnode), 2.0 * mu * dev_sym + kappa * np.outer(eye, eye), format="csr")
     return (G.T @ D @ G).tocsr()
 
 
