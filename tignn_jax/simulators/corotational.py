@@ -36,14 +36,18 @@ turned with the body, R P₀ Rᵀ (R each node's rotation, the polar factor of t
 A₀ = (1 + αh)/h² M + K₀ the FEM's rest operator (sparse) and Φ [3N, m] its m lowest eigenvectors (A₀ Φ = Φ Λ,
 ΦᵀΦ = I, computed once when the model is prepared)::
 
-    P₀ = Φ Λ⁻¹ Φᵀ + (I − ΦΦᵀ) B⁻¹ (I − ΦΦᵀ),   B = the 3 × 3 diagonal blocks of A₀,
+    P₀ = Φ Λ⁻¹ Φᵀ + (I − ΦΦᵀ) B⁻¹ (I − ΦΦᵀ),   B = D + κ Gᵀ W G,
 
-exact on the slow, global modes a fingertip excites (bending, twisting), block-Jacobi on the rest (a two-level
-preconditioner; symmetric positive definite). It holds 3N(m + 3) numbers, no N × N operator, and costs O(Nm) a
-product. A nearly incompressible body's volumetric stiffness leaves block-Jacobi alone useless (condition number
-5e5 after it on the beam, and A₀⁻¹ is not local at this frame step); the modes make a few iterations enough
-(docs/research_log.md). The stress
-observable σ' = R_e (S_e ũ_e) R_eᵀ + κ (J_e − 1 + g_e · Δu_e) I, averaged to the nodes by volume (S_e the
+exact on the slow, global modes a fingertip excites (bending, twisting), and on the rest B, A₀'s local part: D the
+3 × 3 node blocks of A₀ without its volumetric stiffness and κ Gᵀ W G that stiffness whole (G [C, 3N] the volume
+constraints' gradients, one per hex or per tet node), inverted by Woodbury through the dense Schur complement
+S = (κW)⁻¹ + G D⁻¹ Gᵀ [C, C] (`schur_preconditioner`; a two-level preconditioner, symmetric positive definite).
+A nearly incompressible body's volumetric stiffness is far larger than the rest of A₀: block-Jacobi alone (B = the
+node blocks of A₀) is then slow on every mode it dwarfs, and a few modes cannot cover them under a patch press;
+with B⁻¹ exact on it, a few iterations are enough (docs/research_log.md). S⁻¹ holds C² numbers: past
+``schur_limit`` constraints B is A₀'s node blocks (3N(m + 3) numbers, no N × N operator, O(Nm) a product).
+
+The stress observable σ' = R_e (S_e ũ_e) R_eᵀ + κ (J_e − 1 + g_e · Δu_e) I, averaged to the nodes by volume (S_e the
 element's deviatoric stress at rest; for tets that average is J̄'s): the pressure is the step's own linearised
 one. Taken from J_e(q') it would carry
 the O(Δθ²) volume change a linearised step makes when the body turns by Δθ, which times the bulk modulus of a
@@ -95,12 +99,16 @@ class CorotationalConfig(NamedTuple):
         from the rest operator's, e.g. a noisy or fast-turning one, needs more than the few iterations a smooth
         frame does).
       cg_tolerance: that relative residual.
-      modes: m, the rest operator's lowest eigenmodes the preconditioner inverts exactly (all of them on a mesh
-        with at most m free degrees of freedom, where the preconditioner is A₀⁻¹).
+      schur_limit: the most volume constraints C (hex elements, or tet nodes) for which the preconditioner
+        eliminates the volumetric stiffness through its dense Schur complement, S⁻¹ [C, C] (`schur_preconditioner`:
+        C² numbers); a larger mesh gets the two-level modes preconditioner (`rest_preconditioner`).
+      modes: m, the rest operator's lowest eigenmodes the two-level preconditioner inverts exactly (all of them on a
+        mesh with at most m free degrees of freedom, where it is A₀⁻¹); unused below ``schur_limit``.
     """
     cg_iterations: int = 3
     cg_max_iterations: int = 12
     cg_tolerance: float = 1e-2
+    schur_limit: int = 4096
     modes: int = 32
 
 
@@ -124,8 +132,9 @@ class CorotationalGeneric:
         and the averaging weights ``wnode`` [K, n_e] (V_e over the volume of the node's elements), and all element
         arrays again in the step's element-last
         layout (`element_last`); for tets the nodes' star stencils ``star``, ``star_c``, ``star_ct`` and volumes
-        ``vnode`` (`node_stars`); the preconditioner's ``modes``, ``mode_inv`` and ``block_inv``
-        (`rest_preconditioner`), ``q0`` and the free-node mask ``free`` [N, 1].
+        ``vnode`` (`node_stars`); the preconditioner's ``block_inv`` and ``schur_inv`` (`schur_preconditioner`, up
+        to ``schur_limit`` volume constraints) or ``block_inv``, ``modes`` and ``mode_inv`` (`rest_preconditioner`),
+        ``q0`` and the free-node mask ``free`` [N, 1].
 
         Raises:
           ValueError: an array is missing or sized for another mesh, or the CG options are out of range.
@@ -140,6 +149,8 @@ class CorotationalGeneric:
             raise ValueError(f"cg_tolerance must be a number in (0, 1), got {c.cg_tolerance!r}")
         if not (isinstance(c.modes, (int, np.integer)) and c.modes >= 1):
             raise ValueError(f"modes must be a positive integer, got {c.modes!r}")
+        if not (isinstance(c.schur_limit, (int, np.integer)) and c.schur_limit >= 0):
+            raise ValueError(f"schur_limit must be a non-negative integer, got {c.schur_limit!r}")
         stored = {"mu_nodes": np.zeros(1, np.float32), **stored}
         missing = [k for k in STORED if k not in stored]
         if missing:
@@ -162,6 +173,8 @@ class CorotationalGeneric:
         out.update(node_stars(out["cells"], out["wnode"], out["b"], out["volume"], n))
         out["q0"] = q0.astype(np.float32)
         out.update(rest_preconditioner(rest_operator(out, node_type), node_type, int(c.modes)))
+        if (n if per == 4 else k) <= c.schur_limit:
+            out.update(schur_preconditioner(out, node_type))
         out["free"] = (node_type == 0)[:, None].astype(np.float32)
         for key in ("ke", "se", "b", "volume", "kappa", "mass", "alpha", "dt", "mu_nodes"):
             out[key] = out[key].astype(np.float32)
@@ -366,11 +379,88 @@ def rest_preconditioner(A, node_type, modes: int) -> dict:
 
 
 def apply_rest_preconditioner(arrays: dict, r):
-    """P₀ r (`rest_preconditioner`) for a flat [3N] r, in the rest frame."""
+    """P₀ r (`rest_preconditioner`) for a flat [3N] r, in the rest frame, with B⁻¹ replaced by
+    `schur_preconditioner`'s (D + κ Gᵀ W G)⁻¹ where the arrays hold ``schur_inv``."""
     phi = arrays["modes"].astype(r.dtype)
     c = r @ phi
-    y = jnp.einsum("nij,nj->ni", arrays["block_inv"].astype(r.dtype), (r - phi @ c).reshape(-1, 3)).reshape(-1)
+    binv = arrays["block_inv"].astype(r.dtype)
+    n = binv.shape[0]
+    y = jnp.einsum("nij,nj->ni", binv, (r - phi @ c).reshape(n, 3))
+    if "schur_inv" in arrays:     # B⁻¹ → (D + κ Gᵀ W G)⁻¹ by Woodbury
+        s = arrays["schur_inv"].astype(r.dtype) @ constraints(arrays, y)
+        y = y - jnp.einsum("nij,nj->ni", binv, constraints_transpose(arrays, s, n))
+    y = y.reshape(-1)
     return phi @ (c * arrays["mode_inv"].astype(r.dtype)) + y - phi @ (y @ phi)
+
+
+def constraint_operator(stored: dict, node_type):
+    """(G, W): the volume constraints' rest gradients G [C, 3N] (`scipy.sparse.csr_matrix`, float64; zero columns
+    on the clamped nodes) and weights W [C], with which the rest operator's volumetric stiffness is κ Gᵀ diag(W) G:
+    per hex row e = b_e (J_e − 1 ≈ Σ_a b_ea · u_a) and W_e = V_e; per tet node row i = the star stencil c_i
+    (J̄_i − 1 ≈ Σ_s c_is · u_star[i, s], `node_stars`) and W_i = V_i. Row 3a + i of u is component i of node a."""
+    import scipy.sparse as sparse
+
+    n = len(np.asarray(node_type))
+    free = np.repeat(np.asarray(node_type) == 0, 3).astype(np.float64)
+    cells = np.asarray(stored["cells"]).astype(np.int64)
+    if cells.shape[1] == 4:
+        nodes, weight = np.asarray(stored["star"]).astype(np.int64), np.asarray(stored["vnode"], np.float64)
+        coef = np.asarray(stored["star_c"], np.float64).transpose(1, 2, 0)            # [N, S, 3]
+    else:
+        nodes, weight = cells, np.asarray(stored["volume"], np.float64)
+        coef = np.asarray(stored["b"], np.float64)                                     # [K, 8, 3]
+    rows = np.broadcast_to(np.arange(len(nodes))[:, None, None], coef.shape)
+    cols = 3 * nodes[:, :, None] + np.arange(3)
+    G = sparse.csr_matrix((coef.ravel(), (rows.ravel(), cols.ravel())), shape=(len(nodes), 3 * n))
+    return (G @ sparse.diags(free)).tocsr(), weight
+
+
+def schur_preconditioner(stored: dict, node_type) -> dict:
+    """The arrays of P₀ = (D + κ Gᵀ W G)⁻¹ = D⁻¹ − D⁻¹ Gᵀ S⁻¹ G D⁻¹, S = (κ W)⁻¹ + G D⁻¹ Gᵀ (Woodbury), with D
+    the 3 × 3 node blocks of the rest operator without its volumetric stiffness (`rest_operator` at κ = 0) and
+    κ Gᵀ W G that stiffness (`constraint_operator`).
+
+    The volumetric stiffness of a nearly incompressible body is far larger than the rest of A₀ and of rank C (one
+    per constraint): block-Jacobi on A₀ then converges only as slowly as the deviatoric modes it dwarfs, and a few
+    eigenmodes do not cover them (a patch press excites local ones). P₀ inverts that stiffness exactly, with the
+    deviatoric and inertial part by its node blocks, so the CG needs a few iterations whatever κ / μ
+    (docs/research_log.md). S is dense [C, C]: C² numbers, C = elements (hex8) or nodes (tet4).
+
+    Args:
+      stored: the model's arrays, with `node_stars`'s for tets (`CorotationalGeneric.prepare`).
+      node_type: [N] (0 free; the clamped nodes' blocks are 0).
+
+    Returns:
+      {"block_inv": D⁻¹ [N, 3, 3], "schur_inv": S⁻¹ [C, C]}, float32.
+    """
+    import scipy.sparse as sparse
+
+    n = len(np.asarray(node_type))
+    deviatoric = rest_operator({**stored, "kappa": np.zeros(1)}, node_type).tocoo()
+    same = deviatoric.row // 3 == deviatoric.col // 3
+    blocks = np.zeros((n, 3, 3))
+    np.add.at(blocks, (deviatoric.row[same] // 3, deviatoric.row[same] % 3, deviatoric.col[same] % 3),
+              deviatoric.data[same])
+    block_inv = np.linalg.inv(blocks) * (np.asarray(node_type) == 0)[:, None, None]
+    G, weight = constraint_operator(stored, node_type)
+    kappa = float(np.asarray(stored["kappa"]).reshape(-1)[0])
+    S = (G @ sparse.block_diag(list(block_inv), format="csr") @ G.T).toarray() + np.diag(1.0 / (kappa * weight))
+    return {"block_inv": block_inv.astype(np.float32), "schur_inv": np.linalg.inv(S).astype(np.float32)}
+
+
+def constraints(arrays: dict, y):
+    """G y [C] for nodal vectors y [N, 3] (`constraint_operator`, at rest)."""
+    if _nodal(arrays):
+        ys = y.T[:, arrays["star"]]                                              # [3, N, S]
+        return jnp.sum(ys * arrays["star_c"].astype(y.dtype), axis=(0, 2))
+    return jnp.sum(_gather(arrays, y) * arrays["b_t"].astype(y.dtype), axis=(0, 1))
+
+
+def constraints_transpose(arrays: dict, s, n: int):
+    """Gᵀ s [N, 3] for constraint values s [C] (`constraint_operator`, at rest)."""
+    if _nodal(arrays):
+        return jnp.sum(s[arrays["star"]][None] * arrays["star_ct"].astype(s.dtype), axis=-1).T
+    return _assemble(arrays, arrays["b_t"].astype(s.dtype) * s[None, None], n)
 
 
 def _nodal_rest_stiffness(stored: dict, n: int):
@@ -702,19 +792,21 @@ def _step(arrays: dict, z, f, config: CorotationalConfig, h, x_lin=None, refine=
     # the energies' round-off (float32 sums over the elements): a held frame's true change is far below it, and
     # without this allowance half such frames would be shortened for nothing
     e0 = e0 + ROUNDOFF * (jnp.abs(e0) + jnp.abs(work))
-    full = kinematics(arrays, u + h * v1)
+    thetas = jnp.asarray(BACKTRACK, z.dtype)
 
-    def shorten(_):
-        thetas = jnp.asarray(BACKTRACK[1:], z.dtype)
-        trial = jax.vmap(lambda t: potential(arrays, kinematics(arrays, u + t * h * v1)))(thetas)
-        return thetas[jnp.argmax(trial <= e0 + thetas * work)]   # the first that fits: thetas decrease to 0
+    def search(carry):    # the next step length; the last, θ = 0, is taken whatever its energy's round-off
+        i = carry[0] + 1
+        trial = kinematics(arrays, u + thetas[i] * h * v1)
+        p = potential(arrays, trial)
+        return i, trial, p, (p <= e0 + thetas[i] * work) | (i == len(BACKTRACK) - 1)
 
-    theta = jax.lax.cond(potential(arrays, full) <= e0 + work, lambda _: jnp.ones((), z.dtype), shorten, None)
+    # one loop for every trial: a single copy of the kinematics in the compiled program (it compiles slowly)
+    i, kin1, p1, _ = jax.lax.while_loop(lambda c: ~c[3], search, (jnp.asarray(-1, jnp.int32), kin, e0, False))
+    theta = thetas[i]
     v_full = v1
     v1 = theta * v1
     u1 = u + h * v1
-    kin1 = jax.lax.cond(theta == 1.0, lambda _: full, lambda _: kinematics(arrays, u1), None)
-    budget = e0 + theta * work - potential(arrays, kin1)
+    budget = e0 + theta * work - p1
     kinetic = 0.5 * jnp.sum(m * v1 * v1)
     v1 = v1 * jnp.where(kinetic > budget, jnp.sqrt(jnp.maximum(budget, 0.0) / jnp.maximum(kinetic, 1e-30)), 1.0)
     change = kin.jm1 + jnp.sum(kin.g * _gather(arrays, u1 - u - h * x_lin), axis=(0, 1))
