@@ -758,31 +758,35 @@ def _step(arrays: dict, z, f, config: CorotationalConfig, h, x_lin=None, refine=
     f_int = internal_force(arrays, kin, n)
     rhs = (m * v / h ** 2 + (f - f_int) / h) * free       # b − K x_lin: r = b − A x = rhs − c M x − K (x − x_lin)
     x = jnp.where(refine, x_lin, v)
-    r = (rhs - c * m * x - tangent(arrays, kin, (x - x_lin) * free)) * free
-    p = precondition(r)
-    d, rz = p, jnp.vdot(r, p)
     first, most = int(config.cg_iterations), int(config.cg_max_iterations)
-    # the solve goes on while rᵀPr > tol² bᵀA⁻¹b, with bᵀA⁻¹b ≈ bᵀ(P r₀ + x₀) (P ≈ A⁻¹, r₀ = b − A x₀): relative
-    # to the right-hand side, not to the first residual, which is at round-off in a held frame (x₀ = v is the
-    # answer) and could never be reduced by tol there
-    bound = jnp.asarray(config.cg_tolerance, z.dtype) ** 2 * jnp.maximum(rz, jnp.vdot(rhs, p + x))
+    tol2 = jnp.asarray(config.cg_tolerance, z.dtype) ** 2
 
     def iteration(carry):
-        x, r, d, rz, i = carry
+        # pass −1 forms the first residual r₀ = b − A x₀ = rhs − c M x_lin − A (x₀ − x_lin) from the same product
+        # A d (d = x₀ − x_lin) as the iterations after it: one copy of the tangent in the compiled program
+        x, r, d, rz, i, bound = carry
+        start = i < 0
         ad = apply_a(d)
         dad = jnp.vdot(d, ad)
         step = jnp.where(dad > 0, rz / jnp.where(dad > 0, dad, 1.0), 0.0)
-        x, r = x + step * d, r - step * ad
+        x = jnp.where(start, x, x + step * d)
+        r = jnp.where(start, (rhs - c * m * x_lin) * free - ad, r - step * ad)
         p = precondition(r)
         rz_new = jnp.vdot(r, p)
-        d = p + jnp.where(rz > 0, rz_new / jnp.where(rz > 0, rz, 1.0), 0.0) * d
-        return x, r, d, rz_new, i + 1
+        d = jnp.where(start, p, p + jnp.where(rz > 0, rz_new / jnp.where(rz > 0, rz, 1.0), 0.0) * d)
+        # the solve goes on while rᵀPr > tol² bᵀA⁻¹b, with bᵀA⁻¹b ≈ bᵀ(P r₀ + x₀) (P ≈ A⁻¹): relative to the
+        # right-hand side, not to the first residual, which is at round-off in a held frame (x₀ = v is the answer)
+        # and could never be reduced by tol there
+        bound = jnp.where(start, tol2 * jnp.maximum(rz_new, jnp.vdot(rhs, p + x)), bound)
+        return x, r, d, rz_new, i + 1, bound
 
     def more(carry):   # the first iterations always, then on while the residual is large
-        i, rz = carry[4], carry[3]
+        i, rz, bound = carry[4], carry[3], carry[5]
         return (i < first) | ((i < most) & (rz > bound))
 
-    v1 = jax.lax.while_loop(more, iteration, (x, r, d, rz, jnp.zeros((), jnp.int32)))[0] * free
+    zero_s = jnp.zeros((), z.dtype)
+    start = (x, jnp.zeros_like(x), (x - x_lin) * free, zero_s, jnp.asarray(-1, jnp.int32), zero_s)
+    v1 = jax.lax.while_loop(more, iteration, start)[0] * free
     # energy never created, E(z') ≤ E(z) + W: the longest of the steps θ h v' (θ in BACKTRACK) whose potential
     # fits the budget, P(u + θ h v') ≤ E(z) + θ W with W = f · h v' (θ = 0 always fits)
     e0 = 0.5 * jnp.sum(m * v * v) + potential(arrays, kin)
