@@ -35,6 +35,9 @@ def test_every_option_has_help(script):
         assert len(line.split()) > 2, line
 
 
+# long: its loop is the demo's, played by tests/test_render.py, and its step comparison is model_step's
+# (tests/test_benchmarks.py); the smoke run compiles every variant again on one core (about 100 s)
+@pytest.mark.long
 def test_realtime_quick_writes_the_loop_and_the_public_step_against_the_stepper(tmp_path):
     done = _bench("realtime", tmp_path, "--scenes", "beam")   # one body: tests/test_render.py plays the two beams
     assert done.returncode == 0, done.stderr[-3000:]

@@ -101,14 +101,15 @@ class CorotationalConfig(NamedTuple):
       cg_tolerance: that relative residual.
       schur_limit: the most volume constraints C (hex elements, or tet nodes) for which the preconditioner
         eliminates the volumetric stiffness through its dense Schur complement, S⁻¹ [C, C] (`schur_preconditioner`:
-        C² numbers); a larger mesh gets the two-level modes preconditioner (`rest_preconditioner`).
+        C² numbers, and C² products an iteration); a larger mesh gets A₀'s node blocks there (`rest_preconditioner`).
+        At 4000 the dense products made a refined beam's frame 2.5 times slower (docs/research_log.md).
       modes: m, the rest operator's lowest eigenmodes the two-level preconditioner inverts exactly (all of them on a
-        mesh with at most m free degrees of freedom, where it is A₀⁻¹); unused below ``schur_limit``.
+        mesh with at most m free degrees of freedom, where it is A₀⁻¹).
     """
     cg_iterations: int = 3
     cg_max_iterations: int = 12
     cg_tolerance: float = 1e-2
-    schur_limit: int = 4096
+    schur_limit: int = 2048
     modes: int = 32
 
 
