@@ -59,5 +59,5 @@ def test_the_corotational_beam_beats_the_published_network_on_the_test_split(ref
     fd = pred.copy()
     fd[..., 3:6] = np.gradient(pred[..., :3].astype(np.float64), float(reference.dt), axis=1, edge_order=2)
     v_fd = EV.relative_errors(fd, reference.z[rows], reference.q0)[:, 1:, 1].mean()
-    np.testing.assert_allclose(v_fd, 0.00532, rtol=0.03)
+    np.testing.assert_allclose(v_fd, 0.00566, rtol=0.03)
     assert v_fd < 0.6 * got[1]
