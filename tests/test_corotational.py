@@ -151,20 +151,12 @@ def test_a_model_file_round_trip_steps_the_same(models, tmp_path):
 
 
 @pytest.mark.long   # another cell type: the hex tests above make each of these checks on the class
-def test_tet_meshes_nodal_volume_rigid_rest_step_and_energy(models):
+def test_tet_meshes_nodal_volume_rigid_rest_step_and_energy():
     """A tet4 bar (nodal volume change and shared deviatoric energy, as the FEM's nodal tet4): a rigid turn
     stores nothing; from rest the first frame is the FEM's rest-linearised backward-Euler step; a large load
     and its release never create energy."""
-    _, _, _, material = models
-    q0, cells = mesh.box_hex_mesh(size=(8.0, 2.0, 2.0), divisions=(4, 1, 1))
-    tets = mesh.hex_to_tet(cells)
-    clamp = np.where(q0[:, 0] == 0.0)[0]
-    problem = sv.setup(q0, tets, material=material, frame_dt=0.05, n_frames=1, clamped=clamp, cell_type="tetra",
-                       damping=18.0, n_sub=1)
-    node_type = np.zeros(len(q0), np.int8)
-    node_type[clamp] = 1
-    edges = np.asarray(meshes.mesh_edges(tets))
-    mesh_dict = {"q0": q0, "senders": edges[0], "receivers": edges[1], "node_type": node_type}
+    problem, material, mesh_dict = tet_bar()
+    q0 = mesh_dict["q0"]
     stored = C.from_fem(problem, material)
     assert float(stored["mu_nodes"][0]) > 0
     corot = tignn_jax.make_params(C.CorotationalGeneric(), stored, mesh_dict, ENVELOPE, {})
