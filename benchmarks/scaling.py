@@ -11,8 +11,10 @@ hex edge (``fem.meshes.mesh_edges``), as for the paper's beam.
   time is reported), which limits the meshes (``--linear``) to a few thousand nodes.
 * `CorotationalGeneric` (the class of the shipped ``beam-corot``) with the FEM's element operators of the mesh
   (``tignn_jax.simulators.corotational.from_fem``): its element work grows as N, and so does its preconditioner
-  (the rest operator's 32 lowest eigenmodes and its 3 × 3 node blocks, `rest_preconditioner`: 3N · 35 numbers);
-  the CG iterations a frame needs may grow with the mesh (``--corot``: up to about 20 000 nodes).
+  past ``schur_limit`` (2048) elements (the rest operator's 32 lowest eigenmodes and its 3 × 3 node blocks,
+  `rest_preconditioner`: 3N · 35 numbers; below it the blocks with the volumetric stiffness through a dense
+  [K, K] Schur complement, `schur_preconditioner`); the CG iterations a frame needs may grow with the mesh
+  (``--corot``: up to about 20 000 nodes).
 * `GenericGNN` (the paper's graph network) with random weights (``GenericGNN(config).init``; values do not change
   the time) and statistics of the right scale, on meshes up to ``--gnn`` (default up to 53 568 nodes).
 
@@ -230,7 +232,9 @@ def measure(kind: str, meshes, seconds: float, config=None, log=print) -> list:
         if kind == "linear":
             row["ainv"] = "blocks" if "ainv_blocks" in arrays else "dense"
         elif kind == "corot":
-            row["ainv"] = f"{arrays['modes'].shape[1]} modes + 3×3 blocks"
+            local = (f"Schur complement ({arrays['schur_inv'].shape[0]}²)" if "schur_inv" in arrays
+                     else "3×3 blocks")
+            row["ainv"] = f"{arrays['modes'].shape[1]} modes + {local}"
         if kind in ("linear", "corot"):
             row["operator_mb"] = float(sum(np.asarray(a).nbytes for a in jax.tree_util.tree_leaves(arrays)) / 2 ** 20)
         rows.append(row)
