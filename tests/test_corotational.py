@@ -243,7 +243,7 @@ def test_the_schur_complement_inverts_the_volumetric_stiffness_and_conditions_th
     node_type = mesh_dict["node_type"]
     free = np.repeat(node_type == 0, 3)
     stored = C.from_fem(problem, material)
-    cond, P_local = {}, None
+    cond = {}
     for limit in (0, 4096):
         params = tignn_jax.make_params(C.CorotationalGeneric(C.CorotationalConfig(modes=8, schur_limit=limit)),
                                        stored, mesh_dict, ENVELOPE, {})

@@ -133,9 +133,9 @@ class CorotationalGeneric:
         and the averaging weights ``wnode`` [K, n_e] (V_e over the volume of the node's elements), and all element
         arrays again in the step's element-last
         layout (`element_last`); for tets the nodes' star stencils ``star``, ``star_c``, ``star_ct`` and volumes
-        ``vnode`` (`node_stars`); the preconditioner's ``block_inv`` and ``schur_inv`` (`schur_preconditioner`, up
-        to ``schur_limit`` volume constraints) or ``block_inv``, ``modes`` and ``mode_inv`` (`rest_preconditioner`),
-        ``q0`` and the free-node mask ``free`` [N, 1].
+        ``vnode`` (`node_stars`); the preconditioner's ``modes``, ``mode_inv`` and ``block_inv``
+        (`rest_preconditioner`), with ``block_inv`` replaced and ``schur_inv`` added by `schur_preconditioner` up to
+        ``schur_limit`` volume constraints; ``q0`` and the free-node mask ``free`` [N, 1].
 
         Raises:
           ValueError: an array is missing or sized for another mesh, or the CG options are out of range.
@@ -370,13 +370,19 @@ def rest_preconditioner(A, node_type, modes: int) -> dict:
         lam, vec = lam[order], vec[:, order]
     phi = np.zeros((3 * n, m))
     phi[free] = vec
-    coo = A.tocoo()
-    same = coo.row // 3 == coo.col // 3
-    blocks = np.zeros((n, 3, 3))
-    np.add.at(blocks, (coo.row[same] // 3, coo.row[same] % 3, coo.col[same] % 3), coo.data[same])
-    block_inv = np.linalg.inv(blocks) * (np.asarray(node_type) == 0)[:, None, None]
     return {"modes": phi.astype(np.float32), "mode_inv": (1.0 / lam).astype(np.float32),
-            "block_inv": block_inv.astype(np.float32)}
+            "block_inv": block_inverse(A, node_type).astype(np.float32)}
+
+
+def block_inverse(A, node_type):
+    """[N, 3, 3] float64: the inverses of the 3 × 3 node blocks of A [3N, 3N] (sparse), 0 on the clamped nodes."""
+    import scipy.sparse as sparse
+
+    coo = sparse.coo_matrix(A)
+    same = coo.row // 3 == coo.col // 3
+    blocks = np.zeros((len(np.asarray(node_type)), 3, 3))
+    np.add.at(blocks, (coo.row[same] // 3, coo.row[same] % 3, coo.col[same] % 3), coo.data[same])
+    return np.linalg.inv(blocks) * (np.asarray(node_type) == 0)[:, None, None]
 
 
 def apply_rest_preconditioner(arrays: dict, r):
@@ -436,13 +442,7 @@ def schur_preconditioner(stored: dict, node_type) -> dict:
     """
     import scipy.sparse as sparse
 
-    n = len(np.asarray(node_type))
-    deviatoric = rest_operator({**stored, "kappa": np.zeros(1)}, node_type).tocoo()
-    same = deviatoric.row // 3 == deviatoric.col // 3
-    blocks = np.zeros((n, 3, 3))
-    np.add.at(blocks, (deviatoric.row[same] // 3, deviatoric.row[same] % 3, deviatoric.col[same] % 3),
-              deviatoric.data[same])
-    block_inv = np.linalg.inv(blocks) * (np.asarray(node_type) == 0)[:, None, None]
+    block_inv = block_inverse(rest_operator({**stored, "kappa": np.zeros(1)}, node_type), node_type)
     G, weight = constraint_operator(stored, node_type)
     kappa = float(np.asarray(stored["kappa"]).reshape(-1)[0])
     S = (G @ sparse.block_diag(list(block_inv), format="csr") @ G.T).toarray() + np.diag(1.0 / (kappa * weight))
