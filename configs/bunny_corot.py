@@ -8,5 +8,5 @@ from tignn_jax.train.corotational import CorotationalConfig, TrainConfig
 
 LEFT_OUT = (1, 8, 12, 21, 34, 50, 58, 61, 79)   # the positions `configs/bunny.py` leaves out of its train split
 
-CONFIG = TrainConfig(model=CorotationalConfig(cg_iterations=3, cg_max_iterations=12, cg_tolerance=1e-2, modes=32),
+CONFIG = TrainConfig(model=CorotationalConfig(cg_iterations=2, cg_max_iterations=12, cg_tolerance=1e-2, modes=32),
                      train_split=tuple(i for i in range(1, 81) if i not in LEFT_OUT))

@@ -32,7 +32,8 @@ the volumetric term by its Gauss–Newton tangent, κ V g gᵀ with g = ∂J/∂
 
 solved by at least ``cg_iterations`` conjugate-gradient iterations from v' = v (up to ``cg_max_iterations`` while
 the residual is large: `CorotationalConfig`), preconditioned with an approximate inverse of the rest operator
-turned with the body, R P₀ Rᵀ (R each node's rotation, the polar factor of the mean of its elements' R_e). With
+turned with the body, R P₀ Rᵀ (R each node's rotation: for hexes the polar factor of the mean of its elements' R_e,
+for tets R̄_i, which the nodes' deviatoric energy has already computed). With
 A₀ = (1 + αh)/h² M + K₀ the FEM's rest operator (sparse) and Φ [3N, m] its m lowest eigenvectors (A₀ Φ = Φ Λ,
 ΦᵀΦ = I, computed once when the model is prepared)::
 
@@ -745,7 +746,7 @@ def _step(arrays: dict, z, f, config: CorotationalConfig, h, x_lin=None, refine=
     u, v = (z[:, :3] - arrays["q0"].astype(z.dtype)) * free, z[:, 3:6] * free
     x_lin = jnp.zeros_like(u) if x_lin is None else x_lin * free
     kin = kinematics(arrays, u + h * x_lin)
-    rn = node_rotations(arrays, kin.R, n)
+    rn = kin.Rn if _nodal(arrays) else node_rotations(arrays, kin.R, n)   # tets: R̄_i, no second polar iteration
 
     def apply_a(w):
         return (c * m * w + tangent(arrays, kin, w * free)) * free
