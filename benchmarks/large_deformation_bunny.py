@@ -1,7 +1,7 @@
 """Large deformations of the bunny: its models against the converged FEM under deep fingertip presses.
 
 Loads: fingertip-sized patch presses (`fem.cases.point_load_forces`, radius 5, the same total force spread along the
-loaded node's inward normal, a C¹ rise over 10 frames) at two of the bunny data's held-out test positions (91 and
+loaded node's inward normal, a C¹ rise over 10 frames) at two of the bunny data's held-out test positions (93 and
 96 of its 100, which no model was trained on), of 1, 3, 10 and 30 times the unit load, held for the rest of the
 case; and the 30× press released after 25 frames. The 30× press dents the bunny by about 7 % of its height.
 Reference: the FEM's backward Euler on the same frame step, Newton iterated to convergence
