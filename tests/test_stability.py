@@ -52,6 +52,7 @@ def test_the_linear_model_never_creates_energy(beam_runs):
         assert np.all(np.isfinite(run["series"]["E"])) and len(run["series"]["E"]) == 25
 
 
+@pytest.mark.optimized
 def test_fem_beyond_its_stable_step_reports_rather_than_hides():
     # 1.5x the stable sub-step: the run must end in a reported inversion (or stay bounded), never silent NaN
     (row,) = stability.fem_limit(factors=(1.5,), frames=4)
