@@ -234,7 +234,7 @@ def build_scene(name: str, frames: int, model: str | None = None, stand_in: bool
         poses = [mr.model_matrix([0.1, 0.0, 0.0], mr.rotation_matrix([1.0, 0.0, 0.0], -np.pi / 2), scale)]
         eye, target = [0.17, 0.16, 0.22], [0.1, 0.05, 0.0]
         # the top of the head (node 917), not an ear: a unit load on an ear tip folds it over (|u| up to 37 of
-        # the bunny's 49; such cases are left out of the bunny model's training), the head deflects by about 1
+        # the bunny's 49; such cases are left out of the bunny model's training)
         press_body, press_at, normal = 0, q0[BUNNY_PRESS_NODE], [0.0, 0.0, 1.0]
         # a spring fingertip over a pad of 1 cm, the data's patch (radius 5 in the model's units)
         tip_radius, tip_force, vmax = 1.0, 1.0, BUNNY_STRESS_MAX

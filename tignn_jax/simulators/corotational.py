@@ -677,8 +677,12 @@ def tangent(arrays: dict, kin: _Kinematics, w):
     return _assemble(arrays, fe, n)
 
 
-def node_rotations(arrays: dict, R, n: int):
-    """Each node's rotation [3, 3, N]: the polar factor of the mean of its elements' rotations."""
+def node_rotations(arrays: dict, kin: _Kinematics, n: int):
+    """Each node's rotation [3, 3, N]: on tets R̄_i, the polar factor of the node's averaged deformation gradient
+    (already in ``kin``); on hexes the polar factor of the mean of the node's elements' rotations."""
+    if _nodal(arrays):
+        return kin.Rn
+    R = kin.R
     k, per = R.shape[-1], arrays["cells_t"].shape[0]
     total = _assemble(arrays, jnp.broadcast_to(R.reshape(9, 1, k), (9, per, k)), n)     # [N, 9]
     count = _assemble(arrays, jnp.ones((1, per, k), R.dtype), n)                         # [N, 1]
@@ -746,7 +750,7 @@ def _step(arrays: dict, z, f, config: CorotationalConfig, h, x_lin=None, refine=
     u, v = (z[:, :3] - arrays["q0"].astype(z.dtype)) * free, z[:, 3:6] * free
     x_lin = jnp.zeros_like(u) if x_lin is None else x_lin * free
     kin = kinematics(arrays, u + h * x_lin)
-    rn = kin.Rn if _nodal(arrays) else node_rotations(arrays, kin.R, n)   # tets: R̄_i, no second polar iteration
+    rn = node_rotations(arrays, kin, n)
 
     def apply_a(w):
         return (c * m * w + tangent(arrays, kin, w * free)) * free
