@@ -132,8 +132,8 @@ def test_a_step_linearised_about_the_first_solve_is_a_newton_iteration(models):
         r = ((1.0 + alpha * h) / h ** 2 * m * v1 - m * z[:, 3:6] / h ** 2 + (f_int - f) / h) * free
         return float(jnp.linalg.norm(r))
 
-    _, _, first, e0 = C._step(arrays, z, f, config, h)
-    _, _, second, _ = C._step(arrays, z, f, config, h, first, True, e0)
+    _, _, (first,), e0 = C._step((arrays,), (z,), (f,), config, h, (jnp.zeros_like(f),), False, None)
+    _, _, (second,), _ = C._step((arrays,), (z,), (f,), config, h, (first,), True, e0)
     tip = -float(np.asarray(first[q0[:, 0] == 8.0, 1]).mean() * h)
     assert tip > 1.0, tip
     assert residual(second) < 0.2 * residual(first), (residual(first), residual(second))

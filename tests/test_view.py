@@ -139,7 +139,7 @@ def test_pressing_the_upper_beam_pushes_the_lower_one_through_contact():
     assert s.drag(top - [0.0, 0.0, 3 * scene.u_max])
     _run(s, 40)
     assert s.displacement()[1].max() > 10.0    # B is pressed through the gap of 10 ...
-    assert s.displacement()[0].max() > 0.1     # ... onto A, which gives way
+    assert s.displacement()[0].max() > 1.0     # ... onto A, which bends under it (the contact in the step)
 
 
 def _bunny_run(tmp_path, monkeypatch, mesh):

@@ -5,13 +5,14 @@ The public API::
     params, graph = tignn_jax.load_pretrained("beam")     # a model and the rest graph of its mesh
     graph = tignn_jax.step(params, graph, forces)          # one frame under forces [N, 3]
     states = tignn_jax.rollout(params, graph, forces_seq)  # [T + 1, N, 12]
+    fn = tignn_jax.contact_stepper(params, poses, radius, stiffness)   # bodies that touch: zs = fn(zs, forces)
 
 Model classes (`tignn_jax.simulators`): `GenericGNN`, the paper's thermodynamics-informed graph network,
 `LinearGeneric`, the learned linear GENERIC model, and `CorotationalGeneric`, the corotational GENERIC model for
 large deformations. Training: `train`, with a recipe from ``configs/``.
 """
-from tignn_jax.api import (load_model, load_pretrained, make_params, rest_graph, rollout, save_model,
-                           shipped_models, step, stepper)
+from tignn_jax.api import (contact_stepper, load_model, load_pretrained, make_params, rest_graph, rollout,
+                           save_model, shipped_models, step, stepper)
 from tignn_jax.evaluation import evaluate
 from tignn_jax.guards import (fallback_step, fallback_stepper, force_check, guarded_stepper, state_check,
                               state_guard)
@@ -24,7 +25,7 @@ __version__ = "0.2.0"
 
 __all__ = [
     "load_pretrained", "shipped_models", "load_model", "save_model", "make_params", "rest_graph",
-    "step", "rollout", "stepper",
+    "step", "rollout", "stepper", "contact_stepper",
     "force_check", "state_check", "state_guard", "guarded_stepper", "fallback_step", "fallback_stepper",
     "fem_stepper",
     "GenericGNN", "GNNConfig", "LinearGeneric", "LinearConfig", "CorotationalGeneric", "CorotationalConfig",

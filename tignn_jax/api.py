@@ -105,6 +105,69 @@ def stepper(params: dict, copies: int = 1):
     return fn
 
 
+def contact_stepper(params, poses, radius: float, stiffness: float, capacity: int = 128):
+    """One frame of several bodies that touch one another: ``zs_next = fn(zs, forces)``.
+
+    Each body has a pose in a common world frame; where surface nodes of two bodies come closer than ``radius``
+    they repel by the penalty energy E_c = Σ_ij ½ k max(r − d_ij, 0)² (d_ij the world distance of the pair). The
+    contact is inside each body's implicit frame: body after body, each is stepped against the others' surfaces
+    at their latest positions, with E_c in its solve and in its energy budget, so the bodies together never end a
+    frame with more energy than their external forces put in, however stiff the contact
+    (`tignn_jax.simulators.contact`). For models whose class can step against an obstacle (``step_against``:
+    `tignn_jax.simulators.CorotationalGeneric`).
+
+    Args:
+      params: a model, shared by every body, or a list with one model per body.
+      poses: per body, its [4, 4] model-to-world matrix (a rotation times a scale, the same scale for every body,
+        then a translation; `tignn_jax.mr.model_matrix`).
+      radius: the contact distance r (world length).
+      stiffness: the penalty stiffness k (force per world length; forces in the models' units).
+      capacity: the most surface nodes of a body, and of the others, taking part in its contact (those nearest to
+        the other bodies' surface nodes; `tignn_jax.simulators.contact.candidate_pairs`).
+
+    Returns:
+      ``fn(zs, forces) -> zs``, tuples over the bodies of z [N_b, 12] and forces [N_b, 3] (each in its body's
+      model frame), jitted.
+
+    Raises:
+      ValueError: fewer than two poses, a model list of another length, models of a class that cannot step
+        bodies together or of different configurations, a pose that is not a finite [4, 4] similarity of one
+        common scale, or a non-positive radius, stiffness or capacity (and ``fn`` on tuples of other lengths or
+        shapes).
+    """
+    from tignn_jax.mr.surface import surface_nodes, surface_triangles
+    from tignn_jax.simulators.contact import contact
+
+    models = list(params) if isinstance(params, (list, tuple)) else [params] * len(poses)
+    if len(models) != len(poses):
+        raise ValueError(f"contact_stepper needs one model per pose, got {len(poses)} poses and {len(models)} "
+                         f"models")
+    first = models[0]["model"] if models else None
+    for b, m in enumerate(models):
+        if not hasattr(m["model"], "step_together"):
+            raise ValueError(f"the model of body {b} ({type(m['model']).__name__}) cannot be stepped together with "
+                             f"others; contact_stepper takes models of the corotational class")
+        if m["model"] != first:
+            raise ValueError(f"every body's model must have the same class and configuration, got {m['model']} "
+                             f"and {first}")
+    surfaces = [surface_nodes(surface_triangles(np.asarray(m["arrays"]["cells"]), np.asarray(m["mesh"]["q0"])))
+                for m in models]
+    spec = contact(poses, surfaces, radius, stiffness, capacity)
+    shapes = [_nodes(m) for m in models]
+    arrays = tuple(m["arrays"] for m in models)
+    frame = jax.jit(lambda zs, fs: first.step_together(arrays, zs, fs, spec))
+
+    def fn(zs, forces):
+        if len(zs) != len(shapes) or len(forces) != len(shapes) or any(
+                tuple(z.shape) != (n, STATE_DIM) or tuple(f.shape) != (n, 3) for z, f, n in zip(zs, forces, shapes)):
+            raise ValueError(f"this stepper takes {len(shapes)} states [N_b, {STATE_DIM}] and forces [N_b, 3] with "
+                             f"N_b = {shapes}, got {[tuple(z.shape) for z in zs]} and "
+                             f"{[tuple(f.shape) for f in forces]}")
+        return frame(tuple(zs), tuple(forces))
+
+    return fn
+
+
 def load_pretrained(name: str = DEFAULT_MODEL):
     """A shipped model by name, or a model folder or file, with the rest graph of its mesh.
 

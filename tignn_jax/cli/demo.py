@@ -4,14 +4,14 @@ Scenes:
 
 * ``two-beams``: the paper's configuration (`fem.scenes.two_beams_scene`): two copies of the 40x10x10 beam (shown
   0.2 m long), the lower one A clamped at x = 0, the upper one B turned 90° about the vertical and lying across A's
-  free half with a gap of 10 (5 cm). The fingertip presses B's free end 0.1 m deep, a spring from the surface
-  under it (`tignn_jax.mr.forcing.fingertip_spring_forces`), so B bends down onto A, which the contact pushes
-  down too; each body steps in its own model frame, and they interact through
-  `tignn_jax.mr.forcing.contact_forces` (a soft penalty: stepped explicitly between the bodies' implicit frames, a
-  stiffer one rings; docs/research_log.md). The demo runs on ``--cores``
-  cores (default 1), the process pinned to them (`tignn_jax.mr.runtime.pin_cores`). With two or more, each beam
-  steps on its own CPU device, concurrently (``Scene.devices``); with one, both bodies' frames run in one
-  program, each body its own step in its own ``lax.cond``.
+  free half with a gap of 10 (5 cm). The fingertip presses B's free end 0.2 m deep, a spring from the surface
+  under it (`tignn_jax.mr.forcing.fingertip_spring_forces`), so B bends down onto A, and A bends under it. With
+  the corotational model both beams are stepped in one implicit frame with their penalty contact inside it
+  (`tignn_jax.contact_stepper`: stiff, and never creating energy); with another model each body steps on its own
+  and they interact through `tignn_jax.mr.forcing.contact_forces` between the frames (a soft penalty: a stiffer
+  one rings; docs/research_log.md). The demo runs on ``--cores`` cores (default 1), the process pinned to them
+  (`tignn_jax.mr.runtime.pin_cores`). With two or more, bodies that step on their own each step on their own CPU
+  device, concurrently (``Scene.devices``); with one, all bodies' frames run in one program.
 * ``beam``: beam A alone, pressed down at its free end (as B above).
 * ``bunny``: the Stanford bunny (10 cm tall) standing on the table, base clamped, pressed 7 mm deep on the top of
   its head by a spring fingertip over a 1 cm pad: a dent of about 7 % of its height, as deep as that of the
@@ -51,12 +51,16 @@ DEFAULT_MODELS = {"beam": DEFAULT_MODEL, "two-beams": DEFAULT_MODEL, "bunny": "b
 # above the lower one)
 BEAM_TIP_STIFFNESS = 4.0e4
 BEAM_PRESS = 0.1
+TWO_BEAMS_PRESS = 0.2   # two beams: B bent onto A and on, so that A bends as well
 # the bunny's fingertip (force per unit of the model's length: with the head's compliance under a patch, ~0.14,
 # the press settles without overshoot), its deepest press past the rest surface (m) and the top of the stress colours
 BUNNY_TIP_STIFFNESS = 5.0
 BUNNY_PRESS = 0.007
 BUNNY_STRESS_MAX = 0.25
-# the two beams' penalty contact (`tignn_jax.mr.forcing.contact_forces`): radius (m) and stiffness (force per metre)
+# the two beams' penalty contact: radius (m) and stiffness (force per metre). Inside the implicit frames of models
+# that can step against an obstacle (`tignn_jax.contact_stepper`): stiff enough that B bends A; otherwise explicit
+# between the frames (`tignn_jax.mr.forcing.contact_forces`), where a stiffer one rings (docs/research_log.md)
+IMPLICIT_CONTACT = (0.015, 2e7)
 BEAM_CONTACT = (0.015, 1e5)
 # ``--model fem-newton``: the FEM's own backward-Euler frame step (`tignn_jax.newton.fem_stepper`, 2 Newton
 # iterations of 3 CG each), not learned, on the mesh of the scene's rest-linearised model
@@ -95,9 +99,10 @@ def register(sub: argparse._SubParsersAction) -> None:
                         "neither learned nor physically calibrated (labelled STAND-IN in the output)")
     p.add_argument("--cores", type=int, default=1,
                    help="CPU cores the demo runs on: the process is pinned to that many of the CPUs it may use "
-                        "(tignn_jax.mr.pin_cores), with one CPU device per core and the bodies stepped "
-                        "concurrently, one per core; 1: all bodies in one program on one core, the steadiest frame "
-                        "times (default: %(default)s)")
+                        "(tignn_jax.mr.pin_cores), with one CPU device per core and the bodies that step on their own "
+                        "stepped concurrently, one per core (bodies in contact inside one implicit frame step "
+                        "together); 1: all bodies in one program on one core, the steadiest frame times "
+                        "(default: %(default)s)")
     p.set_defaults(func=run)
 
 
@@ -204,7 +209,7 @@ def build_scene(name: str, frames: int, model: str | None = None, stand_in: bool
     import numpy as np
 
     from fem.meshes import beam_mesh, bunny_bottom_nodes, bunny_mesh, clamped_nodes
-    from tignn_jax import mr
+    from tignn_jax import api, mr
 
     width, height = (int(s) for s in size)
     if name == "own":
@@ -221,11 +226,11 @@ def build_scene(name: str, frames: int, model: str | None = None, stand_in: bool
         poses = [mr.model_matrix(base, up, scale), mr.model_matrix(base + offset_b, np.asarray(up) @ turn, scale)]
         eye, target = [0.33, 0.27, 0.28], [0.13, 0.06, -0.03]
         press_body, press_at, normal = 1, [38.0, 5.0, 10.0], [0.0, 0.0, 1.0]  # B's free end, top face
+        tip_radius, tip_force, vmax = 3.0, 2.0e4, 6.0e4
+        tip_stiffness, press = BEAM_TIP_STIFFNESS, TWO_BEAMS_PRESS
         if name == "beam":
             poses = poses[:1]
-            press_body = 0
-        tip_radius, tip_force, vmax = 3.0, 2.0e4, 6.0e4
-        tip_stiffness, press = BEAM_TIP_STIFFNESS, BEAM_PRESS
+            press_body, press = 0, BEAM_PRESS
     elif name == "bunny":
         q0, cells, edges = bunny_mesh()
         clamped = np.zeros(len(q0), bool)
@@ -270,6 +275,12 @@ def build_scene(name: str, frames: int, model: str | None = None, stand_in: bool
                      contact_radius=BEAM_CONTACT[0], contact_stiffness=BEAM_CONTACT[1],
                      fallback=(fallback,) * len(bodies) if fallback is not None else (),
                      handover="next-frame")   # a trip frame runs one learned step, not that and a fallback step
+    implicit = getattr(step_fn, "params", None)
+    if len(bodies) > 1 and implicit is not None and hasattr(implicit["model"], "step_together"):
+        # the contact inside the bodies' one implicit frame (one solve, so not on several cores)
+        contact = api.contact_stepper(implicit, poses, *IMPLICIT_CONTACT)
+        scene = scene._replace(step=contact, contact_radius=0.0)
+        return scene, dynamics + " (contact in the implicit step)"
     if len(devices) > 1 and len(bodies) > 1:
         scene = scene._replace(devices=tuple(devices))
         dynamics += f" (bodies on {min(len(devices), len(bodies))} cores)"
@@ -490,6 +501,8 @@ def _dynamics(model_name: str, q0, linear_name: str):
 
     def step(z, forces):
         return fn(z, forces)
+
+    step.params = params
 
     described = f"model {model_name}"
     if getattr(params["model"], "stable_by_construction", False):

@@ -64,8 +64,13 @@ whose step had to be shortened is stepped again from its start with the step lin
 falls short too, as four steps of Δt/4, each kept within its own budget (`frame`). Clamped nodes (node_type ≠ 0)
 keep q and v.
 
+Bodies in contact are stepped together (`joint_frame`): one frame of all of them, a penalty energy E_c of their
+surfaces' node pairs added to the potential (`tignn_jax.simulators.contact`), its Gauss–Newton stiffness in the
+one CG solve of all the bodies' velocities (each body preconditioned by its own turned rest operator), and one
+energy budget, E(z') + E_c(q') ≤ E(z) + E_c(q) + W, for all of them.
+
 Made from the FEM's own element operators (`from_fem`): not learned. Accuracy against the FEM at loads past the
-training range: ``benchmarks/large_deformation.py``.
+training range: ``benchmarks/large_deformation.py``; in contact: ``benchmarks/contact_beams.py``.
 """
 from __future__ import annotations
 
@@ -79,12 +84,14 @@ import numpy as np
 from fem.material import cofactor3, det3, matmul3, trace3, transpose3
 from fem.solver import _polar_rotation as polar
 from fem.solver import _sum_over as _sum
+from tignn_jax.simulators import contact as C
 from tignn_jax.simulators import linear as LG
 
 STORED = ("cells", "ke", "se", "b", "volume", "kappa", "mass", "alpha", "dt", "mu_nodes")
 BACKTRACK = (1.0, 0.5, 0.25, 0.125, 0.0625, 0.03125, 0.0)   # the step lengths of the frame's line search
 SPLIT = 4   # steps a frame is split into where one step would have to be shortened (`frame`)
 ROUNDOFF = 2.0 ** -17   # relative round-off allowed in the energy budget E(z') ≤ E(z) + W (about 16 float32 ulps)
+RETRIES = 2   # steps taken again with new contact candidates before a step is held (`joint_frame`)
 POLAR_ITERATIONS = 5   # Higham's iteration R ← (R + R⁻ᵀ)/2: quadratic, exact at once for a rigid motion
 _VOIGT = ((0, 0), (1, 1), (2, 2), (0, 1), (0, 2), (1, 2))   # the data's stress order S11 S22 S33 S12 S13 S23
 
@@ -189,6 +196,12 @@ class CorotationalGeneric:
     def step_state(self, arrays: dict, z, f):
         """One frame of one body: z [N, 12], f [N, 3] (force, constant over the frame) → z' [N, 12]."""
         return frame(arrays, z, f.astype(z.dtype), self.config)
+
+    def step_together(self, arrays: tuple, zs: tuple, fs: tuple, contact) -> tuple:
+        """One frame of several bodies of this class solved together, with their penalty contact inside the
+        frame (`joint_frame`; ``contact`` a `tignn_jax.simulators.contact.Contact`): tuples of z [N_b, 12] and
+        f [N_b, 3], one arrays dict per body, → the bodies' z'."""
+        return joint_frame(tuple(arrays), tuple(zs), tuple(fs), self.config, contact)
 
     def diagnostics(self, arrays: dict, z, f, z_next) -> dict:
         """The energy balance of one frame z → z_next under f: {"energy": E(z_next), "work": W = f · Δq over the
@@ -712,60 +725,131 @@ def stress(arrays: dict, kin: _Kinematics, volume_change, n: int):
 
 
 def frame(arrays: dict, z, f, config: CorotationalConfig):
-    """z' [N, 12] of one frame (module docstring), its CG iterations as ``config`` says. Where the frame's
-    step would have to be shortened to keep the energy budget (θ < 1), the frame is stepped again from its start
-    with the step linearised about the end of the first (one Newton iteration of the backward-Euler equations,
-    `_step`'s ``x_lin``); where that one falls short as well, as ``SPLIT`` steps of Δt / ``SPLIT`` (each with its
-    own budget), so a fast turn is followed rather than damped. One loop runs all three (a single copy of the step
-    in the compiled program)."""
-    h = arrays["dt"].reshape(-1)[0].astype(z.dtype)
-    zero = jnp.zeros_like(z[:, :3])
+    """z' [N, 12] of one frame of one body (module docstring), its CG iterations as ``config`` says
+    (`joint_frame` of one body)."""
+    return joint_frame((arrays,), (z,), (f,), config)[0]
+
+
+def joint_frame(arrays: tuple, zs: tuple, fs: tuple, config: CorotationalConfig, contact=None) -> tuple:
+    """One frame of bodies solved together: their states z_b' [N_b, 12] (module docstring), with ``contact``
+    (`tignn_jax.simulators.contact.Contact`, or None) the bodies' penalty contact inside the frame: its energy
+    joins the potential, its Gauss–Newton stiffness the solve's operator, coupling the bodies in one CG solve.
+
+    Where the frame's step would have to be shortened to keep the energy budget (θ < 1), the frame is stepped
+    again from its start with the step linearised about the end of the first (one Newton iteration of the
+    backward-Euler equations, `_step`'s ``x_lin``); where that one falls short as well, as ``SPLIT`` steps of
+    Δt / ``SPLIT`` (each with its own budget), so a fast turn is followed rather than damped. One loop runs all
+    three (a single copy of the step in the compiled program). The bodies share the frame step Δt of the first.
+
+    The contact's candidate pairs are chosen where a step starts (`tignn_jax.simulators.contact.candidate_pairs`)
+    and checked where it ends: a step that ends with a pair in contact that was not a candidate (the bodies moved
+    farther than the candidates' reach) is taken again with the candidates of its end, and after ``RETRIES``
+    such steps as θ = 0, so the contact energy the budget counts is the whole contact energy at every step's
+    end. Every pair's energy is ≥ 0, so the candidates' energy at a step's start is at most the whole one there,
+    and the budget E(z') ≤ E(z) + W holds for the whole energy.
+    """
+    dtype = zs[0].dtype
+    h = arrays[0]["dt"].reshape(-1)[0].astype(dtype)
+    zero = tuple(jnp.zeros_like(z[:, :3]) for z in zs)
+    fs = tuple(f.astype(dtype) for f in fs)
+    pick = lambda c, a, b: jax.tree_util.tree_map(lambda x, y: jnp.where(c, x, y), a, b)  # noqa: E731
+    pairs = () if contact is None else C.candidate_pairs(contact, zs)
+    no = jnp.zeros((), jnp.int32)
+
+    def missed(z1, pairs):
+        """(the candidates at the end of a step, True where the step's own missed a pair in contact there)."""
+        if contact is None:
+            return pairs, jnp.asarray(False)
+        ends = C.candidate_pairs(contact, z1)
+        q1 = tuple(z[:, :3] for z in z1)
+        e_end, e_step = C.energy(contact, ends, q1), C.energy(contact, pairs, q1)
+        return ends, e_end > e_step + ROUNDOFF * e_end
 
     def body(carry):
-        zk, k, mode, x_lin, e_start = carry      # mode 0: one step, 1: that step refined, 2: split
+        zk, k, mode, x_lin, e_start, pairs, tries = carry      # mode 0: one step, 1: that step refined, 2: split
         split = mode == 2
-        z1, theta, v_full, e0 = _step(arrays, jnp.where(split, zk, z), f, config, jnp.where(split, h / SPLIT, h),
-                                      x_lin, mode == 1, e_start)
-        short = (mode < 2) & (theta < 1.0)       # fell short: refine the step, or split the frame
-        return (jnp.where(short, z, z1), jnp.where(short, 0, k + 1), jnp.where(short, mode + 1, mode),
-                jnp.where(short & (mode == 0), v_full, zero), jnp.where(mode == 0, e0, e_start))
+        z1, theta, v_full, e0 = _step(arrays, pick(split, zk, zs), fs, config, jnp.where(split, h / SPLIT, h),
+                                      x_lin, mode == 1, e_start, contact, pairs, tries >= RETRIES)
+        ends, miss = missed(z1, pairs)
+        retry = miss & (tries < RETRIES)         # again from the same start, with the candidates of this end
+        short = ~retry & (mode < 2) & (theta < 1.0)          # fell short: refine the step, or split the frame
+        advance = ~retry & ~short
+        return (pick(advance, z1, pick(split, zk, zs)), jnp.where(advance, k + 1, jnp.where(short, 0, k)),
+                jnp.where(short, mode + 1, mode),
+                pick(retry, x_lin, pick(short & (mode == 0), v_full, zero)),
+                jnp.where((mode == 0) & ~retry, e0, e_start), ends, jnp.where(retry, tries + 1, 0))
 
     def more(carry):
         _, k, mode = carry[:3]
         return k < jnp.where(mode == 2, SPLIT, 1)
 
-    start = (z, jnp.zeros((), jnp.int32), jnp.zeros((), jnp.int32), zero, jnp.zeros((), z.dtype))
+    start = (tuple(zs), no, no, zero, jnp.zeros((), dtype), pairs, no)
     return jax.lax.while_loop(more, body, start)[0]
 
 
-def _step(arrays: dict, z, f, config: CorotationalConfig, h, x_lin=None, refine=False, e_start=None):
-    """(z' after a step h, the step length θ the energy budget allowed, the solve's v' before θ, E(z)).
+class _Body(NamedTuple):
+    """One body's frame linearisation (`_step`)."""
+    u: jax.Array
+    v: jax.Array
+    x_lin: jax.Array
+    kin: _Kinematics
+    rn: jax.Array
+    free: jax.Array
+    m: jax.Array
+    c: jax.Array
+    rhs: jax.Array
 
-    The frame's equations M(v' − v)/h + αMv' + f_int(u + hv') = f are linearised about u + h x_lin (x_lin = 0: about
-    the start; ``refine``: about the end of a previous solve x_lin, whose start energy ``e_start`` is E(z)),
-    [(1 + αh)/h² M + K] v' = M v / h² + (f − f_int(u + h x_lin)) / h + K x_lin, K the stiffness there."""
+
+def _linearise(arrays: dict, z, f, h, x_lin) -> _Body:
     _, alpha, free, m = LG._constants(arrays, z.dtype)
     n = z.shape[0]
-    c = (1.0 + alpha * h) / h ** 2
     u, v = (z[:, :3] - arrays["q0"].astype(z.dtype)) * free, z[:, 3:6] * free
-    x_lin = jnp.zeros_like(u) if x_lin is None else x_lin * free
+    x_lin = x_lin * free
     kin = kinematics(arrays, u + h * x_lin)
-    rn = node_rotations(arrays, kin, n)
+    rn = jnp.moveaxis(node_rotations(arrays, kin, n), -1, 0)       # [N, 3, 3]: the products below stay in
+                                                                    # the [N, 3] layout the dense one reads
+    rhs = (m * v / h ** 2 + (f - internal_force(arrays, kin, n)) / h) * free
+    return _Body(u, v, x_lin, kin, rn, free, m, (1.0 + alpha * h) / h ** 2, rhs)
+
+
+def _step(arrays: tuple, zs: tuple, fs: tuple, config: CorotationalConfig, h, x_lin, refine, e_start,
+          contact=None, pairs=(), hold=False):
+    """(z' of each body after a step h, the step length θ the energy budget allowed, the solve's v' before θ,
+    E(z)), all bodies in one solve and one budget.
+
+    The frame's equations M(v' − v)/h + αMv' + f_int(u + hv') + ∂E_c/∂q = f are linearised about u + h x_lin
+    (x_lin = 0: about the start; ``refine``: about the end of a previous solve x_lin, whose start energy
+    ``e_start`` is E(z)), [(1 + αh)/h² M + K + H_c] v' = M v / h² + (f − f_int − ∂E_c/∂q) / h + (K + H_c) x_lin,
+    K the bodies' stiffness there and H_c the contact's Gauss–Newton stiffness (zero without ``contact``), over the
+    candidate ``pairs``. ``hold``: the step length θ = 0 (the bodies stay where they are)."""
+    dtype = zs[0].dtype
+    bodies = tuple(_linearise(a, z, f, h, x) for a, z, f, x in zip(arrays, zs, fs, x_lin))
+    q0 = tuple(a["q0"].astype(dtype) for a in arrays)
+    if contact is not None:
+        lin = C.linearise(contact, pairs, tuple(q + b.u + h * b.x_lin for q, b in zip(q0, bodies)))
+        bodies = tuple(b._replace(rhs=b.rhs - g * b.free / h) for b, g in zip(bodies, lin.gradient))
 
     def apply_a(w):
-        return (c * m * w + tangent(arrays, kin, w * free)) * free
+        w = tuple(x * b.free for x, b in zip(w, bodies))
+        out = tuple(b.c * b.m * x + tangent(a, b.kin, x) for a, b, x in zip(arrays, bodies, w))
+        if contact is not None:
+            out = tuple(o + hc for o, hc in zip(out, C.apply_stiffness(contact, pairs, lin, w)))
+        return tuple(o * b.free for o, b in zip(out, bodies))
 
-    rn = jnp.moveaxis(rn, -1, 0)                                    # [N, 3, 3]: the products below stay in
-                                                                    # the [N, 3] layout the dense one reads
     def precondition(r):
-        back = jnp.einsum("nji,nj->ni", rn, r * free).reshape(-1)
-        return jnp.einsum("nij,nj->ni", rn, apply_rest_preconditioner(arrays, back).reshape(n, 3)) * free
+        out = []
+        for a, b, x in zip(arrays, bodies, r):
+            back = jnp.einsum("nji,nj->ni", b.rn, x * b.free).reshape(-1)
+            out.append(jnp.einsum("nij,nj->ni", b.rn, apply_rest_preconditioner(a, back).reshape(-1, 3)) * b.free)
+        return tuple(out)
 
-    f_int = internal_force(arrays, kin, n)
-    rhs = (m * v / h ** 2 + (f - f_int) / h) * free       # b − K x_lin: r = b − A x = rhs − c M x − K (x − x_lin)
-    x = jnp.where(refine, x_lin, v)
+    dot = lambda a, b: sum(jnp.vdot(x, y) for x, y in zip(a, b))  # noqa: E731
+    add = lambda a, b, t=1.0: tuple(x + t * y for x, y in zip(a, b))  # noqa: E731
+    where = lambda cond, a, b: tuple(jnp.where(cond, x, y) for x, y in zip(a, b))  # noqa: E731
     first, most = int(config.cg_iterations), int(config.cg_max_iterations)
-    tol2 = jnp.asarray(config.cg_tolerance, z.dtype) ** 2
+    tol2 = jnp.asarray(config.cg_tolerance, dtype) ** 2
+    xl = tuple(b.x_lin for b in bodies)
+    base = tuple((b.rhs - b.c * b.m * b.x_lin) * b.free for b in bodies)    # b − A x_lin, with A x_lin's K part
 
     def iteration(carry):
         # pass −1 forms the first residual r₀ = b − A x₀ = rhs − c M x_lin − A (x₀ − x_lin) from the same product
@@ -773,54 +857,69 @@ def _step(arrays: dict, z, f, config: CorotationalConfig, h, x_lin=None, refine=
         x, r, d, rz, i, bound = carry
         start = i < 0
         ad = apply_a(d)
-        dad = jnp.vdot(d, ad)
+        dad = dot(d, ad)
         step = jnp.where(dad > 0, rz / jnp.where(dad > 0, dad, 1.0), 0.0)
-        x = jnp.where(start, x, x + step * d)
-        r = jnp.where(start, (rhs - c * m * x_lin) * free - ad, r - step * ad)
+        x = where(start, x, add(x, d, step))
+        r = where(start, add(base, ad, -1.0), add(r, ad, -step))
         p = precondition(r)
-        rz_new = jnp.vdot(r, p)
-        d = jnp.where(start, p, p + jnp.where(rz > 0, rz_new / jnp.where(rz > 0, rz, 1.0), 0.0) * d)
+        rz_new = dot(r, p)
+        d = where(start, p, add(p, d, jnp.where(rz > 0, rz_new / jnp.where(rz > 0, rz, 1.0), 0.0)))
         # the solve goes on while rᵀPr > tol² bᵀA⁻¹b, with bᵀA⁻¹b ≈ bᵀ(P r₀ + x₀) (P ≈ A⁻¹): relative to the
         # right-hand side, not to the first residual, which is at round-off in a held frame (x₀ = v is the answer)
         # and could never be reduced by tol there
-        bound = jnp.where(start, tol2 * jnp.maximum(rz_new, jnp.vdot(rhs, p + x)), bound)
+        rhs = tuple(b.rhs for b in bodies)
+        bound = jnp.where(start, tol2 * jnp.maximum(rz_new, dot(rhs, add(p, x))), bound)
         return x, r, d, rz_new, i + 1, bound
 
     def more(carry):   # the first iterations always, then on while the residual is large
         i, rz, bound = carry[4], carry[3], carry[5]
         return (i < first) | ((i < most) & (rz > bound))
 
-    zero_s = jnp.zeros((), z.dtype)
-    start = (x, jnp.zeros_like(x), (x - x_lin) * free, zero_s, jnp.asarray(-1, jnp.int32), zero_s)
-    v1 = jax.lax.while_loop(more, iteration, start)[0] * free
+    zero_s = jnp.zeros((), dtype)
+    x0 = where(refine, xl, tuple(b.v for b in bodies))
+    start = (x0, tuple(jnp.zeros_like(x) for x in x0), tuple((x - y) * b.free for x, y, b in zip(x0, xl, bodies)),
+             zero_s, jnp.asarray(-1, jnp.int32), zero_s)
+    v1 = tuple(x * b.free for x, b in zip(jax.lax.while_loop(more, iteration, start)[0], bodies))
+
+
     # energy never created, E(z') ≤ E(z) + W: the longest of the steps θ h v' (θ in BACKTRACK) whose potential
     # fits the budget, P(u + θ h v') ≤ E(z) + θ W with W = f · h v' (θ = 0 always fits)
-    e0 = 0.5 * jnp.sum(m * v * v) + potential(arrays, kin)
+    kinetic0 = sum(0.5 * jnp.sum(b.m * b.v * b.v) for b in bodies)
+    e0 = kinetic0 + sum(potential(a, b.kin) for a, b in zip(arrays, bodies))
+    if contact is not None:
+        e0 = e0 + C.energy(contact, pairs, tuple(q + b.u + h * b.x_lin for q, b in zip(q0, bodies)))
     e0 = e0 if e_start is None else jnp.where(refine, e_start, e0)
     energy_start = e0
-    work = jnp.sum(f * h * v1 * free)
+    work = sum(jnp.sum(f * h * v * b.free) for f, v, b in zip(fs, v1, bodies))
     # the energies' round-off (float32 sums over the elements): a held frame's true change is far below it, and
     # without this allowance half such frames would be shortened for nothing
     e0 = e0 + ROUNDOFF * (jnp.abs(e0) + jnp.abs(work))
-    thetas = jnp.asarray(BACKTRACK, z.dtype)
+    thetas = jnp.asarray(BACKTRACK, dtype)
 
     def search(carry):    # the next step length; the last, θ = 0, is taken whatever its energy's round-off
         i = carry[0] + 1
-        trial = kinematics(arrays, u + thetas[i] * h * v1)
-        p = potential(arrays, trial)
+        us = tuple(b.u + thetas[i] * h * v for b, v in zip(bodies, v1))
+        trial = tuple(kinematics(a, u) for a, u in zip(arrays, us))
+        p = sum(potential(a, k) for a, k in zip(arrays, trial))
+        if contact is not None:
+            p = p + C.energy(contact, pairs, tuple(q + u for q, u in zip(q0, us)))
         return i, trial, p, (p <= e0 + thetas[i] * work) | (i == len(BACKTRACK) - 1)
 
     # one loop for every trial: a single copy of the kinematics in the compiled program (it compiles slowly)
-    i, kin1, p1, _ = jax.lax.while_loop(lambda c: ~c[3], search, (jnp.asarray(-1, jnp.int32), kin, e0, False))
+    first_trial = jnp.where(hold, len(BACKTRACK) - 2, -1).astype(jnp.int32)
+    i, kin1, p1, _ = jax.lax.while_loop(lambda c: ~c[3], search, (first_trial, tuple(b.kin for b in bodies), e0,
+                                                                 False))
     theta = thetas[i]
     v_full = v1
-    v1 = theta * v1
-    u1 = u + h * v1
+    v1 = tuple(theta * v for v in v1)
     budget = e0 + theta * work - p1
-    kinetic = 0.5 * jnp.sum(m * v1 * v1)
-    v1 = v1 * jnp.where(kinetic > budget, jnp.sqrt(jnp.maximum(budget, 0.0) / jnp.maximum(kinetic, 1e-30)), 1.0)
-    change = kin.jm1 + jnp.sum(kin.g * _gather(arrays, u1 - u - h * x_lin), axis=(0, 1))
-    q1 = arrays["q0"].astype(z.dtype) + u1
-    q1 = jnp.where(free > 0, q1, z[:, :3])
-    return jnp.concatenate([q1, v1 + (1.0 - free) * z[:, 3:6], stress(arrays, kin1, change, n)],
-                           axis=1), theta, v_full, energy_start
+    kinetic = sum(0.5 * jnp.sum(b.m * v * v) for b, v in zip(bodies, v1))
+    scale = jnp.where(kinetic > budget, jnp.sqrt(jnp.maximum(budget, 0.0) / jnp.maximum(kinetic, 1e-30)), 1.0)
+    out = []
+    for a, b, z, q, v, k in zip(arrays, bodies, zs, q0, v1, kin1):
+        u1 = b.u + h * v
+        change = b.kin.jm1 + jnp.sum(b.kin.g * _gather(a, u1 - b.u - h * b.x_lin), axis=(0, 1))
+        q1 = jnp.where(b.free > 0, q + u1, z[:, :3])
+        out.append(jnp.concatenate([q1, v * scale + (1.0 - b.free) * z[:, 3:6], stress(a, k, change, z.shape[0])],
+                                   axis=1))
+    return tuple(out), theta, v_full, energy_start

@@ -30,7 +30,9 @@ pointer's motion in the view plane, and a spring turns that motion into a bounde
 
 Frames: every body's state lives in its model frame and units; the world (what the page shows, and what `grab`
 and `drag` take) is the first body's model frame, z up. Body k maps model to world by x_w = R_k x + t_k.
-Two bodies touch through `tignn_jax.mr.forcing.contact_forces` (penalty springs between surface nodes).
+Two bodies touch through penalty springs between surface nodes: inside their one implicit frame where the
+scene has a ``joint`` step (`tignn_jax.contact_stepper`, the corotational models), otherwise as forces taken at
+each step's start (`tignn_jax.mr.forcing.contact_forces`).
 
 A body whose new state is flagged by its guard (not finite, or for a model that is not stable by construction
 outside its training envelope, see `tignn_jax.cli.demo._dynamics`) is reset to rest and counted in ``resets``.
@@ -78,6 +80,8 @@ class Scene(NamedTuple):
       u_max: the largest nodal displacement of the training data (model length units).
       ranges: {quantity: (vmin, vmax)} of the colour legend, for each of ``QUANTITIES``.
       contact: (radius, stiffness) of penalty contact between bodies (model length, force per length), or None.
+      joint: ``joint(zs, forces) -> zs`` over all bodies' states and forces, one frame with the contact inside it
+        (`tignn_jax.contact_stepper`), used instead of ``step`` and the explicit contact; or None.
     """
     name: str
     bodies: tuple
@@ -88,6 +92,7 @@ class Scene(NamedTuple):
     u_max: float
     ranges: dict
     contact: tuple | None = None
+    joint: Callable | None = None
 
 
 class Frame(NamedTuple):
@@ -130,7 +135,8 @@ class Interaction:
         self.index = 0             # steps taken since the last reset
         self.resets = 0            # bodies reset by their guard
         self.step_ms = 0.0         # the last step's wall time (model step, forces, guard)
-        self._contact = _contact_fn(scene) if scene.contact and len(scene.bodies) > 1 else None
+        explicit = scene.contact and len(scene.bodies) > 1 and scene.joint is None
+        self._contact = _contact_fn(scene) if explicit else None
 
     def grab(self, point) -> bool:
         """Start a drag at the world point ``point`` [3] (e.g. where the pointer pressed the surface).
@@ -236,9 +242,12 @@ class Interaction:
         if self._contact is not None:
             for k, f in enumerate(self._contact(zs)):
                 forces[k] = forces[k] + f
+        if self.scene.joint is not None:
+            stepped = [np.asarray(z) for z in self.scene.joint(zs, tuple(forces))]
+        else:
+            stepped = [np.asarray(self.scene.step(z, f)) for z, f in zip(zs, forces)]
         new = []
-        for z, f, rest in zip(zs, forces, self._rest):
-            nxt = np.asarray(self.scene.step(z, f))
+        for nxt, rest in zip(stepped, self._rest):
             if bool(self.scene.guard(nxt)):
                 nxt = rest
                 self.resets += 1

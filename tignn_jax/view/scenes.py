@@ -21,8 +21,10 @@ SCENES = ("beam", "two-beams", "bunny")
 # B of the two beams in A's model frame (`tignn_jax.cli.demo.build_scene`): turned 90° about z, across A's free
 # half with a gap of 10 (x_A = R x_B + t)
 TWO_BEAMS_B = (np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]]), np.array([36.0, -25.0, 20.0]))
-# the demo's contact (0.006 m, 5e7 per m at 0.005 m per model unit) in model units: radius, force per length
+# the two beams' contact in model units (radius, force per length): the FEM's (`fem.scenes.TWO_BEAMS_CONTACT`)
+# inside the implicit frame of a corotational model (benchmarks/contact_beams.py), else the explicit penalty's
 TWO_BEAMS_CONTACT = (1.2, 2.5e5)
+TWO_BEAMS_IMPLICIT_CONTACT = (2.0, 2.5e5)
 LEGEND_FRACTION = 0.5   # the legend spans this fraction of the training envelope's extreme
 
 
@@ -107,9 +109,14 @@ def load_scene(scene: str | None = None, model: str | None = None) -> Scene:
     envelope = params["envelope"]
     f_max = float(np.asarray(envelope["f_max"]).reshape(-1)[0])
     u_max = float(np.asarray(envelope["u_max"]).reshape(-1)[0])
+    contact, joint = (TWO_BEAMS_CONTACT if scene == "two-beams" else None), None
+    if len(bodies) > 1 and hasattr(params["model"], "step_together"):
+        contact = TWO_BEAMS_IMPLICIT_CONTACT
+        poses = [np.block([[b.rotation, b.offset[:, None]], [np.zeros((1, 3)), np.ones((1, 1))]]) for b in bodies]
+        joint = api.contact_stepper(params, poses, *contact)
+        dynamics += " (contact in the implicit step)"
     return Scene(name=name, bodies=bodies, step=step, guard=jax.jit(step.guard), dynamics=dynamics,
-                 f_max=f_max, u_max=u_max, ranges=_ranges(envelope),
-                 contact=TWO_BEAMS_CONTACT if scene == "two-beams" else None)
+                 f_max=f_max, u_max=u_max, ranges=_ranges(envelope), contact=contact, joint=joint)
 
 
 def models_for(scene: str | None) -> list[str]:
