@@ -1,5 +1,5 @@
 """Smoke tests of the product benchmarks (benchmarks/model_step.py, stability.py, pareto.py, scaling.py,
-fem_implicit.py, large_deformation.py, fem_throughput.py, abaqus_agreement.py, datasets.py,
+fem_implicit.py, large_deformation.py, contact_beams.py, fem_throughput.py, abaqus_agreement.py, datasets.py,
 diffrax_integrators.py): each runs in its quick or small-argument mode, in a fresh process, into a temporary
 results folder, and writes its .json and .md (and .png where it draws one) with the expected rows. Every option
 has a help text."""
@@ -14,7 +14,8 @@ import pytest
 ROOT = Path(__file__).resolve().parents[1]
 BENCHMARKS = ROOT / "benchmarks"
 REFERENCE = ROOT.parent / "shared" / "data" / "abaqus_beam.npz"
-QUICK = ("model_step", "stability", "pareto", "scaling", "fem_implicit", "large_deformation", "large_deformation_bunny")
+QUICK = ("model_step", "stability", "pareto", "scaling", "fem_implicit", "large_deformation", "large_deformation_bunny",
+         "contact_beams")
 SCRIPTS = QUICK + ("fem_throughput", "abaqus_agreement", "datasets")
 needs_reference = pytest.mark.skipif(not REFERENCE.exists(), reason="reference data ../shared/data/abaqus_beam.npz "
                                                                     "not present")
@@ -74,6 +75,19 @@ def test_stability_quick_runs_every_loading_with_and_without_guards(tmp_path):
         assert len(run["series"]["u_max"]) == 41 and run["energy"]["dissipative_fraction"] == 1.0
         assert f"| beam | {name} | beam |" in md
     assert "| beam | noise | fallback |" in md
+
+
+@pytest.mark.long
+def test_contact_beams_quick_compares_the_couplings_with_the_fem(tmp_path):
+    _bench("contact_beams", "--quick", "--out", str(tmp_path), timeout=600)
+    result, md = _results(tmp_path, "contact_beams")
+    assert result["quick"] and result["frames"] == 4 and {r["load"] for r in result["rows"]} == {"1x hold"}
+    implicit = [r for r in result["rows"] if "implicit step" in r["model"]]
+    assert len(result["rows"]) == 3 and len(implicit) == 1
+    assert implicit[0]["finite"] and implicit[0]["energy_creating_frames"] == 0 and implicit[0]["u_error"] < 0.05
+    for t in result["frame_ms"].values():   # 4 frames, the first call left out
+        assert t["frames"] == 3 and 0 < t["p50"] <= t["p99"] <= t["max"]
+    assert "closest approach" in md
 
 
 @pytest.mark.long
