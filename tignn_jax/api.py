@@ -110,11 +110,10 @@ def contact_stepper(params, poses, radius: float, stiffness: float, capacity: in
 
     Each body has a pose in a common world frame; where surface nodes of two bodies come closer than ``radius``
     they repel by the penalty energy E_c = Σ_ij ½ k max(r − d_ij, 0)² (d_ij the world distance of the pair). The
-    contact is inside each body's implicit frame: body after body, each is stepped against the others' surfaces
-    at their latest positions, with E_c in its solve and in its energy budget, so the bodies together never end a
-    frame with more energy than their external forces put in, however stiff the contact
-    (`tignn_jax.simulators.contact`). For models whose class can step against an obstacle (``step_against``:
-    `tignn_jax.simulators.CorotationalGeneric`).
+    contact is inside the bodies' implicit frame: all bodies are solved together, E_c in their potential and its
+    stiffness in their one linear solve, so they never end a frame with more energy than their external forces
+    put in, however stiff the contact (`tignn_jax.simulators.contact`). For models whose class steps bodies
+    together (``step_together``: `tignn_jax.simulators.CorotationalGeneric`).
 
     Args:
       params: a model, shared by every body, or a list with one model per body.

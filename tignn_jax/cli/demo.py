@@ -57,8 +57,8 @@ TWO_BEAMS_PRESS = 0.2   # two beams: B bent onto A and on, so that A bends as we
 BUNNY_TIP_STIFFNESS = 5.0
 BUNNY_PRESS = 0.007
 BUNNY_STRESS_MAX = 0.25
-# the two beams' penalty contact: radius (m) and stiffness (force per metre). Inside the implicit frames of models
-# that can step against an obstacle (`tignn_jax.contact_stepper`): stiff enough that B bends A; otherwise explicit
+# the two beams' penalty contact: radius (m) and stiffness (force per metre). Inside the one implicit frame of models
+# that step bodies together (`tignn_jax.contact_stepper`): stiff enough that B bends A; otherwise explicit
 # between the frames (`tignn_jax.mr.forcing.contact_forces`), where a stiffer one rings (docs/research_log.md)
 IMPLICIT_CONTACT = (0.015, 2e7)
 BEAM_CONTACT = (0.015, 1e5)

@@ -849,6 +849,7 @@ def _step(arrays: tuple, zs: tuple, fs: tuple, config: CorotationalConfig, h, x_
     first, most = int(config.cg_iterations), int(config.cg_max_iterations)
     tol2 = jnp.asarray(config.cg_tolerance, dtype) ** 2
     xl = tuple(b.x_lin for b in bodies)
+    rhs = tuple(b.rhs for b in bodies)
     base = tuple((b.rhs - b.c * b.m * b.x_lin) * b.free for b in bodies)    # b − A x_lin, with A x_lin's K part
 
     def iteration(carry):
@@ -867,7 +868,6 @@ def _step(arrays: tuple, zs: tuple, fs: tuple, config: CorotationalConfig, h, x_
         # the solve goes on while rᵀPr > tol² bᵀA⁻¹b, with bᵀA⁻¹b ≈ bᵀ(P r₀ + x₀) (P ≈ A⁻¹): relative to the
         # right-hand side, not to the first residual, which is at round-off in a held frame (x₀ = v is the answer)
         # and could never be reduced by tol there
-        rhs = tuple(b.rhs for b in bodies)
         bound = jnp.where(start, tol2 * jnp.maximum(rz_new, dot(rhs, add(p, x))), bound)
         return x, r, d, rz_new, i + 1, bound
 
@@ -880,8 +880,6 @@ def _step(arrays: tuple, zs: tuple, fs: tuple, config: CorotationalConfig, h, x_
     start = (x0, tuple(jnp.zeros_like(x) for x in x0), tuple((x - y) * b.free for x, y, b in zip(x0, xl, bodies)),
              zero_s, jnp.asarray(-1, jnp.int32), zero_s)
     v1 = tuple(x * b.free for x, b in zip(jax.lax.while_loop(more, iteration, start)[0], bodies))
-
-
     # energy never created, E(z') ≤ E(z) + W: the longest of the steps θ h v' (θ in BACKTRACK) whose potential
     # fits the budget, P(u + θ h v') ≤ E(z) + θ W with W = f · h v' (θ = 0 always fits)
     kinetic0 = sum(0.5 * jnp.sum(b.m * b.v * b.v) for b in bodies)
