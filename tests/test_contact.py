@@ -5,7 +5,8 @@ import numpy as np
 import pytest
 
 import tignn_jax
-from tignn_jax.simulators.contact import apply_stiffness, candidate_pairs, contact, energy, linearise
+from tignn_jax.simulators.contact import (apply_stiffness, candidate_pairs, coarse_stiffness, contact, energy,
+                                         linearise, still_exact)
 
 # the FEM's two beams (`fem.scenes.two_beams_scene`): B turned 90° about z over A's free half, 10 above it
 POSE_B = np.array([[0.0, -1.0, 0.0, 36.0], [1.0, 0.0, 0.0, -25.0], [0.0, 0.0, 1.0, 20.0], [0.0, 0.0, 0.0, 1.0]])
@@ -50,6 +51,43 @@ def test_contact_gradient_is_that_of_its_energy_and_its_stiffness_the_gauss_newt
     assert dot(w, hw) >= 0.0 and dot(x, hx) >= 0.0                           # positive semi-definite
     rigid = [jnp.ones_like(q) @ jnp.asarray(r) for q, r in zip(qs, spec.rotations)]   # one world translation
     assert max(float(jnp.abs(t).max()) for t in apply_stiffness(spec, pairs, lin, rigid)) < 1e-3
+
+
+def test_listed_pairs_give_the_dense_stiffness_and_its_coarse_projection():
+    # H_c w over the listed active pairs equals the sum over every candidate pair, and so does the list cut
+    # short (then every candidate pair is summed: the overflow branch); Vᵀ H_c V from the list is H_c applied to
+    # V's columns, projected
+    rng = np.random.default_rng(3)
+    qs, spec = _two_clouds(rng)
+    pairs = candidate_pairs(spec, tuple(jnp.concatenate([q, jnp.zeros_like(q)], 1) for q in qs))
+    lin = linearise(spec, pairs, qs)
+    count = int(lin.active[0].sum())
+    assert count > 2 and not bool(lin.listed[0].overflow)
+    w = [jnp.asarray(rng.normal(size=q.shape), jnp.float32) for q in qs]
+    dense = lin._replace(listed=(lin.listed[0]._replace(overflow=jnp.asarray(True)),))
+    for a, b in zip(apply_stiffness(spec, pairs, lin, w), apply_stiffness(spec, pairs, dense, w)):
+        np.testing.assert_allclose(a, b, rtol=1e-5, atol=1e-4)
+    bases = [jnp.asarray(rng.normal(size=(q.shape[0], 3, m)), jnp.float32) for q, m in zip(qs, (3, 2))]
+    coarse = np.asarray(coarse_stiffness(spec, lin, bases))
+    columns = [[v[:, :, c] if k == body else jnp.zeros_like(q) for k, (v, q) in enumerate(zip(bases, qs))]
+               for body, v in enumerate(bases) for c in range(v.shape[-1])]
+    hv = [apply_stiffness(spec, pairs, lin, col) for col in columns]
+    expected = np.array([[float(sum(jnp.vdot(x, y) for x, y in zip(c, h))) for h in hv] for c in columns])
+    np.testing.assert_allclose(coarse, expected, rtol=1e-4, atol=1e-3 * np.abs(expected).max())
+    assert np.linalg.eigvalsh(coarse).min() > -1e-4 * np.abs(coarse).max()     # positive semi-definite
+
+
+def test_candidates_stay_exact_only_while_nodes_move_less_than_half_the_spare_reach():
+    rng = np.random.default_rng(4)
+    qs, spec = _two_clouds(rng)
+    pairs = candidate_pairs(spec, tuple(jnp.concatenate([q, jnp.zeros_like(q)], 1) for q in qs))
+    half = 0.5 * (spec.reach - spec.radius)
+    for step, exact in ((0.9 * half, True), (1.1 * half, False)):
+        moved = (qs[0], qs[1].at[2, 1].add(step))
+        assert bool(still_exact(spec, pairs, qs, moved)) == exact, step
+    full = contact([np.eye(4), np.eye(4)], [np.arange(12), np.arange(9)], 0.6, 50.0, capacity=2, reach=100.0)
+    full_pairs = candidate_pairs(full, tuple(jnp.concatenate([q, jnp.zeros_like(q)], 1) for q in qs))
+    assert not bool(still_exact(full, full_pairs, qs, qs))                     # a full list may have left some out
 
 
 def test_candidate_pairs_keep_every_touching_pair():

@@ -20,7 +20,9 @@ place each frame; docs/research_log.md).
 Only nodes near the other body take part: at each frame's start, of each pair of bodies, at most ``capacity``
 surface nodes of each that lie within ``reach`` of the other's surface nodes (the nearest first,
 `candidate_pairs`). That is exact while no more are within reach and no node moves farther than (reach − r) / 2
-in a frame: every pair left out is then farther apart than r throughout.
+from where they were chosen: every pair left out is then farther apart than r throughout (`still_exact`). The
+pairs closer than r at the linearisation are also listed (`Listed`), so that H_c w costs their number, not the
+candidates' table.
 """
 from __future__ import annotations
 
@@ -61,10 +63,30 @@ class Linearised(NamedTuple):
       gradient: per body ∂E_c/∂q [N_b, 3] (work per model length).
       normals: per pair of bodies, n_ij [C_a, C_b, 3] (world directions).
       active: per pair of bodies, [C_a, C_b]: 1 where the pair is closer than r.
+      listed: per pair of bodies, its active pairs listed (`Listed`: up to ``SLOTS_PER_CANDIDATE`` × capacity).
     """
     gradient: tuple
     normals: tuple
     active: tuple
+    listed: tuple
+
+
+class Listed(NamedTuple):
+    """The active pairs of two bodies a, b in a list of P slots (unused slots: weight 0).
+
+    Attributes:
+      nodes: (i [P], j [P]) int32, the pairs' nodes of a and of b.
+      normals: (n_ij in a's model directions [P, 3], in b's [P, 3]).
+      weight: [P], k on a used slot, else 0.
+      overflow: [] bool, True where more pairs are active than the list holds (it then holds some of them).
+    """
+    nodes: tuple
+    normals: tuple
+    weight: jax.Array
+    overflow: jax.Array
+
+
+SLOTS_PER_CANDIDATE = 4   # the active pairs listed per pair of bodies, per candidate slot (`Listed`)
 
 
 def contact(poses, surfaces, radius: float, stiffness: float, capacity: int = 128,
@@ -124,12 +146,30 @@ def candidate_pairs(contact: Contact, zs) -> tuple:
     out = []
     for a, b in _pairs(contact):
         ya, yb = (_world(contact, k, zs[k][:, :3], contact.surfaces[k]) for k in (a, b))
+        d2 = jnp.sum(ya * ya, 1)[:, None] + jnp.sum(yb * yb, 1)[None, :] - 2.0 * ya @ yb.T   # one table for both
         picks = []
-        for k, x, other in ((a, ya, yb), (b, yb, ya)):
-            idx, inside = _nearest(x, other, contact.reach, contact.capacity)
+        for k, nearest in ((a, jnp.min(d2, axis=1)), (b, jnp.min(d2, axis=0))):
+            top, idx = jax.lax.top_k(-nearest, min(contact.capacity, nearest.shape[0]))
+            inside = -top <= contact.reach * contact.reach
             picks.append(jnp.where(inside, contact.surfaces[k][idx], zs[k].shape[0]).astype(jnp.int32))
         out.append(tuple(picks))
     return tuple(out)
+
+
+def still_exact(contact: Contact, pairs, q_from, q_to) -> jax.Array:
+    """[] bool: True where the candidate ``pairs`` chosen at the positions ``q_from`` still hold every pair closer
+    than r at ``q_to`` (per body [N_b, 3]): no surface node moved farther than (reach − r) / 2 in the world
+    between them, and no candidate list shorter than its surface is full (then every node within reach of the
+    other body was listed)."""
+    ok = jnp.asarray(True)
+    for k, (nodes, a, b) in enumerate(zip(contact.surfaces, q_from, q_to)):
+        moved = jnp.max(jnp.sum((b[nodes] - a[nodes]) ** 2, axis=-1))   # rotations keep lengths
+        ok = ok & (moved <= (0.5 * (contact.reach - contact.radius)) ** 2)
+    for (a, b), (ia, ib) in zip(_pairs(contact), pairs):
+        for k, nodes in ((a, ia), (b, ib)):   # a list as long as the surface holds every node within reach
+            if len(nodes) < len(contact.surfaces[k]):
+                ok = ok & ~jnp.all(nodes < q_from[k].shape[0])
+    return ok
 
 
 def energy(contact: Contact, pairs, qs) -> jax.Array:
@@ -144,7 +184,7 @@ def energy(contact: Contact, pairs, qs) -> jax.Array:
 def linearise(contact: Contact, pairs, qs) -> Linearised:
     """The gradient of E_c and the pairs' normals and contact state at the positions qs (per body [N_b, 3])."""
     gradient = [jnp.zeros_like(q) for q in qs]
-    normals, active = [], []
+    normals, active, listed = [], [], []
     for (a, b), (ia, ib) in zip(_pairs(contact), pairs):
         diff = _differences(contact, a, b, ia, ib, qs)
         d = jnp.sqrt(jnp.maximum(jnp.sum(diff * diff, axis=-1), 1e-30))
@@ -155,19 +195,59 @@ def linearise(contact: Contact, pairs, qs) -> Linearised:
         gradient[b] = gradient[b].at[ib].add(-jnp.sum(g, axis=0) @ contact.rotations[b], mode="drop")
         normals.append(n)
         active.append((gap > 0).astype(qs[a].dtype))
-    return Linearised(tuple(gradient), tuple(normals), tuple(active))
+        listed.append(_listed(contact, a, b, ia, ib, n, active[-1]))
+    return Linearised(tuple(gradient), tuple(normals), tuple(active), tuple(listed))
+
+
+def _listed(contact: Contact, a: int, b: int, ia, ib, n, act) -> Listed:
+    cb = act.shape[1]
+    flat = jnp.nonzero(act.reshape(-1) > 0, size=SLOTS_PER_CANDIDATE * contact.capacity, fill_value=act.size)[0]
+    i, j = jnp.minimum(flat // cb, act.shape[0] - 1), jnp.minimum(flat % cb, cb - 1)
+    normal = n[i, j]
+    return Listed((ia[i], ib[j]), (normal @ contact.rotations[a], normal @ contact.rotations[b]),
+                  contact.stiffness * (flat < act.size).astype(n.dtype), jnp.sum(act) > len(flat))
 
 
 def apply_stiffness(contact: Contact, pairs, lin: Linearised, ws) -> tuple:
-    """H_c w: per body [N_b, 3], for velocities or displacements ws (per body [N_b, 3])."""
+    """H_c w: per body [N_b, 3], for velocities or displacements ws (per body [N_b, 3]).
+
+    Over the listed active pairs (`Listed`), or over every candidate pair where more are active than listed."""
     out = [jnp.zeros_like(w) for w in ws]
-    for (a, b), (ia, ib), n, act in zip(_pairs(contact), pairs, lin.normals, lin.active):
-        wa = ws[a].at[ia].get(mode="fill", fill_value=0) @ contact.rotations[a].T
-        wb = ws[b].at[ib].get(mode="fill", fill_value=0) @ contact.rotations[b].T
-        s = contact.stiffness * act * (jnp.einsum("ijc,ic->ij", n, wa) - jnp.einsum("ijc,jc->ij", n, wb))
-        out[a] = out[a].at[ia].add(jnp.einsum("ij,ijc->ic", s, n) @ contact.rotations[a], mode="drop")
-        out[b] = out[b].at[ib].add(-jnp.einsum("ij,ijc->jc", s, n) @ contact.rotations[b], mode="drop")
+    for (a, b), (ia, ib), n, act, li in zip(_pairs(contact), pairs, lin.normals, lin.active, lin.listed):
+        def dense(wa, wb, ia=ia, ib=ib, n=n, act=act):
+            ya = wa.at[ia].get(mode="fill", fill_value=0) @ contact.rotations[a].T
+            yb = wb.at[ib].get(mode="fill", fill_value=0) @ contact.rotations[b].T
+            sn = (contact.stiffness * act * jnp.sum(n * (ya[:, None, :] - yb[None, :, :]), -1))[..., None] * n
+            return (jnp.zeros_like(wa).at[ia].add(jnp.sum(sn, 1) @ contact.rotations[a], mode="drop"),
+                    jnp.zeros_like(wb).at[ib].add(-jnp.sum(sn, 0) @ contact.rotations[b], mode="drop"))
+
+        def listed(wa, wb, li=li):
+            (i, j), (na, nb) = li.nodes, li.normals
+            s = li.weight * (jnp.sum(na * wa.at[i].get(mode="fill", fill_value=0), -1)
+                             - jnp.sum(nb * wb.at[j].get(mode="fill", fill_value=0), -1))
+            return (jnp.zeros_like(wa).at[i].add(s[:, None] * na, mode="drop"),
+                    jnp.zeros_like(wb).at[j].add(-s[:, None] * nb, mode="drop"))
+
+        fa, fb = jax.lax.cond(li.overflow, dense, listed, ws[a], ws[b])
+        out[a], out[b] = out[a] + fa, out[b] + fb
     return tuple(out)
+
+
+def coarse_stiffness(contact: Contact, lin: Linearised, bases) -> jax.Array:
+    """Vᵀ H_c V [M, M] for per-body bases V_b [N_b, 3, m_b] (model directions; M = Σ m_b, the bodies' blocks in
+    order): Σ over the listed active pairs (`Listed`) of k w wᵀ, w = (n ⋅ V_a,i, −n ⋅ V_b,j) the pair's relative
+    normal motion (positive semi-definite; where more pairs are active than listed, over those listed)."""
+    starts = np.concatenate([[0], np.cumsum([v.shape[-1] for v in bases])])
+    out = jnp.zeros((starts[-1], starts[-1]), bases[0].dtype)
+    for (a, b), li in zip(_pairs(contact), lin.listed):
+        (i, j), (na, nb) = li.nodes, li.normals
+        w = jnp.zeros((len(i), starts[-1]), bases[0].dtype)
+        w = w.at[:, starts[a]:starts[a + 1]].set(
+            jnp.einsum("pc,pcm->pm", na, bases[a].at[i].get(mode="fill", fill_value=0)))
+        w = w.at[:, starts[b]:starts[b + 1]].set(
+            -jnp.einsum("pc,pcm->pm", nb, bases[b].at[j].get(mode="fill", fill_value=0)))
+        out = out + (li.weight[:, None] * w).T @ w
+    return out
 
 
 def _pairs(contact: Contact):
@@ -187,12 +267,3 @@ def _differences(contact: Contact, a: int, b: int, ia, ib, qs):
     yb = jnp.where((ib < qs[b].shape[0])[:, None], _world(contact, b, qs[b], jnp.minimum(ib, qs[b].shape[0] - 1)),
                    -FAR)
     return ya[:, None, :] - yb[None, :, :]
-
-
-def _nearest(x, others, reach, capacity: int):
-    """(indices [C] of the rows of x nearest to any row of ``others``, nearest first; [C] bool: within
-    ``reach``), C = min(capacity, len(x)). One dense [len(x), len(others)] distance table."""
-    d2 = jnp.sum(x * x, 1)[:, None] + jnp.sum(others * others, 1)[None, :] - 2.0 * x @ others.T
-    nearest = jnp.min(d2, axis=1)
-    top, idx = jax.lax.top_k(-nearest, min(int(capacity), x.shape[0]))
-    return idx, -top <= reach * reach

@@ -65,9 +65,12 @@ falls short too, as four steps of Δt/4, each kept within its own budget (`frame
 keep q and v.
 
 Bodies in contact are stepped together (`joint_frame`): one frame of all of them, a penalty energy E_c of their
-surfaces' node pairs added to the potential (`tignn_jax.simulators.contact`), its Gauss–Newton stiffness in the
-one CG solve of all the bodies' velocities (each body preconditioned by its own turned rest operator), and one
-energy budget, E(z') + E_c(q') ≤ E(z) + E_c(q) + W, for all of them.
+surfaces' node pairs added to the potential (`tignn_jax.simulators.contact`), its Gauss–Newton stiffness H_c in
+the one CG solve of all the bodies' velocities, and one energy budget, E(z') + E_c(q') ≤ E(z) + E_c(q) + W, for all
+of them. Each body is preconditioned by its own turned rest operator, except on the slow modes: those of all the
+bodies are solved together, with the contact coupling them, E = diag(Λ_b) + Vᵀ H_c V (V = R Φ, each body's
+modes turned with it; `tignn_jax.simulators.contact.coarse_stiffness`), for B pressed onto A bends both at
+once, a mode neither body's own has.
 
 Made from the FEM's own element operators (`from_fem`): not learned. Accuracy against the FEM at loads past the
 training range: ``benchmarks/large_deformation.py``; in contact: ``benchmarks/contact_beams.py``.
@@ -399,11 +402,13 @@ def block_inverse(A, node_type):
     return np.linalg.inv(blocks) * (np.asarray(node_type) == 0)[:, None, None]
 
 
-def apply_rest_preconditioner(arrays: dict, r):
+def apply_rest_preconditioner(arrays: dict, r, coefficients=None):
     """P₀ r (`rest_preconditioner`) for a flat [3N] r, in the rest frame, with B⁻¹ replaced by
-    `schur_preconditioner`'s (D + κ Gᵀ W G)⁻¹ where the arrays hold ``schur_inv``."""
+    `schur_preconditioner`'s (D + κ Gᵀ W G)⁻¹ where the arrays hold ``schur_inv``; ``coefficients`` [m], where
+    given, replace the slow modes' Λ⁻¹ Φᵀ r (bodies in contact: `_step`'s coarse solve of all of them)."""
     phi = arrays["modes"].astype(r.dtype)
     c = r @ phi
+    c_coarse = c * arrays["mode_inv"].astype(r.dtype) if coefficients is None else coefficients
     binv = arrays["block_inv"].astype(r.dtype)
     n = binv.shape[0]
     y = jnp.einsum("nij,nj->ni", binv, (r - phi @ c).reshape(n, 3))
@@ -411,7 +416,7 @@ def apply_rest_preconditioner(arrays: dict, r):
         s = arrays["schur_inv"].astype(r.dtype) @ constraints(arrays, y)
         y = y - jnp.einsum("nij,nj->ni", binv, constraints_transpose(arrays, s, n))
     y = y.reshape(-1)
-    return phi @ (c * arrays["mode_inv"].astype(r.dtype)) + y - phi @ (y @ phi)
+    return phi @ c_coarse + y - phi @ (y @ phi)
 
 
 def constraint_operator(stored: dict, node_type):
@@ -742,8 +747,10 @@ def joint_frame(arrays: tuple, zs: tuple, fs: tuple, config: CorotationalConfig,
     three (a single copy of the step in the compiled program). The bodies share the frame step Δt of the first.
 
     The contact's candidate pairs are chosen where a step starts (`tignn_jax.simulators.contact.candidate_pairs`)
-    and checked where it ends: a step that ends with a pair in contact that was not a candidate (the bodies moved
-    farther than the candidates' reach) is taken again with the candidates of its end, and after ``RETRIES``
+    and checked where it ends: where they may have missed a pair there (a surface node moved farther than
+    (reach − r) / 2 since they were chosen, or a list is full: `tignn_jax.simulators.contact.still_exact`), those
+    of the end are found, and a step that ends with a pair in contact that was not a candidate is taken again
+    with the candidates of its end, and after ``RETRIES``
     such steps as θ = 0, so the contact energy the budget counts is the whole contact energy at every step's
     end. Every pair's energy is ≥ 0, so the candidates' energy at a step's start is at most the whole one there,
     and the budget E(z') ≤ E(z) + W holds for the whole energy.
@@ -756,34 +763,40 @@ def joint_frame(arrays: tuple, zs: tuple, fs: tuple, config: CorotationalConfig,
     pairs = () if contact is None else C.candidate_pairs(contact, zs)
     no = jnp.zeros((), jnp.int32)
 
-    def missed(z1, pairs):
-        """(the candidates at the end of a step, True where the step's own missed a pair in contact there)."""
+    def missed(z1, pairs, q_ref):
+        """(the candidates for the end of a step, the positions they were chosen at, True where the step's own
+        missed a pair in contact there): new ones only where the step moved too far for its own to be exact."""
         if contact is None:
-            return pairs, jnp.asarray(False)
-        ends = C.candidate_pairs(contact, z1)
+            return pairs, q_ref, jnp.asarray(False)
         q1 = tuple(z[:, :3] for z in z1)
-        e_end, e_step = C.energy(contact, ends, q1), C.energy(contact, pairs, q1)
-        return ends, e_end > e_step + ROUNDOFF * e_end
+
+        def check(_):
+            ends = C.candidate_pairs(contact, z1)
+            e_end, e_step = C.energy(contact, ends, q1), C.energy(contact, pairs, q1)
+            return ends, q1, e_end > e_step + ROUNDOFF * e_end
+
+        return jax.lax.cond(C.still_exact(contact, pairs, q_ref, q1), lambda _: (pairs, q_ref, jnp.asarray(False)),
+                            check, None)
 
     def body(carry):
-        zk, k, mode, x_lin, e_start, pairs, tries = carry      # mode 0: one step, 1: that step refined, 2: split
+        zk, k, mode, x_lin, e_start, pairs, q_ref, tries = carry   # mode 0: one step, 1: that refined, 2: split
         split = mode == 2
         z1, theta, v_full, e0 = _step(arrays, pick(split, zk, zs), fs, config, jnp.where(split, h / SPLIT, h),
                                       x_lin, mode == 1, e_start, contact, pairs, tries >= RETRIES)
-        ends, miss = missed(z1, pairs)
+        ends, q_ref, miss = missed(z1, pairs, q_ref)
         retry = miss & (tries < RETRIES)         # again from the same start, with the candidates of this end
         short = ~retry & (mode < 2) & (theta < 1.0)          # fell short: refine the step, or split the frame
         advance = ~retry & ~short
         return (pick(advance, z1, pick(split, zk, zs)), jnp.where(advance, k + 1, jnp.where(short, 0, k)),
                 jnp.where(short, mode + 1, mode),
                 pick(retry, x_lin, pick(short & (mode == 0), v_full, zero)),
-                jnp.where((mode == 0) & ~retry, e0, e_start), ends, jnp.where(retry, tries + 1, 0))
+                jnp.where((mode == 0) & ~retry, e0, e_start), ends, q_ref, jnp.where(retry, tries + 1, 0))
 
     def more(carry):
         _, k, mode = carry[:3]
         return k < jnp.where(mode == 2, SPLIT, 1)
 
-    start = (tuple(zs), no, no, zero, jnp.zeros((), dtype), pairs, no)
+    start = (tuple(zs), no, no, zero, jnp.zeros((), dtype), pairs, tuple(z[:, :3] for z in zs), no)
     return jax.lax.while_loop(more, body, start)[0]
 
 
@@ -836,12 +849,23 @@ def _step(arrays: tuple, zs: tuple, fs: tuple, config: CorotationalConfig, h, x_
             out = tuple(o + hc for o, hc in zip(out, C.apply_stiffness(contact, pairs, lin, w)))
         return tuple(o * b.free for o, b in zip(out, bodies))
 
+    coarse = None
+    if contact is not None:   # the slow modes of all the bodies solved together, with the contact coupling them
+        turned = tuple(jnp.einsum("nij,njm->nim", b.rn, a["modes"].astype(dtype).reshape(b.rn.shape[0], 3, -1))
+                       * b.free[:, :, None] for a, b in zip(arrays, bodies))
+        coupling = C.coarse_stiffness(contact, lin, turned)
+        sizes = [a["modes"].shape[1] for a in arrays]
+        eigen = jnp.concatenate([1.0 / a["mode_inv"].astype(dtype) for a in arrays])
+        factor = jax.scipy.linalg.cho_factor(jnp.diag(eigen) + coupling, lower=True)
+        coarse = lambda c: jnp.split(jax.scipy.linalg.cho_solve(factor, jnp.concatenate(c)),  # noqa: E731
+                                     np.cumsum(sizes)[:-1])
+
     def precondition(r):
-        out = []
-        for a, b, x in zip(arrays, bodies, r):
-            back = jnp.einsum("nji,nj->ni", b.rn, x * b.free).reshape(-1)
-            out.append(jnp.einsum("nij,nj->ni", b.rn, apply_rest_preconditioner(a, back).reshape(-1, 3)) * b.free)
-        return tuple(out)
+        backs = [jnp.einsum("nji,nj->ni", b.rn, x * b.free).reshape(-1) for b, x in zip(bodies, r)]
+        coefficients = [None] * len(backs) if coarse is None else coarse(
+            [back @ a["modes"].astype(dtype) for a, back in zip(arrays, backs)])
+        return tuple(jnp.einsum("nij,nj->ni", b.rn, apply_rest_preconditioner(a, back, c).reshape(-1, 3)) * b.free
+                     for a, b, back, c in zip(arrays, bodies, backs, coefficients))
 
     dot = lambda a, b: sum(jnp.vdot(x, y) for x, y in zip(a, b))  # noqa: E731
     add = lambda a, b, t=1.0: tuple(x + t * y for x, y in zip(a, b))  # noqa: E731
