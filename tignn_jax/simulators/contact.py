@@ -162,7 +162,7 @@ def still_exact(contact: Contact, pairs, q_from, q_to) -> jax.Array:
     between them, and no candidate list shorter than its surface is full (then every node within reach of the
     other body was listed)."""
     ok = jnp.asarray(True)
-    for k, (nodes, a, b) in enumerate(zip(contact.surfaces, q_from, q_to)):
+    for nodes, a, b in zip(contact.surfaces, q_from, q_to):
         moved = jnp.max(jnp.sum((b[nodes] - a[nodes]) ** 2, axis=-1))   # rotations keep lengths
         ok = ok & (moved <= (0.5 * (contact.reach - contact.radius)) ** 2)
     for (a, b), (ia, ib) in zip(_pairs(contact), pairs):

@@ -402,13 +402,14 @@ def block_inverse(A, node_type):
     return np.linalg.inv(blocks) * (np.asarray(node_type) == 0)[:, None, None]
 
 
-def apply_rest_preconditioner(arrays: dict, r, coefficients=None):
+def apply_rest_preconditioner(arrays: dict, r, modal=None):
     """P₀ r (`rest_preconditioner`) for a flat [3N] r, in the rest frame, with B⁻¹ replaced by
-    `schur_preconditioner`'s (D + κ Gᵀ W G)⁻¹ where the arrays hold ``schur_inv``; ``coefficients`` [m], where
-    given, replace the slow modes' Λ⁻¹ Φᵀ r (bodies in contact: `_step`'s coarse solve of all of them)."""
+    `schur_preconditioner`'s (D + κ Gᵀ W G)⁻¹ where the arrays hold ``schur_inv``; ``modal``, where given, is
+    (Φᵀ r [m], the coefficients [m] that replace the slow modes' Λ⁻¹ Φᵀ r), computed by the caller (bodies in
+    contact: `_step`'s coarse solve of all of them)."""
     phi = arrays["modes"].astype(r.dtype)
-    c = r @ phi
-    c_coarse = c * arrays["mode_inv"].astype(r.dtype) if coefficients is None else coefficients
+    c, c_coarse = (r @ phi, None) if modal is None else modal
+    c_coarse = c * arrays["mode_inv"].astype(r.dtype) if c_coarse is None else c_coarse
     binv = arrays["block_inv"].astype(r.dtype)
     n = binv.shape[0]
     y = jnp.einsum("nij,nj->ni", binv, (r - phi @ c).reshape(n, 3))
@@ -862,10 +863,12 @@ def _step(arrays: tuple, zs: tuple, fs: tuple, config: CorotationalConfig, h, x_
 
     def precondition(r):
         backs = [jnp.einsum("nji,nj->ni", b.rn, x * b.free).reshape(-1) for b, x in zip(bodies, r)]
-        coefficients = [None] * len(backs) if coarse is None else coarse(
-            [back @ a["modes"].astype(dtype) for a, back in zip(arrays, backs)])
-        return tuple(jnp.einsum("nij,nj->ni", b.rn, apply_rest_preconditioner(a, back, c).reshape(-1, 3)) * b.free
-                     for a, b, back, c in zip(arrays, bodies, backs, coefficients))
+        modal = [None] * len(backs)
+        if coarse is not None:   # Φᵀ r of every body, once: the coarse solve's input and P₀'s projection
+            cs = [back @ a["modes"].astype(dtype) for a, back in zip(arrays, backs)]
+            modal = list(zip(cs, coarse(cs)))
+        return tuple(jnp.einsum("nij,nj->ni", b.rn, apply_rest_preconditioner(a, back, m).reshape(-1, 3)) * b.free
+                     for a, b, back, m in zip(arrays, bodies, backs, modal))
 
     dot = lambda a, b: sum(jnp.vdot(x, y) for x, y in zip(a, b))  # noqa: E731
     add = lambda a, b, t=1.0: tuple(x + t * y for x, y in zip(a, b))  # noqa: E731
