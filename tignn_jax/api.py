@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import json
 import math
+import os
 from functools import partial
 from pathlib import Path
 
@@ -26,6 +27,12 @@ PRETRAINED_DIR = Path(__file__).resolve().parent / "pretrained"
 DEFAULT_MODEL = "beam-corot"
 ENVELOPE = ("z_mean", "z_std", "z_dev_max", "u_max", "f_max")
 FORMAT = 2   # the model file's layout version (`save_model`)
+# The frame programs are compiled without XLA:CPU's YNNPACK fusions, as `tignn_jax.mr.real_time_xla_flags` sets for
+# a whole process: the corotational frame's gathers and reductions run several times faster as XLA's own loops, and
+# the other classes' frames take the same time (docs/research_log.md). A user's own choice of that option in
+# XLA_FLAGS is kept.
+_YNN = "xla_cpu_experimental_ynn_fusion_type"
+FRAME_COMPILER_OPTIONS = {} if _YNN in os.environ.get("XLA_FLAGS", "") else {_YNN: ""}
 
 
 def step(params: dict, graph: jraph.GraphsTuple, forces) -> jraph.GraphsTuple:
@@ -154,7 +161,8 @@ def contact_stepper(params, poses, radius: float, stiffness: float, capacity: in
     spec = contact(poses, surfaces, radius, stiffness, capacity)
     shapes = [_nodes(m) for m in models]
     arrays = tuple(m["arrays"] for m in models)
-    frame = jax.jit(lambda zs, fs: first.step_together(arrays, zs, fs, spec))
+    joint = lambda zs, fs: first.step_together(arrays, zs, fs, spec)  # noqa: E731
+    top, nested = jax.jit(joint, compiler_options=FRAME_COMPILER_OPTIONS), jax.jit(joint)
 
     def fn(zs, forces):
         if len(zs) != len(shapes) or len(forces) != len(shapes) or any(
@@ -162,7 +170,8 @@ def contact_stepper(params, poses, radius: float, stiffness: float, capacity: in
             raise ValueError(f"this stepper takes {len(shapes)} states [N_b, {STATE_DIM}] and forces [N_b, 3] with "
                              f"N_b = {shapes}, got {[tuple(z.shape) for z in zs]} and "
                              f"{[tuple(f.shape) for f in forces]}")
-        return frame(tuple(zs), tuple(forces))
+        traced = any(isinstance(x, jax.core.Tracer) for x in (*zs, *forces))   # inside a caller's trace
+        return (nested if traced else top)(tuple(zs), tuple(forces))
 
     return fn
 
@@ -325,8 +334,15 @@ def _nodes(params) -> int:
     return len(params["mesh"]["node_type"])
 
 
-@partial(jax.jit, static_argnums=(0, 1))
 def _advance(model, n: int, arrays: dict, z, forces):
+    """The frame map of the bodies stacked in z [k·n, 12] under forces [k·n, 3] (`_frame_map`), compiled with
+    ``FRAME_COMPILER_OPTIONS``; inside a caller's own trace (``jit``, ``scan``, ``grad``), where JAX takes compiler
+    options only at the top level, as part of the caller's program."""
+    traced = any(isinstance(x, jax.core.Tracer) for x in (z, forces, *jax.tree_util.tree_leaves(arrays)))
+    return (_advance_nested if traced else _advance_top)(model, n, arrays, z, forces)
+
+
+def _frame_map(model, n: int, arrays: dict, z, forces):
     """The frame map of the bodies stacked in z [k·n, 12] under forces [k·n, 3]: one body as it is, several one
     after another on a CPU (``lax.map``, the faster there) or side by side elsewhere (``vmap``)."""
     forces = forces.astype(z.dtype)
@@ -338,14 +354,28 @@ def _advance(model, n: int, arrays: dict, z, forces):
     return out.reshape(z.shape)
 
 
-@partial(jax.jit, static_argnums=(0, 1))
+_advance_top = jax.jit(_frame_map, static_argnums=(0, 1), compiler_options=FRAME_COMPILER_OPTIONS)
+_advance_nested = jax.jit(_frame_map, static_argnums=(0, 1))
+
+
 def _rollout(model, n: int, arrays: dict, z0, forces_seq):
+    """The states [T + 1, k·n, 12] of T frames from z0 under forces_seq [T, k·n, 3], one ``lax.scan`` of
+    `_frame_map` (compiled as `_advance` is)."""
+    traced = any(isinstance(x, jax.core.Tracer) for x in (z0, forces_seq, *jax.tree_util.tree_leaves(arrays)))
+    return (_rollout_nested if traced else _rollout_top)(model, n, arrays, z0, forces_seq)
+
+
+def _scan_frames(model, n: int, arrays: dict, z0, forces_seq):
     def body(z, f):
-        z = _advance(model, n, arrays, z, f)
+        z = _frame_map(model, n, arrays, z, f)
         return z, z
 
     _, zs = jax.lax.scan(body, z0, forces_seq)
     return jnp.concatenate([z0[None], zs])
+
+
+_rollout_top = jax.jit(_scan_frames, static_argnums=(0, 1), compiler_options=FRAME_COMPILER_OPTIONS)
+_rollout_nested = jax.jit(_scan_frames, static_argnums=(0, 1))
 
 
 def _check_graph(params, graph) -> None:

@@ -547,9 +547,9 @@ def kinematics(arrays: dict, u) -> _Kinematics:
     """Each element's rotation, volume change, ∂J/∂x and corotated displacement at the displacements u [N, 3]."""
     ue = _gather(arrays, u)
     b = arrays["b_t"].astype(u.dtype)                                  # [3, n_e, K]
-    H = _sum(lambda a: ue[:, None, a] * b[None, :, a], b.shape[1])     # [3, 3, K]
+    H = _keep(_sum(lambda a: ue[:, None, a] * b[None, :, a], b.shape[1]))     # [3, 3, K]
     F = H + jnp.eye(3, dtype=u.dtype)[:, :, None]
-    R = polar(F, POLAR_ITERATIONS)
+    R = _keep(polar(F, POLAR_ITERATIONS))
     tr = trace3(H)
     jm1 = tr + 0.5 * (tr * tr - _sum(lambda i: _sum(lambda j: H[i, j] * H[j, i], 3), 3)) + det3(H)
     cof = cofactor3(F)
@@ -561,22 +561,27 @@ def kinematics(arrays: dict, u) -> _Kinematics:
         empty = jnp.zeros((3, 3, 0), u.dtype)
         return _kept(_Kinematics(R, jm1, g, local, empty, empty))
     Fn = _nodal_gradient(arrays, u) + jnp.eye(3, dtype=u.dtype)[:, :, None]
-    Rn = polar(Fn, POLAR_ITERATIONS)
+    Rn = _keep(polar(Fn, POLAR_ITERATIONS))
     Hn = matmul3(transpose3(Rn), Fn) - jnp.eye(3, dtype=u.dtype)[:, :, None]
     return _kept(_Kinematics(R, jm1, g, local, Rn, Hn))
 
 
 def _kept(kin: _Kinematics) -> _Kinematics:
-    """The same kinematics, each tensor passed through a product with the identity (one batched XLA dot each).
+    """The same kinematics, each tensor computed once (`_keep`)."""
+    return kin._replace(R=_keep(kin.R), g=_keep(kin.g), local=_keep(kin.local.reshape(3, -1)).reshape(kin.local.shape),
+                        Rn=_keep(kin.Rn), Hn=_keep(kin.Hn))
 
-    XLA:CPU fuses an elementwise producer into every consumer, and the consumers here are gathers and products
-    that read each element's rotation many times: the polar iteration's last step would be recomputed in each of
-    them (the bunny's frame step took 1.6 times as long). A dot is never fused into its consumer, so each tensor is
-    computed once (``jax.lax.optimization_barrier`` does not survive XLA:CPU's passes)."""
-    def keep(x):
-        return jnp.einsum("ij,j...->i...", jnp.eye(3, dtype=x.dtype), x)
-    return kin._replace(R=keep(kin.R), g=keep(kin.g), local=keep(kin.local.reshape(3, -1)).reshape(kin.local.shape),
-                        Rn=keep(kin.Rn), Hn=keep(kin.Hn))
+
+def _keep(x):
+    """x [C, ...] passed through a product with the identity (one batched XLA dot): computed once.
+
+    XLA:CPU fuses an elementwise producer into every consumer, and the consumers here are gathers, products and
+    the polar iteration, which read each element's entries many times: the producer would be recomputed in each of
+    them. A dot is never fused into its consumer, so what goes through one is computed once: ∇u and the rotations
+    before the polar iteration and the corotated displacements read them, each tensor of the kinematics, and the
+    elements' stress at rest (docs/research_log.md). ``jax.lax.optimization_barrier`` does not survive XLA:CPU's
+    passes."""
+    return jnp.einsum("ij,j...->i...", jnp.eye(x.shape[0], dtype=x.dtype), x)
 
 
 def _nodal(arrays) -> bool:
@@ -716,7 +721,7 @@ def stress(arrays: dict, kin: _Kinematics, volume_change, n: int):
     averaged to the nodes."""
     dt = kin.local.dtype
     se = arrays["se_t"].astype(dt)
-    s = _sum(lambda c: se[:, c] * kin.local[c][None], se.shape[1])                    # [6, K]
+    s = _keep(_sum(lambda c: se[:, c] * kin.local[c][None], se.shape[1]))             # [6, K]
     S = jnp.stack([jnp.stack([s[0], s[3], s[4]]), jnp.stack([s[3], s[1], s[5]]), jnp.stack([s[4], s[5], s[2]])])
     S = matmul3(matmul3(kin.R, S), transpose3(kin.R))
     p = arrays["kappa"].reshape(-1)[0].astype(dt) * volume_change
