@@ -54,6 +54,25 @@ def test_step_rollout_and_stepper_give_the_same_states(beam):
     assert float(np.abs(np.asarray(z)[:, :3] - params["mesh"]["q0"]).max()) > 0.05   # it moved
 
 
+def test_stepper_inside_a_callers_jit_and_scan_steps_as_at_the_top_level(beam):
+    # the frame is compiled with its own compiler options only where it is called at the top level; inside a
+    # user's jit or scan (where JAX refuses them) it becomes part of the user's program and steps the same
+    import jax
+
+    params, graph = beam
+    f = jnp.asarray(tip_forces(params))
+    fn = T.stepper(params)
+    top = fn(fn(graph.nodes["z"], f), f)
+    twice = jax.jit(lambda z: fn(fn(z, f), f))(graph.nodes["z"])
+    scanned = jax.lax.scan(lambda z, _: (fn(z, f), None), graph.nodes["z"], None, length=2)[0]
+    # float32 round-off of another program's summation order: 1e-3 of each column's largest value (the stress
+    # readout's sums are the most sensitive, a few 1e-4; positions a few 1e-7)
+    scale = np.abs(np.asarray(top)).max(axis=0)
+    for z in (twice, scanned):
+        assert np.all(np.abs(np.asarray(z) - np.asarray(top)).max(axis=0) <= 1e-3 * scale)
+    assert T.api.FRAME_COMPILER_OPTIONS in ({}, {"xla_cpu_experimental_ynn_fusion_type": ""})
+
+
 def test_several_bodies_step_each_as_alone(beam):
     params, graph = beam
     f = tip_forces(params)
