@@ -10,7 +10,6 @@ from __future__ import annotations
 import json
 import math
 import os
-from functools import partial
 from pathlib import Path
 
 import jax
@@ -161,8 +160,7 @@ def contact_stepper(params, poses, radius: float, stiffness: float, capacity: in
     spec = contact(poses, surfaces, radius, stiffness, capacity)
     shapes = [_nodes(m) for m in models]
     arrays = tuple(m["arrays"] for m in models)
-    joint = lambda zs, fs: first.step_together(arrays, zs, fs, spec)  # noqa: E731
-    top, nested = jax.jit(joint, compiler_options=FRAME_COMPILER_OPTIONS), jax.jit(joint)
+    frame = _frame_program(lambda zs, fs: first.step_together(arrays, zs, fs, spec))
 
     def fn(zs, forces):
         if len(zs) != len(shapes) or len(forces) != len(shapes) or any(
@@ -170,8 +168,7 @@ def contact_stepper(params, poses, radius: float, stiffness: float, capacity: in
             raise ValueError(f"this stepper takes {len(shapes)} states [N_b, {STATE_DIM}] and forces [N_b, 3] with "
                              f"N_b = {shapes}, got {[tuple(z.shape) for z in zs]} and "
                              f"{[tuple(f.shape) for f in forces]}")
-        traced = any(isinstance(x, jax.core.Tracer) for x in (*zs, *forces))   # inside a caller's trace
-        return (nested if traced else top)(tuple(zs), tuple(forces))
+        return frame(tuple(zs), tuple(forces))
 
     return fn
 
@@ -334,12 +331,18 @@ def _nodes(params) -> int:
     return len(params["mesh"]["node_type"])
 
 
-def _advance(model, n: int, arrays: dict, z, forces):
-    """The frame map of the bodies stacked in z [k·n, 12] under forces [k·n, 3] (`_frame_map`), compiled with
-    ``FRAME_COMPILER_OPTIONS``; inside a caller's own trace (``jit``, ``scan``, ``grad``), where JAX takes compiler
-    options only at the top level, as part of the caller's program."""
-    traced = any(isinstance(x, jax.core.Tracer) for x in (z, forces, *jax.tree_util.tree_leaves(arrays)))
-    return (_advance_nested if traced else _advance_top)(model, n, arrays, z, forces)
+def _frame_program(fn, static_argnums=()):
+    """``fn`` jitted with ``FRAME_COMPILER_OPTIONS`` where it is called at the top level; inside a caller's own
+    trace (``jit``, ``scan``, ``grad``: an argument is a tracer), where JAX takes compiler options only at the top
+    level, jitted plainly, as part of the caller's program."""
+    top = jax.jit(fn, static_argnums=static_argnums, compiler_options=FRAME_COMPILER_OPTIONS)
+    nested = jax.jit(fn, static_argnums=static_argnums)
+
+    def call(*args):
+        traced = any(isinstance(x, jax.core.Tracer) for x in jax.tree_util.tree_leaves(args))
+        return (nested if traced else top)(*args)
+
+    return call
 
 
 def _frame_map(model, n: int, arrays: dict, z, forces):
@@ -354,18 +357,9 @@ def _frame_map(model, n: int, arrays: dict, z, forces):
     return out.reshape(z.shape)
 
 
-_advance_top = jax.jit(_frame_map, static_argnums=(0, 1), compiler_options=FRAME_COMPILER_OPTIONS)
-_advance_nested = jax.jit(_frame_map, static_argnums=(0, 1))
-
-
-def _rollout(model, n: int, arrays: dict, z0, forces_seq):
-    """The states [T + 1, k·n, 12] of T frames from z0 under forces_seq [T, k·n, 3], one ``lax.scan`` of
-    `_frame_map` (compiled as `_advance` is)."""
-    traced = any(isinstance(x, jax.core.Tracer) for x in (z0, forces_seq, *jax.tree_util.tree_leaves(arrays)))
-    return (_rollout_nested if traced else _rollout_top)(model, n, arrays, z0, forces_seq)
-
-
 def _scan_frames(model, n: int, arrays: dict, z0, forces_seq):
+    """The states [T + 1, k·n, 12] of T frames from z0 under forces_seq [T, k·n, 3], one ``lax.scan`` of
+    `_frame_map`."""
     def body(z, f):
         z = _frame_map(model, n, arrays, z, f)
         return z, z
@@ -374,8 +368,8 @@ def _scan_frames(model, n: int, arrays: dict, z0, forces_seq):
     return jnp.concatenate([z0[None], zs])
 
 
-_rollout_top = jax.jit(_scan_frames, static_argnums=(0, 1), compiler_options=FRAME_COMPILER_OPTIONS)
-_rollout_nested = jax.jit(_scan_frames, static_argnums=(0, 1))
+_advance = _frame_program(_frame_map, static_argnums=(0, 1))
+_rollout = _frame_program(_scan_frames, static_argnums=(0, 1))
 
 
 def _check_graph(params, graph) -> None:

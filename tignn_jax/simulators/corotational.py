@@ -567,9 +567,9 @@ def kinematics(arrays: dict, u) -> _Kinematics:
 
 
 def _kept(kin: _Kinematics) -> _Kinematics:
-    """The same kinematics, each tensor computed once (`_keep`)."""
-    return kin._replace(R=_keep(kin.R), g=_keep(kin.g), local=_keep(kin.local.reshape(3, -1)).reshape(kin.local.shape),
-                        Rn=_keep(kin.Rn), Hn=_keep(kin.Hn))
+    """The same kinematics, each tensor computed once (`_keep`; the rotations are kept where they are made)."""
+    return kin._replace(g=_keep(kin.g), local=_keep(kin.local.reshape(3, -1)).reshape(kin.local.shape),
+                        Hn=_keep(kin.Hn))
 
 
 def _keep(x):
