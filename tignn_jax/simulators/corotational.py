@@ -296,8 +296,8 @@ def node_stars(cells, wnode, b, volume, n: int) -> dict:
     """The nodes' averaged displacement gradient as a stencil over each node's star (the nodes it shares an
     element with, itself included): F̄_i − I = Σ_{e∋i} w_ei Σ_a u_{e,a} ⊗ b_ea = Σ_s u_{star[i, s]} ⊗ c_is, with
     c_ij = Σ_{e∋i,j} w_ei b_e(j) (tets; w = ``wnode``). The star relation is symmetric, so the transposed product
-    Σ_i P_i c_ij (the nodes' forces of nodal stresses P_i) reads the same lists with ``star_ct``: ct_js = c_{star[j, s]
-    , j}. Lists are padded to the longest with the node itself and zero coefficients.
+    Σ_i s_i c_ij (`constraints_transpose`: Gᵀ s for nodal constraint values s_i) reads the same lists with
+    ``star_ct``: ct_js = c_{star[j, s], j}. Lists are padded to the longest with the node itself and zero coefficients.
 
     Returns:
       {"star": [N, S] int32, "star_c" and "star_ct": [3, N, S] float32, "vnode": V_i = Σ_{e∋i} V_e / 4 [N]
@@ -605,15 +605,6 @@ def _nodal_gradient(arrays, u):
     return jnp.stack([jnp.stack([jnp.sum(us[i] * c[j], axis=-1) for j in range(3)]) for i in range(3)])
 
 
-def _nodal_force(arrays, P):
-    """The nodes' forces [N, 3] of nodal stresses P [3, 3, N], f_j = Σ_i P_i c_ij (the transpose of
-    `_nodal_gradient`)."""
-    n, stars = arrays["star"].shape
-    Ps = P.reshape(9, -1)[:, arrays["star"]].reshape(3, 3, n, stars)
-    ct = arrays["star_ct"].astype(P.dtype)
-    return jnp.stack([_sum(lambda j: jnp.sum(Ps[i, j] * ct[j], axis=-1), 3) for i in range(3)], axis=1)
-
-
 def _dev_sym(H):
     """dev sym H for H [3, 3, M]."""
     S = 0.5 * (H + transpose3(H))
@@ -628,13 +619,19 @@ def _gather_tensor(arrays, P):
 
 
 def _nodal_deviatoric_force(arrays, kin, dF_nodes=None):
-    """Nodal forces [N, 3] of the nodes' deviatoric energy: with P_i = 2 μ̄ V_i R̄_i dev sym(H), H = R̄_iᵀ F̄_i − I
-    (or R̄_iᵀ dF̄_i for a tangent product with ``dF_nodes``), f = Σ_i P_i c_ij (`_nodal_force`)."""
+    """Element nodal forces [3, n_e, K] of the nodes' deviatoric energy, to be assembled with the elements' own:
+    with P_i = 2 μ̄ V_i R̄_i dev sym(H), H = R̄_iᵀ F̄_i − I (or R̄_iᵀ dF̄_i for a tangent product with ``dF_nodes``),
+    the nodes' forces Σ_i P_i c_ij (`node_stars`) are, c being Σ_{e∋i,j} w_ei b_e(j), Σ_{e∋j} P̄_e b_e(j) with
+    P̄_e = Σ_{i∈e} w_ei P_i: a gather of P over the elements' n_e nodes rather than over each node's star."""
     dt = kin.local.dtype
     mu = arrays["mu_nodes"].reshape(-1)[0].astype(dt)
     H = kin.Hn if dF_nodes is None else matmul3(transpose3(kin.Rn), dF_nodes)
     P = _dot3(kin.Rn, _dev_sym(H) * (2.0 * mu * arrays["vnode"].astype(dt))[None, None])
-    return _nodal_force(arrays, P)
+    Pe = _gather_tensor(arrays, P)                                            # [3, 3, n_e, K]
+    w = arrays["wnode_t"].astype(dt)
+    Pbar = _sum(lambda a: Pe[:, :, a] * w[a][None, None], w.shape[0])          # [3, 3, K]
+    b = arrays["b_t"].astype(dt)
+    return jnp.stack([_sum(lambda j: Pbar[i, j][None] * b[j], 3) for i in range(3)])
 
 
 def _dot3(A, B):
@@ -684,7 +681,7 @@ def internal_force(arrays: dict, kin: _Kinematics, n: int):
     fl = _apply_ke(arrays, kin.local).reshape(3, kin.g.shape[1], -1)
     fe = _rotate(kin.R, fl) + kin.g * _volumetric(arrays, kin.jm1, n)[None, None]
     if _nodal(arrays):
-        return _assemble(arrays, fe, n) + _nodal_deviatoric_force(arrays, kin)
+        fe = fe + _nodal_deviatoric_force(arrays, kin)
     return _assemble(arrays, fe, n)
 
 
@@ -697,7 +694,7 @@ def tangent(arrays: dict, kin: _Kinematics, w):
     gw = _volumetric(arrays, jnp.sum(kin.g * we, axis=(0, 1)), n)
     fe = _rotate(kin.R, fl) + kin.g * gw[None, None]
     if _nodal(arrays):
-        return _assemble(arrays, fe, n) + _nodal_deviatoric_force(arrays, kin, _nodal_gradient(arrays, w))
+        fe = fe + _nodal_deviatoric_force(arrays, kin, _nodal_gradient(arrays, w))
     return _assemble(arrays, fe, n)
 
 
