@@ -234,6 +234,54 @@ def tet_bar(divisions=(4, 1, 1)):
     return problem, material, {"q0": q0, "senders": edges[0], "receivers": edges[1], "node_type": node_type}
 
 
+def test_a_tet_models_energy_and_forces_are_the_fems_at_large_strain():
+    """On tets the model's potential is the FEM's nodal tet4 energy (Mooney–Rivlin's isochoric energy on the
+    elements and the nodes' averaged F, the nodes' volume change), and its internal force the FEM's, at a bend,
+    twist and stretch of the bar with strains of ~20 %."""
+    problem, material, mesh_dict = tet_bar()
+    q0 = mesh_dict["q0"]
+    corot = tignn_jax.make_params(C.CorotationalGeneric(), C.from_fem(problem, material), mesh_dict, ENVELOPE, {})
+    s = q0[:, 0] / 8.0
+    u = np.stack([0.15 * q0[:, 0] * s - 0.1 * q0[:, 1] * s, 1.5 * s ** 2 + 0.2 * (q0[:, 2] - 1.0) * s,
+                  -0.2 * (q0[:, 1] - 1.0) * s], axis=1)
+    u += 0.02 * np.random.default_rng(0).normal(size=u.shape)
+    u[q0[:, 0] == 0.0] = 0.0
+    kin = C.kinematics(corot["arrays"], jnp.asarray(u, jnp.float32))
+    e_fem = float(sv.internal_energy(problem, material, jnp.asarray(q0 + u, jnp.float32)))
+    assert abs(float(C.potential(corot["arrays"], kin)) - e_fem) < 2e-4 * e_fem
+    f_fem = np.asarray(sv.internal_force(problem, material, jnp.asarray(q0 + u, jnp.float32)))
+    f = np.asarray(C.internal_force(corot["arrays"], kin, len(q0)))
+    assert np.abs(f - f_fem).max() < 2e-4 * np.abs(f_fem).max()
+
+
+def test_the_isochoric_stress_is_the_gradient_of_the_energy_and_float32_keeps_small_strains():
+    """P = ∂Ψ/∂F of `isochoric_energy` against central differences (float64), both against `fem.material` at
+    finite strain, and in float32 the energy of a 1e-4 strain to 1e-6 (formed as Ī1 − 3 it would be lost)."""
+    from fem import material as M
+
+    c10, c01 = 0.2, 0.06
+    rng = np.random.default_rng(1)
+    with jax.enable_x64(True):
+        H = jnp.asarray(0.2 * rng.normal(size=(3, 3, 8)))
+        P = np.asarray(C._isochoric_stress(c10, c01, H))
+        eps = 1e-6
+        for i in range(3):
+            for j in range(3):
+                d = jnp.zeros((3, 3, 1)).at[i, j].set(eps)
+                fd = (C.isochoric_energy(c10, c01, H + d) - C.isochoric_energy(c10, c01, H - d)) / (2 * eps)
+                np.testing.assert_allclose(P[i, j], np.asarray(fd), rtol=1e-6, atol=1e-9)
+        m = M.mooney_rivlin(c10, c01, 1e-3)
+        F = H + jnp.eye(3)[:, :, None]
+        np.testing.assert_allclose(np.asarray(C.isochoric_energy(c10, c01, H)), np.asarray(M.isochoric_energy(m, F)),
+                                   rtol=1e-9)
+        S, _, _ = M.isochoric_pk2(m, F)
+        np.testing.assert_allclose(P, np.asarray(M.matmul3(F, S)), rtol=1e-7, atol=1e-9)
+        small = 1e-4 * rng.normal(size=(3, 3, 8))
+        exact = np.asarray(C.isochoric_energy(c10, c01, jnp.asarray(small)))
+    got = np.asarray(C.isochoric_energy(np.float32(c10), np.float32(c01), jnp.asarray(small, jnp.float32)))
+    np.testing.assert_allclose(got, exact, rtol=1e-5)
+
+
 @pytest.mark.parametrize("make", [bar, tet_bar], ids=["hex8", "tet4"])
 def test_the_schur_complement_inverts_the_volumetric_stiffness_and_conditions_the_solve(make):
     # the constraints carry the rest operator's whole volumetric stiffness, A₀ − A₀(κ = 0) = κ Gᵀ W G, and

@@ -5,35 +5,35 @@ uniform shape-function gradients b_e [n_e, 3] and the stiffness K_e of its devia
 state z = (q, v, σ) with u = q − X::
 
     F_e = I + Σ_a u_a ⊗ b_a,   F_e = R_e U_e (polar),   J_e = det F_e,   ũ_e = R_eᵀ x̄_e − X_e
-    E(z) = ½ vᵀ M v + Σ_e ½ ũ_eᵀ K_e ũ_e + E_vol,   dissipation α vᵀ M v ≥ 0,
+    E(z) = ½ vᵀ M v + E_dev + E_vol,   dissipation α vᵀ M v ≥ 0,
+    E_dev = Σ_e ½ ũ_eᵀ K_e ũ_e  (hex8),   E_dev = β Σ_e V_e Ψ(F_e) + (1 − β) Σ_i V_i Ψ(F̄_i)  (tet4),
     E_vol = Σ_e ½ κ V_e (J_e − 1)²  (hex8),     E_vol = Σ_i ½ κ V_i (J̄_i − 1)²  (tet4),
 
-where for tets the volume change is averaged to the nodes, J̄_i − 1 = Σ_{e∋i} (V_e / 4V_i)(J_e − 1) with
-V_i = Σ_{e∋i} V_e / 4: a linear tet holds one volume constraint per element, more than a nearly incompressible
-mesh has degrees of freedom to meet (it locks), and one per node is what the FEM's nodal tet4 keeps
-(`fem.elements`). As that element does, a tet mesh's deviatoric energy is shared: K_e carries the weight β of the
-element-wise part, and each node adds the rest of it on its averaged deformation gradient F̄_i = Σ_{e∋i}
-(V_e / 4V_i) F_e, turned back by its polar factor R̄_i,
-
-    E_dev,nodes = Σ_i μ̄ V_i |dev sym(R̄_iᵀ F̄_i − I)|²,   μ̄ = (1 − β) μ   (zero for hexes),
-
 with x̄_e the element's current nodal coordinates centred on the element, M = diag(m_i) lumped masses, κ the bulk
-modulus and α the mass damping. The deviatoric energy is the linear one in the element's rotated frame (the
-corotational formulation: a rigidly turned body stores no energy and feels no force, however far it turns); the
-volumetric energy is Abaqus's Mooney–Rivlin one, (J − 1)²/D1 with κ = 2/D1, exact at any strain, so a nearly
-incompressible body keeps its volume. At a fixed temperature GENERIC's L∇E + M∇S reduces to
-M v̇ = f − ∂E/∂q − α M v (L the canonical coupling of q and v, M ≥ 0 the mass damping).
+modulus and α the mass damping. A hex's deviatoric energy is the linear one in the element's rotated frame (the
+corotational formulation: a rigidly turned body stores no energy and feels no force, however far it turns; K_e
+holds the FEM's hourglass control). A tet mesh's energy is the FEM's nodal tet4 energy itself (`fem.elements`):
+Ψ = C10 (Ī1 − 3) + C01 (Ī2 − 3) Mooney–Rivlin's isochoric energy (`isochoric_energy`), shared between the elements
+(weight β) and the nodes' averaged deformation gradients F̄_i = Σ_{e∋i} (V_e / 4V_i) F_e, and the volume change
+averaged to the nodes, J̄_i − 1 = Σ_{e∋i} (V_e / 4V_i)(J_e − 1) with V_i = Σ_{e∋i} V_e / 4 (a linear tet holds one
+volume constraint per element, more than a nearly incompressible mesh has degrees of freedom to meet: it locks).
+The volumetric energy is Abaqus's Mooney–Rivlin one, (J − 1)²/D1 with κ = 2/D1, exact at any strain, so a nearly
+incompressible body keeps its volume; on tets the whole energy is, so a deep press stiffens as the material does.
+At a fixed temperature GENERIC's L∇E + M∇S reduces to M v̇ = f − ∂E/∂q − α M v (L the canonical coupling of q and
+v, M ≥ 0 the mass damping).
 
 One frame Δt = h is one linearised backward-Euler step for v' (the element rotations held at the frame's start,
 the volumetric term by its Gauss–Newton tangent, κ V g gᵀ with g = ∂J/∂x = cof(F) b per element, or per node
-κ V_i ḡ_i ḡ_iᵀ with ḡ_i the average of g_e like J̄_i)::
+κ V_i ḡ_i ḡ_iᵀ with ḡ_i the average of g_e like J̄_i; on tets K_R is the deviatoric stiffness at rest turned with
+the body, β K_e by R_e and the nodes' 2 (1 − β) μ V_i dev sym by R̄_i, μ = 2 (C10 + C01): the step is then a
+quasi-Newton step whose forces f_int are exact, so a held load settles where the FEM's does)::
 
     [(1 + αh)/h² M + K_R + K_J] v' = M v / h² + (f − f_int(q)) / h,   q' = q + h v',
 
 solved by at least ``cg_iterations`` conjugate-gradient iterations from v' = v (up to ``cg_max_iterations`` while
 the residual is large: `CorotationalConfig`), preconditioned with an approximate inverse of the rest operator
 turned with the body, R P₀ Rᵀ (R each node's rotation: for hexes the polar factor of the mean of its elements' R_e,
-for tets R̄_i, which the nodes' deviatoric energy has already computed). With
+for tets R̄_i, the polar factor of F̄_i, which the tangent's nodal part reads too). With
 A₀ = (1 + αh)/h² M + K₀ the FEM's rest operator (sparse) and Φ [3N, m] its m lowest eigenvectors (A₀ Φ = Φ Λ,
 ΦᵀΦ = I, computed once when the model is prepared)::
 
@@ -90,7 +90,7 @@ from fem.solver import _sum_over as _sum
 from tignn_jax.simulators import contact as C
 from tignn_jax.simulators import linear as LG
 
-STORED = ("cells", "ke", "se", "b", "volume", "kappa", "mass", "alpha", "dt", "mu_nodes")
+STORED = ("cells", "ke", "se", "b", "volume", "kappa", "mass", "alpha", "dt", "mu_nodes", "mooney_rivlin")
 BACKTRACK = (1.0, 0.5, 0.25, 0.125, 0.0625, 0.03125, 0.0)   # the step lengths of the frame's line search
 SPLIT = 4   # steps a frame is split into where one step would have to be shortened (`frame`)
 ROUNDOFF = 2.0 ** -17   # relative round-off allowed in the energy budget E(z') ≤ E(z) + W (about 16 float32 ulps)
@@ -131,9 +131,10 @@ class CorotationalGeneric:
     Stored arrays (``stored``), n_e = 8 (hex8) or 4 (tet4): ``cells`` [K, n_e] int32; ``ke`` [K, 3n_e, 3n_e]
     (deviatoric element stiffness at rest, force per length, rows and columns 3a + i for node a, component i);
     ``se`` [K, 6, 3n_e] (deviatoric element stress per displacement at rest); ``b`` [K, n_e, 3] (uniform
-    shape-function gradients, 1/length); ``volume`` [K]; ``mu_nodes`` [1] (μ̄, the nodes' share of the shear
-    modulus: 0 for hexes; a model file without it has none);
-    ``kappa`` [1] (bulk modulus, stress); ``mass`` [N]; ``alpha`` [1] (1/time); ``dt`` [1] (the frame step).
+    shape-function gradients, 1/length); ``volume`` [K]; ``mu_nodes`` [1] (μ̄ = (1 − β) μ, the nodes' share of
+    the shear modulus: 0 for hexes; a model file without it has none); ``mooney_rivlin`` [2] (C10, C01, stress:
+    the tets' isochoric energy; unused by hexes); ``kappa`` [1] (bulk modulus, stress); ``mass`` [N]; ``alpha``
+    [1] (1/time); ``dt`` [1] (the frame step). On tets ``se`` is unused (the stress is Mooney–Rivlin's).
     """
     config: CorotationalConfig = CorotationalConfig()
     name: ClassVar[str] = "corotational"
@@ -163,7 +164,7 @@ class CorotationalGeneric:
             raise ValueError(f"modes must be a positive integer, got {c.modes!r}")
         if not (isinstance(c.schur_limit, (int, np.integer)) and c.schur_limit >= 0):
             raise ValueError(f"schur_limit must be a non-negative integer, got {c.schur_limit!r}")
-        stored = {"mu_nodes": np.zeros(1, np.float32), **stored}
+        stored = {"mu_nodes": np.zeros(1, np.float32), "mooney_rivlin": np.zeros(2, np.float32), **stored}
         missing = [k for k in STORED if k not in stored]
         if missing:
             raise ValueError(f"a corotational model needs the arrays {list(STORED)}, missing {missing}")
@@ -176,6 +177,13 @@ class CorotationalGeneric:
             raise ValueError(f"the operators are for {out['mass'].shape[0]} nodes, the mesh has {n}")
         if out["cells"].max() >= n or out["ke"].shape != (k, 3 * per, 3 * per) or out["b"].shape != (k, per, 3):
             raise ValueError(f"cells, ke and b do not describe {k} elements of {per} nodes on {n} nodes")
+        mr = np.asarray(out["mooney_rivlin"], np.float64).reshape(-1)
+        if per == 4 and not (mr.shape == (2,) and mr.sum() > 0.0 and 0.0 <= out["mu_nodes"].reshape(-1)[0]
+                             <= 2.0 * mr.sum()):
+            raise ValueError(f"a tet4 model needs mooney_rivlin = (C10, C01) with C10 + C01 > 0 and mu_nodes at most "
+                             f"2 (C10 + C01), got mooney_rivlin {mr.tolist()} and mu_nodes "
+                             f"{out['mu_nodes'].reshape(-1).tolist()} (a model file made before tets took Mooney–"
+                             f"Rivlin's energy: make it again with from_fem)")
         xe = q0[out["cells"]]
         out["x0e"] = (xe - xe.mean(axis=1, keepdims=True)).astype(np.float32)
         share = np.repeat(out["volume"], per)
@@ -188,7 +196,7 @@ class CorotationalGeneric:
         if (n if per == 4 else k) <= c.schur_limit:
             out.update(schur_preconditioner(out, node_type))
         out["free"] = (node_type == 0)[:, None].astype(np.float32)
-        for key in ("ke", "se", "b", "volume", "kappa", "mass", "alpha", "dt", "mu_nodes"):
+        for key in ("ke", "se", "b", "volume", "kappa", "mass", "alpha", "dt", "mu_nodes", "mooney_rivlin"):
             out[key] = out[key].astype(np.float32)
         return jax.tree_util.tree_map(jnp.asarray, out)
 
@@ -216,7 +224,7 @@ def from_fem(problem, material, frame_dt: float | None = None) -> dict:
     """Stored arrays (`CorotationalGeneric.stored`) of an elastic hex8 or tet4 FEM scene: each element's deviatoric
     stiffness and stress at rest (the FEM's own, hourglass control included, by forward differentiation of its
     internal force and stress, all elements at once), shape-function gradients and volumes, the bulk modulus
-    2/D1, the lumped masses and mass damping of ``problem``.
+    2/D1, the Mooney–Rivlin constants (C10, C01), the lumped masses and mass damping of ``problem``.
 
     Args:
       problem: a `fem.solver.Problem` (hex8 or tet4; its clamps, masses and damping are the model's). A tet4
@@ -269,7 +277,8 @@ def from_fem(problem, material, frame_dt: float | None = None) -> dict:
             "se": (beta * se).astype(np.float32), "b": geo.b.astype(np.float32),
             "volume": geo.volume.astype(np.float32), "kappa": np.array([kappa], np.float32),
             "mass": mass.astype(np.float32), "alpha": np.array([float(problem.arrays.damping_alpha)], np.float32),
-            "dt": np.array([h], np.float32), "mu_nodes": np.array([mu_nodes], np.float32)}
+            "dt": np.array([h], np.float32), "mu_nodes": np.array([mu_nodes], np.float32),
+            "mooney_rivlin": np.array([float(material.c10), float(material.c01)], np.float32)}
 
 
 def element_last(stored: dict) -> dict:
@@ -512,9 +521,10 @@ class _Kinematics(NamedTuple):
     R: jax.Array      # [3, 3, K]
     jm1: jax.Array    # [K]: J − 1 from ∇u's invariants (1 + tiny − 1 in float32 would lose it)
     g: jax.Array      # [3, n_e, K]: ∂J/∂x_a = cof(F) b_a
-    local: jax.Array  # [3 n_e, K]: ũ = Rᵀ x̄ − X, row n_e i + a for component i of node a
+    local: jax.Array  # [3 n_e, K] (hexes; [3 n_e, 0] for tets): ũ = Rᵀ x̄ − X, row n_e i + a for component i of a
+    H: jax.Array      # [3, 3, K]: F − I, the elements' displacement gradient
     Rn: jax.Array     # [3, 3, N] (tets; [3, 3, 0] for hexes): the polar factor R̄_i of the nodes' averaged F̄_i
-    Hn: jax.Array     # [3, 3, N] (tets): R̄_iᵀ F̄_i − I, the nodes' corotated displacement gradient
+    Hn: jax.Array     # [3, 3, N] (tets): F̄_i − I, the nodes' averaged displacement gradient
 
 
 def _gather(arrays, u):
@@ -544,32 +554,101 @@ def _apply_ke(arrays, x):
 
 
 def kinematics(arrays: dict, u) -> _Kinematics:
-    """Each element's rotation, volume change, ∂J/∂x and corotated displacement at the displacements u [N, 3]."""
+    """Each element's rotation, volume change, ∂J/∂x and corotated displacement (hexes) or the nodes' averaged
+    displacement gradient and its rotation (tets) at the displacements u [N, 3]."""
     ue = _gather(arrays, u)
     b = arrays["b_t"].astype(u.dtype)                                  # [3, n_e, K]
     H = _keep(_sum(lambda a: ue[:, None, a] * b[None, :, a], b.shape[1]))     # [3, 3, K]
-    F = H + jnp.eye(3, dtype=u.dtype)[:, :, None]
-    R = _keep(polar(F, POLAR_ITERATIONS))
-    tr = trace3(H)
-    jm1 = tr + 0.5 * (tr * tr - _sum(lambda i: _sum(lambda j: H[i, j] * H[j, i], 3), 3)) + det3(H)
-    cof = cofactor3(F)
+    eye = jnp.eye(3, dtype=u.dtype)[:, :, None]
+    R = _keep(polar(H + eye, POLAR_ITERATIONS))
+    jm1 = _volume_change(H)
+    cof = cofactor3(H + eye)
     g = jnp.stack([_sum(lambda j: cof[i, j][None] * b[j], 3) for i in range(3)])
-    x0e = arrays["x0e_t"].astype(u.dtype)
-    xe = x0e + ue - ue.mean(axis=1, keepdims=True)
-    local = (_rotate(R, xe, transpose=True) - x0e).reshape(3 * b.shape[1], -1)
     if not _nodal(arrays):
+        x0e = arrays["x0e_t"].astype(u.dtype)
+        xe = x0e + ue - ue.mean(axis=1, keepdims=True)
+        local = (_rotate(R, xe, transpose=True) - x0e).reshape(3 * b.shape[1], -1)
         empty = jnp.zeros((3, 3, 0), u.dtype)
-        return _kept(_Kinematics(R, jm1, g, local, empty, empty))
-    Fn = _nodal_gradient(arrays, u) + jnp.eye(3, dtype=u.dtype)[:, :, None]
-    Rn = _keep(polar(Fn, POLAR_ITERATIONS))
-    Hn = matmul3(transpose3(Rn), Fn) - jnp.eye(3, dtype=u.dtype)[:, :, None]
-    return _kept(_Kinematics(R, jm1, g, local, Rn, Hn))
+        return _kept(_Kinematics(R, jm1, g, local, H, empty, empty))
+    Hn = _keep(_nodal_gradient(arrays, u))
+    Rn = _keep(polar(Hn + eye, POLAR_ITERATIONS))
+    return _kept(_Kinematics(R, jm1, g, jnp.zeros((3 * b.shape[1], 0), u.dtype), H, Rn, Hn))
+
+
+def _volume_change(H):
+    """J − 1 = det(I + H) − 1 [M] from the invariants of H [3, 3, M], without forming 1 + tiny − 1."""
+    tr = trace3(H)
+    return tr + 0.5 * (tr * tr - _sum(lambda i: _sum(lambda j: H[i, j] * H[j, i], 3), 3)) + det3(H)
+
+
+def isochoric_energy(c10, c01, H):
+    """Mooney–Rivlin's isochoric energy density C10 (Ī1 − 3) + C01 (Ī2 − 3) [M] at F = I + H, H [3, 3, M].
+
+    With J = det F, C = FᵀF, Ī1 = J^(−2/3) tr C and Ī2 = J^(−4/3) ½ (tr²C − tr C²) (`fem.material.isochoric_energy`),
+    written so that float32 keeps its small-strain value: Ī1 − 3 and Ī2 − 3 are of second order in H, and formed
+    as 1 − 3 + O(H) they would lose it. With E = C − I = H + Hᵀ + HᵀH, t = tr E, J − 1 = x (`_volume_change`) and
+    m = J^(2/3) − 1,
+
+        a₁ = J^(2/3) (Ī1 − 3) = t − 3m = (tr H² − tr²H − 2 det H) + |H|² + (2x − 3m),
+        a₂ = J^(4/3) (Ī2 − 3) = 2a₁ + ½ (t² − E : E) − 3m²,
+
+    the first bracket exact (it is 2 tr H − 2x), and 2x − 3m = ⅓x² − (4/27)x³ + (7/81)x⁴ − … by its series where
+    |x| < 0.05. J is floored at 0.1 (an element turned inside out would have none)."""
+    return _isochoric(c10, c01, H)[0]
+
+
+def _isochoric(c10, c01, H, stress: bool = False):
+    """(`isochoric_energy` [M], and with ``stress`` its first Piola–Kirchhoff stress P = ∂Ψ/∂F [3, 3, M]), from the
+    derivatives of the terms of a₁ and a₂: ∂t = 2F, ∂(E : E) = 4FE, ∂x = cof F, ∂(det H) = cof H, ∂m = m' cof F
+    with m' = ⅔ (1 + x)^(−1/3), and d(2x − 3m)/dx = 2 − 3m' by its series where |x| < 0.05 (each of first order
+    in H where P is, so that float32 keeps it too)."""
+    tr = trace3(H)
+    trhh = _sum(lambda i: _sum(lambda j: H[i, j] * H[j, i], 3), 3)
+    frob = _sum(lambda i: _sum(lambda j: H[i, j] * H[i, j], 3), 3)
+    x = jnp.maximum(_volume_change(H), -0.9)
+    small = jnp.abs(x) < 0.05
+    xs = jnp.where(small, x, 0.0)
+    series = xs * xs * (1.0 / 3.0 + xs * (-4.0 / 27.0 + xs * (7.0 / 81.0 + xs * (-14.0 / 243.0 + xs * 91.0 / 2187.0))))
+    log_j = jnp.log1p(x)
+    m = jnp.expm1((2.0 / 3.0) * log_j)
+    a1 = (trhh - tr * tr - 2.0 * det3(H)) + frob + jnp.where(small, series, 2.0 * x - 3.0 * m)
+    E = H + transpose3(H) + matmul3(transpose3(H), H)
+    t = trace3(E)
+    a2 = 2.0 * a1 + 0.5 * (t * t - _sum(lambda i: _sum(lambda j: E[i, j] * E[i, j], 3), 3)) - 3.0 * m * m
+    j23 = 1.0 + m
+    psi = c10 * a1 / j23 + c01 * a2 / (j23 * j23)
+    if not stress:
+        return psi, None
+    eye = jnp.eye(3, dtype=H.dtype)[:, :, None]
+    F = H + eye
+    dseries = xs * (2.0 / 3.0 + xs * (-4.0 / 9.0 + xs * (28.0 / 81.0 + xs * (-70.0 / 243.0 + xs * 182.0 / 729.0))))
+    dm = (2.0 / 3.0) * jnp.exp(-log_j / 3.0)
+    dg = jnp.where(small, dseries, 2.0 - 3.0 * dm)
+    # P = α (H + Hᵀ − tr H I − cof H) + β cof F + γ t F − δ F E, its scalar factors computed once per element
+    a = 2.0 * (c10 / j23 + 2.0 * c01 / j23 ** 2)
+    coef = _keep(jnp.stack([a, a * dg / 2.0 - (c10 * a1 / j23 ** 2 + 2.0 * c01 * a2 / j23 ** 3) * dm
+                            - c01 * 6.0 * m * dm / j23 ** 2, 2.0 * c01 / j23 ** 2 * t, 2.0 * c01 / j23 ** 2]))
+    P = (coef[0][None, None] * (H + transpose3(H) - tr[None, None] * eye - cofactor3(H))
+         + coef[1][None, None] * cofactor3(F) + coef[2][None, None] * F - coef[3][None, None] * matmul3(F, E))
+    return psi, _keep(P)
+
+
+def _isochoric_constants(arrays, dtype):
+    """(C10, C01, β) of a tet mesh's isochoric energy: 1 − β = μ̄ / μ is the nodes' share of the shear modulus
+    μ = 2 (C10 + C01) (module docstring)."""
+    c10, c01 = arrays["mooney_rivlin"].astype(dtype)[0], arrays["mooney_rivlin"].astype(dtype)[1]
+    return c10, c01, 1.0 - arrays["mu_nodes"].reshape(-1)[0].astype(dtype) / (2.0 * (c10 + c01))
+
+
+def _isochoric_stress(c10, c01, H):
+    """P = ∂Ψ/∂F [3, 3, M], the first Piola–Kirchhoff stress of `isochoric_energy` at F = I + H."""
+    return _isochoric(c10, c01, H, stress=True)[1]
 
 
 def _kept(kin: _Kinematics) -> _Kinematics:
-    """The same kinematics, each tensor computed once (`_keep`; the rotations are kept where they are made)."""
-    return kin._replace(g=_keep(kin.g), local=_keep(kin.local.reshape(3, -1)).reshape(kin.local.shape),
-                        Hn=_keep(kin.Hn))
+    """The same kinematics, each tensor computed once (`_keep`; the rotations and gradients are kept where they
+    are made)."""
+    return kin._replace(g=_keep(kin.g), local=_keep(kin.local.reshape(3, -1)).reshape(kin.local.shape))
 
 
 def _keep(x):
@@ -618,20 +697,20 @@ def _gather_tensor(arrays, P):
     return P.reshape(9, -1)[:, arrays["cells_t"]].reshape(3, 3, per, k)
 
 
-def _nodal_deviatoric_force(arrays, kin, dF_nodes=None):
-    """Element nodal forces [3, n_e, K] of the nodes' deviatoric energy, to be assembled with the elements' own:
-    with P_i = 2 μ̄ V_i R̄_i dev sym(H), H = R̄_iᵀ F̄_i − I (or R̄_iᵀ dF̄_i for a tangent product with ``dF_nodes``),
-    the nodes' forces Σ_i P_i c_ij (`node_stars`) are, c being Σ_{e∋i,j} w_ei b_e(j), Σ_{e∋j} P̄_e b_e(j) with
-    P̄_e = Σ_{i∈e} w_ei P_i: a gather of P over the elements' n_e nodes rather than over each node's star."""
-    dt = kin.local.dtype
-    mu = arrays["mu_nodes"].reshape(-1)[0].astype(dt)
-    H = kin.Hn if dF_nodes is None else matmul3(transpose3(kin.Rn), dF_nodes)
-    P = _dot3(kin.Rn, _dev_sym(H) * (2.0 * mu * arrays["vnode"].astype(dt))[None, None])
+def _node_tensor_force(arrays, P):
+    """Element nodal forces [3, n_e, K] of nodal stresses P [3, 3, N] acting on the nodes' averaged gradients,
+    to be assembled with the elements' own: the nodes' forces Σ_i P_i c_ij (`node_stars`) are, c being
+    Σ_{e∋i,j} w_ei b_e(j), Σ_{e∋j} P̄_e b_e(j) with P̄_e = Σ_{i∈e} w_ei P_i (a gather of P over the elements' n_e
+    nodes rather than over each node's star)."""
     Pe = _gather_tensor(arrays, P)                                            # [3, 3, n_e, K]
-    w = arrays["wnode_t"].astype(dt)
-    Pbar = _sum(lambda a: Pe[:, :, a] * w[a][None, None], w.shape[0])          # [3, 3, K]
-    b = arrays["b_t"].astype(dt)
-    return jnp.stack([_sum(lambda j: Pbar[i, j][None] * b[j], 3) for i in range(3)])
+    w = arrays["wnode_t"].astype(P.dtype)
+    return _tensor_force(arrays, _sum(lambda a: Pe[:, :, a] * w[a][None, None], w.shape[0]))
+
+
+def _tensor_force(arrays, P):
+    """Element nodal forces P b_a [3, n_e, K] of element stresses P [3, 3, K]."""
+    b = arrays["b_t"].astype(P.dtype)
+    return jnp.stack([_sum(lambda j: P[i, j][None] * b[j], 3) for i in range(3)])
 
 
 def _dot3(A, B):
@@ -653,18 +732,19 @@ def _volumetric(arrays, x, n: int):
 
 
 def potential(arrays: dict, kin: _Kinematics):
-    """Σ_e ½ ũᵀ K_e ũ + the volumetric energy (module docstring; work units)."""
-    dt = kin.local.dtype
+    """The deviatoric energy (hexes Σ_e ½ ũᵀ K_e ũ, tets Mooney–Rivlin's) + the volumetric energy (module
+    docstring; work units)."""
+    dt = kin.H.dtype
     kappa = arrays["kappa"].reshape(-1)[0].astype(dt)
-    dev = 0.5 * jnp.sum(kin.local * _apply_ke(arrays, kin.local))
     if not _nodal(arrays):
+        dev = 0.5 * jnp.sum(kin.local * _apply_ke(arrays, kin.local))
         return dev + 0.5 * kappa * jnp.sum(arrays["volume"].astype(dt) * kin.jm1 ** 2)
     n = arrays["q0"].shape[0]
     jn = _node_average(arrays, kin.jm1, n)
-    vnode = arrays["vnode"].astype(dt)
-    dn = _dev_sym(kin.Hn)
-    mu = arrays["mu_nodes"].reshape(-1)[0].astype(dt)
-    return dev + 0.5 * kappa * jnp.sum(vnode * jn ** 2) + mu * jnp.sum(vnode * jnp.sum(dn * dn, axis=(0, 1)))
+    c10, c01, beta = _isochoric_constants(arrays, dt)
+    dev = (beta * jnp.sum(arrays["volume"].astype(dt) * isochoric_energy(c10, c01, kin.H))
+           + (1.0 - beta) * jnp.sum(arrays["vnode"].astype(dt) * isochoric_energy(c10, c01, kin.Hn)))
+    return dev + 0.5 * kappa * jnp.sum(arrays["vnode"].astype(dt) * jn ** 2)
 
 
 def energy(arrays: dict, z):
@@ -676,13 +756,19 @@ def energy(arrays: dict, z):
 
 
 def internal_force(arrays: dict, kin: _Kinematics, n: int):
-    """∂(potential)/∂q [N, 3] at fixed rotations: Σ_e R_e K_e ũ_e + s_e g_e (`_volumetric`: s_e = κ V_e (J_e − 1)
-    per hex)."""
-    fl = _apply_ke(arrays, kin.local).reshape(3, kin.g.shape[1], -1)
-    fe = _rotate(kin.R, fl) + kin.g * _volumetric(arrays, kin.jm1, n)[None, None]
+    """∂(potential)/∂q [N, 3]: hexes Σ_e R_e K_e ũ_e + s_e g_e at fixed rotations (`_volumetric`: s_e = κ V_e
+    (J_e − 1)), tets Σ_e (β V_e P(F_e) + Σ_{i∈e} w_ei (1 − β) V_i P(F̄_i)) b_e + s_e g_e (P Mooney–Rivlin's
+    isochoric stress, `_isochoric_stress`)."""
+    fe = kin.g * _volumetric(arrays, kin.jm1, n)[None, None]
     if _nodal(arrays):
-        fe = fe + _nodal_deviatoric_force(arrays, kin)
-    return _assemble(arrays, fe, n)
+        dt = kin.H.dtype
+        c10, c01, beta = _isochoric_constants(arrays, dt)
+        we, wn = beta * arrays["volume"].astype(dt), (1.0 - beta) * arrays["vnode"].astype(dt)
+        fe = fe + _tensor_force(arrays, _isochoric_stress(c10, c01, kin.H) * we[None, None])
+        fe = fe + _node_tensor_force(arrays, _keep(_isochoric_stress(c10, c01, kin.Hn) * wn[None, None]))
+        return _assemble(arrays, fe, n)
+    fl = _apply_ke(arrays, kin.local).reshape(3, kin.g.shape[1], -1)
+    return _assemble(arrays, fe + _rotate(kin.R, fl), n)
 
 
 def tangent(arrays: dict, kin: _Kinematics, w):
@@ -693,8 +779,11 @@ def tangent(arrays: dict, kin: _Kinematics, w):
     fl = _apply_ke(arrays, _rotate(kin.R, we, transpose=True).reshape(3 * per, -1)).reshape(3, per, -1)
     gw = _volumetric(arrays, jnp.sum(kin.g * we, axis=(0, 1)), n)
     fe = _rotate(kin.R, fl) + kin.g * gw[None, None]
-    if _nodal(arrays):
-        fe = fe + _nodal_deviatoric_force(arrays, kin, _nodal_gradient(arrays, w))
+    if _nodal(arrays):   # the nodes' share at rest, turned: P_i = 2 μ̄ V_i R̄_i dev sym(R̄_iᵀ dF̄_i)
+        dt = w.dtype
+        mu = arrays["mu_nodes"].reshape(-1)[0].astype(dt)
+        H = matmul3(transpose3(kin.Rn), _nodal_gradient(arrays, w))
+        fe = fe + _node_tensor_force(arrays, _dot3(kin.Rn, _dev_sym(H) * (2.0 * mu * arrays["vnode"].astype(dt))))
     return _assemble(arrays, fe, n)
 
 
@@ -712,22 +801,30 @@ def node_rotations(arrays: dict, kin: _Kinematics, n: int):
 
 
 def stress(arrays: dict, kin: _Kinematics, volume_change, n: int):
-    """Nodal Cauchy stress [N, 6]: R_e (S_e ũ_e) R_eᵀ + κ (J_e − 1) I with J_e − 1 given as ``volume_change``
-    [K], averaged over each node's elements by volume. For tets, as the FEM's nodal tet4 reports it: each element's
-    deviatoric part plus the mean over its nodes of the nodes' pressure κ (J̄_i − 1) and deviatoric share, then
-    averaged to the nodes."""
-    dt = kin.local.dtype
-    se = arrays["se_t"].astype(dt)
-    s = _keep(_sum(lambda c: se[:, c] * kin.local[c][None], se.shape[1]))             # [6, K]
-    S = jnp.stack([jnp.stack([s[0], s[3], s[4]]), jnp.stack([s[3], s[1], s[5]]), jnp.stack([s[4], s[5], s[2]])])
-    S = matmul3(matmul3(kin.R, S), transpose3(kin.R))
+    """Nodal Cauchy stress [N, 6]: the deviatoric stress (hexes R_e (S_e ũ_e) R_eᵀ, tets β σ_iso(F_e), σ_iso = P Fᵀ
+    / J of Mooney–Rivlin's isochoric P) + κ (J_e − 1) I with J_e − 1 given as ``volume_change`` [K], averaged
+    over each node's elements by volume. For tets, as the FEM's nodal tet4 reports it: each element's deviatoric
+    part plus the mean over its nodes of the nodes' pressure κ (J̄_i − 1) and deviatoric share (1 − β) σ_iso(F̄_i),
+    then averaged to the nodes."""
+    dt = kin.H.dtype
     p = arrays["kappa"].reshape(-1)[0].astype(dt) * volume_change
     if _nodal(arrays):    # as the FEM's nodal tet4: each element adds the mean of its nodes' pressure and share
-        mu = arrays["mu_nodes"].reshape(-1)[0].astype(dt)      # of the deviatoric stress, R̄ (2 μ̄ dev sym H̄) R̄ᵀ
-        Sn = _dot3(matmul3(kin.Rn, 2.0 * mu * _dev_sym(kin.Hn)), transpose3(kin.Rn))
-        Sn = Sn + _node_average(arrays, p, n)[None, None] * jnp.eye(3, dtype=dt)[:, :, None]
+        c10, c01, beta = _isochoric_constants(arrays, dt)
+        eye = jnp.eye(3, dtype=dt)[:, :, None]
+
+        def cauchy(H):
+            return _dot3(_isochoric_stress(c10, c01, H), transpose3(H + eye)) / (1.0 + _volume_change(H))
+
+        S = beta * cauchy(kin.H)
+        Sn = _keep((1.0 - beta) * cauchy(kin.Hn) + _node_average(arrays, p, n)[None, None] * eye)
         S = S + jnp.mean(_gather_tensor(arrays, Sn), axis=2)
         p = jnp.zeros_like(p)
+    else:
+        se = arrays["se_t"].astype(dt)
+        s = _keep(_sum(lambda c: se[:, c] * kin.local[c][None], se.shape[1]))             # [6, K]
+        S = jnp.stack([jnp.stack([s[0], s[3], s[4]]), jnp.stack([s[3], s[1], s[5]]),
+                       jnp.stack([s[4], s[5], s[2]])])
+        S = matmul3(matmul3(kin.R, S), transpose3(kin.R))
     sig = jnp.stack([S[a, c] + (p if a == c else 0.0) for a, c in _VOIGT])           # [6, K]
     return _assemble(arrays, sig[:, None, :] * arrays["wnode_t"].astype(dt)[None], n)
 
