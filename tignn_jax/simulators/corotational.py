@@ -624,7 +624,7 @@ def _isochoric(c10, c01, H, stress: bool = False):
     dseries = xs * (2.0 / 3.0 + xs * (-4.0 / 9.0 + xs * (28.0 / 81.0 + xs * (-70.0 / 243.0 + xs * 182.0 / 729.0))))
     dm = (2.0 / 3.0) * jnp.exp(-log_j / 3.0)
     dg = jnp.where(small, dseries, 2.0 - 3.0 * dm)
-    # P = α (H + Hᵀ − tr H I − cof H) + β cof F + γ t F − δ F E, its scalar factors computed once per element
+    # P = c₀ (H + Hᵀ − tr H I − cof H) + c₁ cof F + c₂ F − c₃ F E, the factors c computed once per element
     a = 2.0 * (c10 / j23 + 2.0 * c01 / j23 ** 2)
     coef = _keep(jnp.stack([a, a * dg / 2.0 - (c10 * a1 / j23 ** 2 + 2.0 * c01 * a2 / j23 ** 3) * dm
                             - c01 * 6.0 * m * dm / j23 ** 2, 2.0 * c01 / j23 ** 2 * t, 2.0 * c01 / j23 ** 2]))
