@@ -1,4 +1,4 @@
-"""The corotational GENERIC model: a hyperelastic energy that is exact under rotation, stepped by backward Euler.
+"""The corotational GENERIC model: the FEM's hyperelastic energy, exact under rotation, stepped by backward Euler.
 
 A body of hex8 or tet4 elements e with rest nodal coordinates X_e (centred on the element, [n_e, 3]), volume V_e,
 uniform shape-function gradients b_e [n_e, 3] and the stiffness K_e of its deviatoric response at rest. At the
@@ -6,27 +6,27 @@ state z = (q, v, σ) with u = q − X::
 
     F_e = I + Σ_a u_a ⊗ b_a,   F_e = R_e U_e (polar),   J_e = det F_e,   ũ_e = R_eᵀ x̄_e − X_e
     E(z) = ½ vᵀ M v + E_dev + E_vol,   dissipation α vᵀ M v ≥ 0,
-    E_dev = Σ_e ½ ũ_eᵀ K_e ũ_e  (hex8),   E_dev = β Σ_e V_e Ψ(F_e) + (1 − β) Σ_i V_i Ψ(F̄_i)  (tet4),
+    E_dev = Σ_e [V_e Ψ(F_e) + ½ ũ_eᵀ K̂_e ũ_e]  (hex8),   E_dev = β Σ_e V_e Ψ(F_e) + (1 − β) Σ_i V_i Ψ(F̄_i)  (tet4),
     E_vol = Σ_e ½ κ V_e (J_e − 1)²  (hex8),     E_vol = Σ_i ½ κ V_i (J̄_i − 1)²  (tet4),
 
-with x̄_e the element's current nodal coordinates centred on the element, M = diag(m_i) lumped masses, κ the bulk
-modulus and α the mass damping. A hex's deviatoric energy is the linear one in the element's rotated frame (the
-corotational formulation: a rigidly turned body stores no energy and feels no force, however far it turns; K_e
-holds the FEM's hourglass control). A tet mesh's energy is the FEM's nodal tet4 energy itself (`fem.elements`):
-Ψ = C10 (Ī1 − 3) + C01 (Ī2 − 3) Mooney–Rivlin's isochoric energy (`isochoric_energy`), shared between the elements
-(weight β) and the nodes' averaged deformation gradients F̄_i = Σ_{e∋i} (V_e / 4V_i) F_e, and the volume change
-averaged to the nodes, J̄_i − 1 = Σ_{e∋i} (V_e / 4V_i)(J_e − 1) with V_i = Σ_{e∋i} V_e / 4 (a linear tet holds one
-volume constraint per element, more than a nearly incompressible mesh has degrees of freedom to meet: it locks).
-The volumetric energy is Abaqus's Mooney–Rivlin one, (J − 1)²/D1 with κ = 2/D1, exact at any strain, so a nearly
-incompressible body keeps its volume; on tets the whole energy is, so a deep press stiffens as the material does.
-At a fixed temperature GENERIC's L∇E + M∇S reduces to M v̇ = f − ∂E/∂q − α M v (L the canonical coupling of q and
-v, M ≥ 0 the mass damping).
+the FEM's own energy (`fem.elements`): Ψ = C10 (Ī1 − 3) + C01 (Ī2 − 3) Mooney–Rivlin's isochoric energy
+(`isochoric_energy`) and (J − 1)²/D1 its volumetric one (κ = 2/D1), exact at any strain, so a nearly incompressible
+body keeps its volume and a deep press stiffens as the material does. A hex8 is the FEM's one-point element: Ψ of
+its centre's F_e, and its hourglass control K̂_e = K_e − K_e¹ (`one_point_stiffness`: the part of the rest stiffness
+beyond the one-point response, which no linear field excites) acting on its displacement in its own rotated frame,
+x̄_e the element's current nodal coordinates centred on it (the corotational formulation: a rigidly turned body
+stores no energy and feels no force, however far it turns). A tet4 is the FEM's nodal tet4: Ψ shared between the
+elements (weight β) and the nodes' averaged deformation gradients F̄_i = Σ_{e∋i} (V_e / 4V_i) F_e, and the volume
+change averaged to the nodes, J̄_i − 1 = Σ_{e∋i} (V_e / 4V_i)(J_e − 1) with V_i = Σ_{e∋i} V_e / 4 (a linear tet holds
+one volume constraint per element, more than a nearly incompressible mesh has degrees of freedom to meet: it
+locks). M = diag(m_i) are lumped masses and α the mass damping. At a fixed temperature GENERIC's L∇E + M∇S reduces
+to M v̇ = f − ∂E/∂q − α M v (L the canonical coupling of q and v, M ≥ 0 the mass damping).
 
-One frame Δt = h is one linearised backward-Euler step for v' (the element rotations held at the frame's start,
-the volumetric term by its Gauss–Newton tangent, κ V g gᵀ with g = ∂J/∂x = cof(F) b per element, or per node
-κ V_i ḡ_i ḡ_iᵀ with ḡ_i the average of g_e like J̄_i; on tets K_R is the deviatoric stiffness at rest turned with
-the body, β K_e by R_e and the nodes' 2 (1 − β) μ V_i dev sym by R̄_i, μ = 2 (C10 + C01): the step is then a
-quasi-Newton step whose forces f_int are exact, so a held load settles where the FEM's does)::
+One frame Δt = h is one linearised backward-Euler step for v', whose operator K_R is the deviatoric stiffness at
+rest turned with the body (R_e K_e R_eᵀ per element, on tets β K_e and the nodes' 2 (1 − β) μ V_i dev sym turned
+by R̄_i, μ = 2 (C10 + C01)) and the volumetric term's Gauss–Newton tangent K_J (κ V g gᵀ with g = ∂J/∂x = cof(F) b
+per element, or per node κ V_i ḡ_i ḡ_iᵀ with ḡ_i the average of g_e like J̄_i): a quasi-Newton step whose forces
+f_int are exact, so a held load settles where the FEM's does::
 
     [(1 + αh)/h² M + K_R + K_J] v' = M v / h² + (f − f_int(q)) / h,   q' = q + h v',
 
@@ -48,11 +48,11 @@ node blocks of A₀) is then slow on every mode it dwarfs, and a few modes canno
 with B⁻¹ exact on it, a few iterations are enough (docs/research_log.md). S⁻¹ holds C² numbers: past
 ``schur_limit`` constraints B is A₀'s node blocks (3N(m + 3) numbers, no N × N operator, O(Nm) a product).
 
-The stress observable σ' = R_e (S_e ũ_e) R_eᵀ + κ (J_e − 1 + g_e · Δu_e) I, averaged to the nodes by volume (S_e the
-element's deviatoric stress at rest; for tets that average is J̄'s): the pressure is the step's own linearised
-one. Taken from J_e(q') it would carry
-the O(Δθ²) volume change a linearised step makes when the body turns by Δθ, which times the bulk modulus of a
-nearly incompressible solid is of the size of the stress itself (see docs/research_log.md).
+The stress observable σ' = σ_iso(F_e) + κ (J_e − 1 + g_e · Δu_e) I, averaged to the nodes by volume (σ_iso the
+isochoric Cauchy stress of Ψ, the centre's as the FEM reports it; for tets the FEM's nodal tet4 blend, the average
+J̄'s): the pressure is the step's own linearised one. Taken from J_e(q') it would carry the O(Δθ²) volume change
+a linearised step makes when the body turns by Δθ, which times the bulk modulus of a nearly incompressible solid is
+of the size of the stress itself (see docs/research_log.md).
 
 Energy never created, by construction: with W = f · (q' − q) the work of the frame's forces, the step keeps E(z') ≤ E(z)
 + W (up to the float32 round-off of the energies, ``ROUNDOFF`` of |E(z)| + |W|). The frame's displacement is taken as θ
@@ -90,11 +90,12 @@ from fem.solver import _sum_over as _sum
 from tignn_jax.simulators import contact as C
 from tignn_jax.simulators import linear as LG
 
-STORED = ("cells", "ke", "se", "b", "volume", "kappa", "mass", "alpha", "dt", "mu_nodes", "mooney_rivlin")
+STORED = ("cells", "ke", "b", "volume", "kappa", "mass", "alpha", "dt", "mu_nodes", "mooney_rivlin")
 BACKTRACK = (1.0, 0.5, 0.25, 0.125, 0.0625, 0.03125, 0.0)   # the step lengths of the frame's line search
 SPLIT = 4   # steps a frame is split into where one step would have to be shortened (`frame`)
 ROUNDOFF = 2.0 ** -17   # relative round-off allowed in the energy budget E(z') ≤ E(z) + W (about 16 float32 ulps)
 RETRIES = 2   # steps taken again with new contact candidates before a step is held (`joint_frame`)
+J_FLOOR = 0.5   # the isochoric energy's J is held at this floor below it (`isochoric_energy`)
 POLAR_ITERATIONS = 5   # Higham's iteration R ← (R + R⁻ᵀ)/2: quadratic, exact at once for a rigid motion
 _VOIGT = ((0, 0), (1, 1), (2, 2), (0, 1), (0, 2), (1, 2))   # the data's stress order S11 S22 S33 S12 S13 S23
 
@@ -130,11 +131,10 @@ class CorotationalGeneric:
 
     Stored arrays (``stored``), n_e = 8 (hex8) or 4 (tet4): ``cells`` [K, n_e] int32; ``ke`` [K, 3n_e, 3n_e]
     (deviatoric element stiffness at rest, force per length, rows and columns 3a + i for node a, component i);
-    ``se`` [K, 6, 3n_e] (deviatoric element stress per displacement at rest); ``b`` [K, n_e, 3] (uniform
-    shape-function gradients, 1/length); ``volume`` [K]; ``mu_nodes`` [1] (μ̄ = (1 − β) μ, the nodes' share of
-    the shear modulus: 0 for hexes; a model file without it has none); ``mooney_rivlin`` [2] (C10, C01, stress:
-    the tets' isochoric energy; unused by hexes); ``kappa`` [1] (bulk modulus, stress); ``mass`` [N]; ``alpha``
-    [1] (1/time); ``dt`` [1] (the frame step). On tets ``se`` is unused (the stress is Mooney–Rivlin's).
+    ``b`` [K, n_e, 3] (uniform shape-function gradients, 1/length); ``volume`` [K]; ``mu_nodes`` [1] (μ̄ = (1 − β) μ,
+    the nodes' share of the shear modulus: 0 for hexes; a model file without it has none); ``mooney_rivlin`` [2]
+    (C10, C01, stress: the isochoric energy); ``kappa`` [1] (bulk modulus, stress); ``mass`` [N]; ``alpha`` [1]
+    (1/time); ``dt`` [1] (the frame step).
     """
     config: CorotationalConfig = CorotationalConfig()
     name: ClassVar[str] = "corotational"
@@ -178,17 +178,19 @@ class CorotationalGeneric:
         if out["cells"].max() >= n or out["ke"].shape != (k, 3 * per, 3 * per) or out["b"].shape != (k, per, 3):
             raise ValueError(f"cells, ke and b do not describe {k} elements of {per} nodes on {n} nodes")
         mr = np.asarray(out["mooney_rivlin"], np.float64).reshape(-1)
-        if per == 4 and not (mr.shape == (2,) and mr.sum() > 0.0 and 0.0 <= out["mu_nodes"].reshape(-1)[0]
-                             <= 2.0 * mr.sum()):
-            raise ValueError(f"a tet4 model needs mooney_rivlin = (C10, C01) with C10 + C01 > 0 and mu_nodes at most "
-                             f"2 (C10 + C01), got mooney_rivlin {mr.tolist()} and mu_nodes "
-                             f"{out['mu_nodes'].reshape(-1).tolist()} (a model file made before tets took Mooney–"
-                             f"Rivlin's energy: make it again with from_fem)")
+        if not (mr.shape == (2,) and mr.sum() > 0.0 and 0.0 <= out["mu_nodes"].reshape(-1)[0] <= 2.0 * mr.sum()):
+            raise ValueError(f"a corotational model needs mooney_rivlin = (C10, C01) with C10 + C01 > 0 and mu_nodes "
+                             f"at most 2 (C10 + C01), got mooney_rivlin {mr.tolist()} and mu_nodes "
+                             f"{out['mu_nodes'].reshape(-1).tolist()} (a model file made before the model took "
+                             f"Mooney–Rivlin's energy: make it again with from_fem)")
         xe = q0[out["cells"]]
         out["x0e"] = (xe - xe.mean(axis=1, keepdims=True)).astype(np.float32)
         share = np.repeat(out["volume"], per)
         total = np.bincount(out["cells"].reshape(-1), share, minlength=n)
         out["wnode"] = (share / total[out["cells"].reshape(-1)]).reshape(k, per).astype(np.float32)
+        if per == 8:   # the hexes' stiffness beyond their one-point isochoric response: the hourglass control
+            out["khg"] = np.asarray(out["ke"], np.float64) - one_point_stiffness(out["b"], out["volume"],
+                                                                                 2.0 * mr.sum())
         out.update(element_last(out))
         out.update(node_stars(out["cells"], out["wnode"], out["b"], out["volume"], n))
         out["q0"] = q0.astype(np.float32)
@@ -196,7 +198,7 @@ class CorotationalGeneric:
         if (n if per == 4 else k) <= c.schur_limit:
             out.update(schur_preconditioner(out, node_type))
         out["free"] = (node_type == 0)[:, None].astype(np.float32)
-        for key in ("ke", "se", "b", "volume", "kappa", "mass", "alpha", "dt", "mu_nodes", "mooney_rivlin"):
+        for key in ("ke", "b", "volume", "kappa", "mass", "alpha", "dt", "mu_nodes", "mooney_rivlin"):
             out[key] = out[key].astype(np.float32)
         return jax.tree_util.tree_map(jnp.asarray, out)
 
@@ -222,8 +224,8 @@ class CorotationalGeneric:
 
 def from_fem(problem, material, frame_dt: float | None = None) -> dict:
     """Stored arrays (`CorotationalGeneric.stored`) of an elastic hex8 or tet4 FEM scene: each element's deviatoric
-    stiffness and stress at rest (the FEM's own, hourglass control included, by forward differentiation of its
-    internal force and stress, all elements at once), shape-function gradients and volumes, the bulk modulus
+    stiffness at rest (the FEM's own, hourglass control included, by forward differentiation of its internal force,
+    all elements at once), shape-function gradients and volumes, the bulk modulus
     2/D1, the Mooney–Rivlin constants (C10, C01), the lumped masses and mass damping of ``problem``.
 
     Args:
@@ -250,31 +252,28 @@ def from_fem(problem, material, frame_dt: float | None = None) -> dict:
     alone = sv.setup(points[cells].reshape(-1, 3), np.arange(k * per).reshape(k, per), material=material,
                      frame_dt=cfg.frame_dt, n_frames=1, cell_type=cfg.cell_type)
     force, _ = implicit.force_and_stress(alone, material)
-    stress = lambda u: sv._element_stress(alone.arrays, material, u, (), alone.config)
     u0 = jnp.zeros((k * per, 3), alone.arrays.points.dtype)
-    column = jax.jit(lambda d: jax.jvp(lambda u: (force(u), stress(u)), (u0,), (d,))[1])
-    kc, sc = [], []
+    column = jax.jit(lambda d: jax.jvp(force, (u0,), (d,))[1])
+    kc = []
     for a in range(per):
         for i in range(3):
             d = np.zeros((k, per, 3))
             d[:, a, i] = 1.0
-            fk, sk = column(jnp.asarray(d.reshape(-1, 3), u0.dtype))
+            fk = column(jnp.asarray(d.reshape(-1, 3), u0.dtype))
             kc.append(np.asarray(fk, np.float64).reshape(k, 3 * per))
-            sc.append(np.asarray(sk, np.float64))
-    ke, se = np.stack(kc, -1), np.stack(sc, -1)
+    ke = np.stack(kc, -1)
     ke = 0.5 * (ke + ke.transpose(0, 2, 1))
     geo = el.hex_geometry(points, cells) if per == 8 else el.tet_geometry(points, cells)
     kappa = 2.0 / float(material.d1)
     bf = geo.b.reshape(k, -1)
     ke -= (kappa * geo.volume)[:, None, None] * bf[:, :, None] * bf[:, None, :]   # the volumetric part is in J
-    se[:, :3] -= se[:, :3].mean(axis=1, keepdims=True)                          # the pressure too
     # a nodal tet4 shares its isochoric energy: weight β per element, 1 − β on the nodes' averaged F
     beta = cfg.tet_blend if (per == 4 and cfg.tet_formulation == "nodal") else 1.0
     mu_nodes = (1.0 - beta) * 2.0 * (float(material.c10) + float(material.c01))
     mass = np.asarray(sv.lumped_mass(problem, material), np.float64)
     h = float(cfg.frame_dt if frame_dt is None else frame_dt)
     return {"cells": cells.astype(np.int32), "ke": (beta * ke).astype(np.float32),
-            "se": (beta * se).astype(np.float32), "b": geo.b.astype(np.float32),
+            "b": geo.b.astype(np.float32),
             "volume": geo.volume.astype(np.float32), "kappa": np.array([kappa], np.float32),
             "mass": mass.astype(np.float32), "alpha": np.array([float(problem.arrays.damping_alpha)], np.float32),
             "dt": np.array([h], np.float32), "mu_nodes": np.array([mu_nodes], np.float32),
@@ -285,20 +284,36 @@ def element_last(stored: dict) -> dict:
     """The step's layouts of the element arrays, components first and elements last: ``cells_t`` [n_e, K],
     ``b_t`` and ``x0e_t`` [3, n_e, K], the stiffness as ``ke_f`` [K, 24, 24] for hexes (elements first: applied by
     one batched product, three times faster on a CPU than element-last multiply-adds) or ``ke_t`` [12, 12, K] for
-    tets (element-last multiply-adds, faster than the batched product at that size), and ``se_t`` [6, 3n_e, K],
-    with rows and columns n_e i + a (component i of node a), ``wnode_t`` [n_e, K]."""
+    tets (element-last multiply-adds, faster than the batched product at that size), with rows and columns n_e i + a
+    (component i of node a), the hexes' hourglass part ``khg`` as ``khg_f`` [K, 24, 24] likewise, and ``wnode_t``
+    [n_e, K]."""
     cells = np.asarray(stored["cells"]).astype(np.int32)
     k, per = cells.shape
-    ke = np.asarray(stored["ke"], np.float32).reshape(k, per, 3, per, 3).transpose(0, 2, 1, 4, 3)
-    ke = ke.reshape(k, 3 * per, 3 * per)
-    se = np.asarray(stored["se"], np.float32).reshape(k, 6, per, 3).transpose(1, 3, 2, 0)
+
+    def layout(x):
+        return np.asarray(x, np.float32).reshape(k, per, 3, per, 3).transpose(0, 2, 1, 4, 3).reshape(k, 3 * per, -1)
+
+    ke = layout(stored["ke"])
     stiffness = ({"ke_f": np.ascontiguousarray(ke)} if per == 8
                  else {"ke_t": np.ascontiguousarray(ke.transpose(1, 2, 0))})
+    if "khg" in stored:
+        stiffness["khg_f"] = np.ascontiguousarray(layout(stored["khg"]))
     return {**stiffness, "cells_t": np.ascontiguousarray(cells.T),
             "b_t": np.ascontiguousarray(np.asarray(stored["b"], np.float32).transpose(2, 1, 0)),
             "x0e_t": np.ascontiguousarray(np.asarray(stored["x0e"], np.float32).transpose(2, 1, 0)),
-            "se_t": np.ascontiguousarray(se.reshape(6, 3 * per, k)),
             "wnode_t": np.ascontiguousarray(np.asarray(stored["wnode"], np.float32).T)}
+
+
+def one_point_stiffness(b, volume, mu):
+    """[K, 3n_e, 3n_e] float64: the stiffness at rest of the isochoric energy V_e Ψ(F_e) of each element's one-point
+    deformation gradient, V_e μ [δ_ik (b_a · b_c) + b_ak b_ci − ⅔ b_ai b_ck] for rows 3a + i and columns 3c + k
+    (Ψ ≈ μ |dev sym(F − I)|² at small strain, μ = 2 (C10 + C01) the shear modulus)."""
+    b = np.asarray(b, np.float64)
+    k, per, _ = b.shape
+    eye = np.eye(3)
+    K = (np.einsum("ik,eaj,ecj->eaick", eye, b, b) + np.einsum("eak,eci->eaick", b, b)
+         - 2.0 / 3.0 * np.einsum("eai,eck->eaick", b, b))
+    return (float(mu) * np.asarray(volume, np.float64)[:, None, None, None, None] * K).reshape(k, 3 * per, 3 * per)
 
 
 def node_stars(cells, wnode, b, volume, n: int) -> dict:
@@ -545,12 +560,13 @@ def _rotate(R, x, transpose: bool = False):
     return jnp.stack([_sum(lambda j: R[i, j][None] * x[j], 3) for i in range(3)])
 
 
-def _apply_ke(arrays, x):
-    """K_e x for x [3n_e, K] (the elements' deviatoric stiffness, element-last)."""
+def _apply_ke(arrays, x, key: str = "ke_f"):
+    """K_e x for x [3n_e, K] (the elements' deviatoric stiffness, element-last; ``key`` "khg_f": the hexes'
+    hourglass part of it)."""
     if "ke_t" in arrays:
         ke = arrays["ke_t"].astype(x.dtype)
         return jnp.stack([_sum(lambda j: ke[i, j] * x[j], ke.shape[1]) for i in range(ke.shape[0])])
-    return jnp.einsum("kij,jk->ik", arrays["ke_f"].astype(x.dtype), x)
+    return jnp.einsum("kij,jk->ik", arrays[key].astype(x.dtype), x)
 
 
 def kinematics(arrays: dict, u) -> _Kinematics:
@@ -593,7 +609,9 @@ def isochoric_energy(c10, c01, H):
         a₂ = J^(4/3) (Ī2 − 3) = 2a₁ + ½ (t² − E : E) − 3m²,
 
     the first bracket exact (it is 2 tr H − 2x), and 2x − 3m = ⅓x² − (4/27)x³ + (7/81)x⁴ − … by its series where
-    |x| < 0.05. J is floored at 0.1 (an element turned inside out would have none)."""
+    |x| < 0.05. Below ``J_FLOOR`` J is held there (m and 2x − 3m at the floor, a₁ = t − 3m still), so an element
+    squashed or turned inside out (noise, a blow) keeps a finite, smooth energy whose gradient P is exact, and the
+    volumetric energy, exact at any J, pulls it back."""
     return _isochoric(c10, c01, H)[0]
 
 
@@ -605,13 +623,16 @@ def _isochoric(c10, c01, H, stress: bool = False):
     tr = trace3(H)
     trhh = _sum(lambda i: _sum(lambda j: H[i, j] * H[j, i], 3), 3)
     frob = _sum(lambda i: _sum(lambda j: H[i, j] * H[i, j], 3), 3)
-    x = jnp.maximum(_volume_change(H), -0.9)
+    x_true = _volume_change(H)
+    x = jnp.maximum(x_true, J_FLOOR - 1.0)
+    active = (x_true > J_FLOOR - 1.0).astype(H.dtype)
     small = jnp.abs(x) < 0.05
     xs = jnp.where(small, x, 0.0)
     series = xs * xs * (1.0 / 3.0 + xs * (-4.0 / 27.0 + xs * (7.0 / 81.0 + xs * (-14.0 / 243.0 + xs * 91.0 / 2187.0))))
     log_j = jnp.log1p(x)
     m = jnp.expm1((2.0 / 3.0) * log_j)
-    a1 = (trhh - tr * tr - 2.0 * det3(H)) + frob + jnp.where(small, series, 2.0 * x - 3.0 * m)
+    a1 = ((trhh - tr * tr - 2.0 * det3(H)) + frob + jnp.where(small, series, 2.0 * x - 3.0 * m)
+          + 2.0 * (x_true - x))
     E = H + transpose3(H) + matmul3(transpose3(H), H)
     t = trace3(E)
     a2 = 2.0 * a1 + 0.5 * (t * t - _sum(lambda i: _sum(lambda j: E[i, j] * E[i, j], 3), 3)) - 3.0 * m * m
@@ -622,8 +643,8 @@ def _isochoric(c10, c01, H, stress: bool = False):
     eye = jnp.eye(3, dtype=H.dtype)[:, :, None]
     F = H + eye
     dseries = xs * (2.0 / 3.0 + xs * (-4.0 / 9.0 + xs * (28.0 / 81.0 + xs * (-70.0 / 243.0 + xs * 182.0 / 729.0))))
-    dm = (2.0 / 3.0) * jnp.exp(-log_j / 3.0)
-    dg = jnp.where(small, dseries, 2.0 - 3.0 * dm)
+    dm = (2.0 / 3.0) * jnp.exp(-log_j / 3.0) * active   # below the floor J is held: of ∂x only 2 (x − x_floor)'s
+    dg = jnp.where(small, dseries, 2.0 - 3.0 * dm) * active + 2.0 * (1.0 - active)
     # P = c₀ (H + Hᵀ − tr H I − cof H) + c₁ cof F + c₂ F − c₃ F E, the factors c computed once per element
     a = 2.0 * (c10 / j23 + 2.0 * c01 / j23 ** 2)
     coef = _keep(jnp.stack([a, a * dg / 2.0 - (c10 * a1 / j23 ** 2 + 2.0 * c01 * a2 / j23 ** 3) * dm
@@ -737,7 +758,9 @@ def potential(arrays: dict, kin: _Kinematics):
     dt = kin.H.dtype
     kappa = arrays["kappa"].reshape(-1)[0].astype(dt)
     if not _nodal(arrays):
-        dev = 0.5 * jnp.sum(kin.local * _apply_ke(arrays, kin.local))
+        c10, c01 = arrays["mooney_rivlin"].astype(dt)[0], arrays["mooney_rivlin"].astype(dt)[1]
+        dev = (jnp.sum(arrays["volume"].astype(dt) * isochoric_energy(c10, c01, kin.H))
+               + 0.5 * jnp.sum(kin.local * _apply_ke(arrays, kin.local, "khg_f")))
         return dev + 0.5 * kappa * jnp.sum(arrays["volume"].astype(dt) * kin.jm1 ** 2)
     n = arrays["q0"].shape[0]
     jn = _node_average(arrays, kin.jm1, n)
@@ -767,7 +790,10 @@ def internal_force(arrays: dict, kin: _Kinematics, n: int):
         fe = fe + _tensor_force(arrays, _isochoric_stress(c10, c01, kin.H) * we[None, None])
         fe = fe + _node_tensor_force(arrays, _keep(_isochoric_stress(c10, c01, kin.Hn) * wn[None, None]))
         return _assemble(arrays, fe, n)
-    fl = _apply_ke(arrays, kin.local).reshape(3, kin.g.shape[1], -1)
+    dt = kin.H.dtype
+    c10, c01 = arrays["mooney_rivlin"].astype(dt)[0], arrays["mooney_rivlin"].astype(dt)[1]
+    fe = fe + _tensor_force(arrays, _isochoric_stress(c10, c01, kin.H) * arrays["volume"].astype(dt)[None, None])
+    fl = _apply_ke(arrays, kin.local, "khg_f").reshape(3, kin.g.shape[1], -1)
     return _assemble(arrays, fe + _rotate(kin.R, fl), n)
 
 
@@ -801,30 +827,25 @@ def node_rotations(arrays: dict, kin: _Kinematics, n: int):
 
 
 def stress(arrays: dict, kin: _Kinematics, volume_change, n: int):
-    """Nodal Cauchy stress [N, 6]: the deviatoric stress (hexes R_e (S_e ũ_e) R_eᵀ, tets β σ_iso(F_e), σ_iso = P Fᵀ
-    / J of Mooney–Rivlin's isochoric P) + κ (J_e − 1) I with J_e − 1 given as ``volume_change`` [K], averaged
+    """Nodal Cauchy stress [N, 6]: the deviatoric stress (hexes σ_iso(F_e), tets β σ_iso(F_e); σ_iso = P Fᵀ / J of
+    Mooney–Rivlin's isochoric P) + κ (J_e − 1) I with J_e − 1 given as ``volume_change`` [K], averaged
     over each node's elements by volume. For tets, as the FEM's nodal tet4 reports it: each element's deviatoric
     part plus the mean over its nodes of the nodes' pressure κ (J̄_i − 1) and deviatoric share (1 − β) σ_iso(F̄_i),
     then averaged to the nodes."""
     dt = kin.H.dtype
     p = arrays["kappa"].reshape(-1)[0].astype(dt) * volume_change
+    c10, c01 = arrays["mooney_rivlin"].astype(dt)[0], arrays["mooney_rivlin"].astype(dt)[1]
+    eye = jnp.eye(3, dtype=dt)[:, :, None]
+
+    def cauchy(H):
+        return _dot3(_isochoric_stress(c10, c01, H), transpose3(H + eye)) / (1.0 + _volume_change(H))
+
+    S = cauchy(kin.H)
     if _nodal(arrays):    # as the FEM's nodal tet4: each element adds the mean of its nodes' pressure and share
-        c10, c01, beta = _isochoric_constants(arrays, dt)
-        eye = jnp.eye(3, dtype=dt)[:, :, None]
-
-        def cauchy(H):
-            return _dot3(_isochoric_stress(c10, c01, H), transpose3(H + eye)) / (1.0 + _volume_change(H))
-
-        S = beta * cauchy(kin.H)
+        beta = _isochoric_constants(arrays, dt)[2]
         Sn = _keep((1.0 - beta) * cauchy(kin.Hn) + _node_average(arrays, p, n)[None, None] * eye)
-        S = S + jnp.mean(_gather_tensor(arrays, Sn), axis=2)
+        S = beta * S + jnp.mean(_gather_tensor(arrays, Sn), axis=2)
         p = jnp.zeros_like(p)
-    else:
-        se = arrays["se_t"].astype(dt)
-        s = _keep(_sum(lambda c: se[:, c] * kin.local[c][None], se.shape[1]))             # [6, K]
-        S = jnp.stack([jnp.stack([s[0], s[3], s[4]]), jnp.stack([s[3], s[1], s[5]]),
-                       jnp.stack([s[4], s[5], s[2]])])
-        S = matmul3(matmul3(kin.R, S), transpose3(kin.R))
     sig = jnp.stack([S[a, c] + (p if a == c else 0.0) for a, c in _VOIGT])           # [6, K]
     return _assemble(arrays, sig[:, None, :] * arrays["wnode_t"].astype(dt)[None], n)
 
