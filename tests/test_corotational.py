@@ -339,6 +339,9 @@ def test_bad_options_are_refused_naming_the_value(models):
     with pytest.raises(ValueError, match="cg_iterations.*0"):
         C.CorotationalGeneric(C.CorotationalConfig(cg_iterations=0)).prepare(corot["model"].stored(corot["arrays"]),
                                                                             corot["mesh"])
+    old_file = {k: v for k, v in corot["model"].stored(corot["arrays"]).items() if k != "mooney_rivlin"}
+    with pytest.raises(ValueError, match=r"mooney_rivlin.*got mooney_rivlin \[0.0, 0.0\]"):
+        C.CorotationalGeneric().prepare(old_file, corot["mesh"])
 
 
 def test_a_noisy_state_is_damped_not_pumped(models):

@@ -142,15 +142,18 @@ class CorotationalGeneric:
 
     def prepare(self, stored: dict, mesh: dict) -> dict:
         """The arrays the step reads: the stored ones; the centred rest element coordinates ``x0e`` [K, n_e, 3]
-        and the averaging weights ``wnode`` [K, n_e] (V_e over the volume of the node's elements), and all element
-        arrays again in the step's element-last
-        layout (`element_last`); for tets the nodes' star stencils ``star``, ``star_c``, ``star_ct`` and volumes
-        ``vnode`` (`node_stars`); the preconditioner's ``modes``, ``mode_inv`` and ``block_inv``
-        (`rest_preconditioner`), with ``block_inv`` replaced and ``schur_inv`` added by `schur_preconditioner` up to
-        ``schur_limit`` volume constraints; ``q0`` and the free-node mask ``free`` [N, 1].
+        and the averaging weights ``wnode`` [K, n_e] (V_e over the volume of the node's elements); for hexes the
+        hourglass control ``khg`` [K, 24, 24] (``ke`` less `one_point_stiffness`); all element arrays again in the
+        step's element-last layout (`element_last`); for tets the nodes' star stencils ``star``, ``star_c``,
+        ``star_ct`` and volumes ``vnode`` (`node_stars`); the preconditioner's ``modes``, ``mode_inv`` and
+        ``block_inv`` (`rest_preconditioner`), with ``block_inv`` replaced and ``schur_inv`` added by
+        `schur_preconditioner` up to ``schur_limit`` volume constraints; ``q0`` and the free-node mask ``free``
+        [N, 1].
 
         Raises:
-          ValueError: an array is missing or sized for another mesh, or the CG options are out of range.
+          ValueError: an array is missing or sized for another mesh, ``mooney_rivlin`` is missing or not positive
+            (a model file made before the model took Mooney–Rivlin's energy), or the CG options are out of
+            range.
         """
         c = self.config
         if not (isinstance(c.cg_iterations, (int, np.integer)) and c.cg_iterations >= 1):
