@@ -262,6 +262,11 @@ def test_the_models_energy_and_forces_are_the_fems_at_large_strain(make):
     f_fem = np.asarray(sv.internal_force(problem, material, jnp.asarray(q0 + u, jnp.float32)))
     f = np.asarray(C.internal_force(corot["arrays"], kin, len(q0)))
     assert np.abs(f - f_fem).max() < 2e-4 * np.abs(f_fem).max()
+    # a body turned inside out (mirrored: every J = −1) keeps a finite energy, forces and stress (J held at the floor)
+    mirrored = C.kinematics(corot["arrays"], jnp.asarray(q0 * [-1.0, 1.0, 1.0] - q0, jnp.float32))
+    for x in (C.potential(corot["arrays"], mirrored), C.internal_force(corot["arrays"], mirrored, len(q0)),
+              C.stress(corot["arrays"], mirrored, mirrored.jm1, len(q0))):
+        assert np.all(np.isfinite(np.asarray(x)))
 
 
 def test_the_isochoric_stress_is_the_gradient_of_the_energy_and_float32_keeps_small_strains():

@@ -658,8 +658,8 @@ def _isochoric(c10, c01, H, stress: bool = False):
 
 
 def _isochoric_constants(arrays, dtype):
-    """(C10, C01, β) of a tet mesh's isochoric energy: 1 − β = μ̄ / μ is the nodes' share of the shear modulus
-    μ = 2 (C10 + C01) (module docstring)."""
+    """(C10, C01, β) of the isochoric energy: β the elements' share of it on tets, 1 − β = μ̄ / μ the nodes', with
+    μ = 2 (C10 + C01) the shear modulus (1 on hexes; module docstring)."""
     c10, c01 = arrays["mooney_rivlin"].astype(dtype)[0], arrays["mooney_rivlin"].astype(dtype)[1]
     return c10, c01, 1.0 - arrays["mu_nodes"].reshape(-1)[0].astype(dtype) / (2.0 * (c10 + c01))
 
@@ -756,12 +756,12 @@ def _volumetric(arrays, x, n: int):
 
 
 def potential(arrays: dict, kin: _Kinematics):
-    """The deviatoric energy (hexes Σ_e ½ ũᵀ K_e ũ, tets Mooney–Rivlin's) + the volumetric energy (module
-    docstring; work units)."""
+    """The isochoric energy (hexes Σ_e V_e Ψ(F_e) + ½ ũ_eᵀ K̂_e ũ_e, tets β Σ_e V_e Ψ(F_e) + (1 − β) Σ_i V_i Ψ(F̄_i))
+    + the volumetric energy (module docstring; work units)."""
     dt = kin.H.dtype
     kappa = arrays["kappa"].reshape(-1)[0].astype(dt)
     if not _nodal(arrays):
-        c10, c01 = arrays["mooney_rivlin"].astype(dt)[0], arrays["mooney_rivlin"].astype(dt)[1]
+        c10, c01, _ = _isochoric_constants(arrays, dt)
         dev = (jnp.sum(arrays["volume"].astype(dt) * isochoric_energy(c10, c01, kin.H))
                + 0.5 * jnp.sum(kin.local * _apply_ke(arrays, kin.local, "khg_f")))
         return dev + 0.5 * kappa * jnp.sum(arrays["volume"].astype(dt) * kin.jm1 ** 2)
@@ -782,9 +782,9 @@ def energy(arrays: dict, z):
 
 
 def internal_force(arrays: dict, kin: _Kinematics, n: int):
-    """∂(potential)/∂q [N, 3]: hexes Σ_e R_e K_e ũ_e + s_e g_e at fixed rotations (`_volumetric`: s_e = κ V_e
-    (J_e − 1)), tets Σ_e (β V_e P(F_e) + Σ_{i∈e} w_ei (1 − β) V_i P(F̄_i)) b_e + s_e g_e (P Mooney–Rivlin's
-    isochoric stress, `_isochoric_stress`)."""
+    """∂(potential)/∂q [N, 3]: hexes Σ_e V_e P(F_e) b_e + R_e K̂_e ũ_e + s_e g_e (the hourglass term at fixed
+    rotations; `_volumetric`: s_e = κ V_e (J_e − 1)), tets Σ_e (β V_e P(F_e) + Σ_{i∈e} w_ei (1 − β) V_i P(F̄_i)) b_e
+    + s_e g_e (P Mooney–Rivlin's isochoric stress, `_isochoric_stress`)."""
     fe = kin.g * _volumetric(arrays, kin.jm1, n)[None, None]
     if _nodal(arrays):
         dt = kin.H.dtype
@@ -794,7 +794,7 @@ def internal_force(arrays: dict, kin: _Kinematics, n: int):
         fe = fe + _node_tensor_force(arrays, _keep(_isochoric_stress(c10, c01, kin.Hn) * wn[None, None]))
         return _assemble(arrays, fe, n)
     dt = kin.H.dtype
-    c10, c01 = arrays["mooney_rivlin"].astype(dt)[0], arrays["mooney_rivlin"].astype(dt)[1]
+    c10, c01, _ = _isochoric_constants(arrays, dt)
     fe = fe + _tensor_force(arrays, _isochoric_stress(c10, c01, kin.H) * arrays["volume"].astype(dt)[None, None])
     fl = _apply_ke(arrays, kin.local, "khg_f").reshape(3, kin.g.shape[1], -1)
     return _assemble(arrays, fe + _rotate(kin.R, fl), n)
@@ -837,15 +837,15 @@ def stress(arrays: dict, kin: _Kinematics, volume_change, n: int):
     then averaged to the nodes."""
     dt = kin.H.dtype
     p = arrays["kappa"].reshape(-1)[0].astype(dt) * volume_change
-    c10, c01 = arrays["mooney_rivlin"].astype(dt)[0], arrays["mooney_rivlin"].astype(dt)[1]
+    c10, c01, beta = _isochoric_constants(arrays, dt)
     eye = jnp.eye(3, dtype=dt)[:, :, None]
 
-    def cauchy(H):
-        return _dot3(_isochoric_stress(c10, c01, H), transpose3(H + eye)) / (1.0 + _volume_change(H))
+    def cauchy(H):   # J held at the energy's floor, as Ψ holds it: finite for a squashed or inverted element
+        J = jnp.maximum(1.0 + _volume_change(H), J_FLOOR)
+        return _dot3(_isochoric_stress(c10, c01, H), transpose3(H + eye)) / J
 
     S = cauchy(kin.H)
     if _nodal(arrays):    # as the FEM's nodal tet4: each element adds the mean of its nodes' pressure and share
-        beta = _isochoric_constants(arrays, dt)[2]
         Sn = _keep((1.0 - beta) * cauchy(kin.Hn) + _node_average(arrays, p, n)[None, None] * eye)
         S = beta * S + jnp.mean(_gather_tensor(arrays, Sn), axis=2)
         p = jnp.zeros_like(p)
