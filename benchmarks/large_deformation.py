@@ -88,7 +88,7 @@ def models(cells: str = "hexahedron"):
     linear, _ = tignn_jax.load_pretrained("beam-linear")
     problem = scenes.setup_scene(scene._replace(n_frames=1))
     stored = C.from_fem(problem, scene.material)
-    info = {"kind": "the FEM's element operators, corotated (not learned)"}
+    info = {"kind": "the FEM's energy and element operators, corotated (not learned)"}
     if cells == "tetra":
         mesh = {"q0": scene.points, "senders": scene.edges[0], "receivers": scene.edges[1],
                 "node_type": scene.node_type}

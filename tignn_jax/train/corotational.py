@@ -1,8 +1,9 @@
 """The corotational GENERIC model (`tignn_jax.simulators.CorotationalGeneric`) of a data file's FEM scene.
 
-Nothing is fitted: the element operators are the FEM's own (`tignn_jax.simulators.corotational.from_fem`) on the
-scene the data were generated from (`tignn_jax.train.linear.fem_problem`: its mesh, clamps, material, density and
-damping). The data give the mesh, the frame step and the envelope the guards compare states and forces with.
+Nothing is fitted: the energy and the element operators are the FEM's own
+(`tignn_jax.simulators.corotational.from_fem`) on the scene the data were generated from
+(`tignn_jax.train.linear.fem_problem`: its mesh, clamps, material, density and damping). The data give the mesh,
+the frame step and the envelope the guards compare states and forces with.
 """
 from __future__ import annotations
 
@@ -54,4 +55,4 @@ def run(data_paths, config: TrainConfig, run_dir, progress: bool = True) -> dict
     problem, material = fem_problem(paths[0])
     stored = from_fem(problem, material, float(data.dt))
     return save_run(run_dir, paths, data, rows, CorotationalGeneric(config.model), stored, recipe,
-                    {"kind": "the FEM's element operators, corotated (not learned)"})
+                    {"kind": "the FEM's energy and element operators, corotated (not learned)"})
