@@ -30,8 +30,8 @@ FORMAT = 2   # the model file's layout version (`save_model`)
 # a whole process: the corotational frame's gathers and reductions run several times faster as XLA's own loops, and
 # the other classes' frames take the same time (docs/research_log.md). A user's own choice of that option in
 # XLA_FLAGS is kept.
-_YNN = "xla_cpu_experimental_ynn_fusion_type"
-FRAME_COMPILER_OPTIONS = {} if _YNN in os.environ.get("XLA_FLAGS", "") else {_YNN: ""}
+YNN_FUSION_OPTION = "xla_cpu_experimental_ynn_fusion_type"
+FRAME_COMPILER_OPTIONS = {} if YNN_FUSION_OPTION in os.environ.get("XLA_FLAGS", "") else {YNN_FUSION_OPTION: ""}
 
 
 def step(params: dict, graph: jraph.GraphsTuple, forces) -> jraph.GraphsTuple:

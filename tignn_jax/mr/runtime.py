@@ -16,7 +16,9 @@ import warnings
 import jax
 import numpy as np
 
-REAL_TIME_XLA_FLAG = "--xla_cpu_experimental_ynn_fusion_type="
+from tignn_jax.api import YNN_FUSION_OPTION
+
+REAL_TIME_XLA_FLAG = f"--{YNN_FUSION_OPTION}="   # the option the public step compiles its frame with
 
 
 def real_time_xla_flags(environ=None) -> bool:
