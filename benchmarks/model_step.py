@@ -9,7 +9,8 @@ requirement: the checks cost at most 10 % of a step, i.e. "checks overhead" = st
 Rows: the shipped ``beam`` (one body, 756 nodes), two beams (a graph of 2 copies of the beam, 1512 nodes:
 `rest_graph(params, 2)`, whose edges `step` knows by identity), the shipped ``bunny`` (1330 nodes) and the
 corotational ``beam-corot`` and ``bunny-corot`` (the beam's and the bunny's meshes; their frames iterate, so their
-time depends on the state more than the linear models'). For each row the state is the rest state advanced by 10
+time depends on the state more than the linear models') and the paper's network ``beam-tignn`` (one forward-Euler
+step of a 2-pass graph network). For each row the state is the rest state advanced by 10
 frames under a load at half the model's largest training force (``envelope["f_max"]``) on the free node farthest
 from the clamps; each call steps that state under that load (numpy float32 forces, as a real-time loop hands them
 over). Times: milliseconds per call after a
@@ -22,7 +23,7 @@ time is per frame (its call over T frames divided by T).
 Writes model_step.{json,md} to ``--out`` (default benchmarks/results).
 
     python benchmarks/model_step.py [--repeats 200] [--rollout-frames 20] \
-        [--rows beam:1,beam:2,bunny:1,beam-corot:1,bunny-corot:1]
+        [--rows beam:1,beam:2,bunny:1,beam-corot:1,bunny-corot:1,beam-tignn:1]
     python benchmarks/model_step.py --quick --out /tmp/model_step     # smoke run, ~30 s
 """
 from __future__ import annotations
@@ -36,7 +37,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _machine import RESULTS_DIR, describe, machine_line, interleaved_ms, write_results  # noqa: E402
 
-ROWS = "beam:1,beam:2,bunny:1,beam-corot:1,bunny-corot:1"
+ROWS = "beam:1,beam:2,bunny:1,beam-corot:1,bunny-corot:1,beam-tignn:1"
 CHECKS_BUDGET = 0.10     # the checks may cost at most 10 % of a step
 WARM_FRAMES = 10         # frames from rest before the timed state
 

@@ -204,6 +204,32 @@ def shipped_models() -> list[str]:
     return sorted(p.name for p in PRETRAINED_DIR.iterdir() if (p / "model.npz").exists())
 
 
+NOT_FROM_REST = ("runs only from its training data's first state and does not respond from rest (its "
+                 "MODEL_CARD.md)")
+
+
+def responds_from_rest(model: str | Path) -> bool:
+    """Whether a model may be stepped from rest, as the demo and the viewer start: False where its file's ``info``
+    says ``"from_rest": false``. The paper's reproduction ``beam-tignn`` does: it reads the Abaqus data's first
+    velocity, a finite difference of the positions to come, and at rest does not move. Read with numpy alone.
+
+    Args:
+      model: a shipped model's name, a model file, or a folder holding ``model.npz`` or ``model/model.npz``.
+
+    Returns:
+      False for a model file marked so; True otherwise (also where no model file is found: loading names that).
+    """
+    path = PRETRAINED_DIR / str(model) / "model.npz" if str(model) in shipped_models() else Path(model)
+    if path.is_dir():
+        path = path / "model.npz" if (path / "model.npz").is_file() else path / "model" / "model.npz"
+    try:
+        with np.load(path, allow_pickle=False) as raw:
+            info = json.loads(str(raw["info"])) if "info" in raw.files else {}
+    except (OSError, ValueError):
+        return True
+    return info.get("from_rest") is not False
+
+
 def rest_graph(params: dict, copies: int = 1) -> jraph.GraphsTuple:
     """The graph of ``copies`` bodies of the model's mesh at rest.
 

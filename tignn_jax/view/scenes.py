@@ -33,12 +33,17 @@ def resolve_model(model: str) -> str:
     ``tignn train`` resolves to ``DIR/model/model.npz`` or ``DIR/model.npz``.
 
     Raises:
-      ValueError: neither a shipped model, nor ``fem-newton``, nor an existing model file or folder.
+      ValueError: neither a shipped model, nor ``fem-newton``, nor an existing model file or folder; or a model
+        that does not respond from rest (`tignn_jax.api.responds_from_rest`), since the viewer starts at rest.
     """
     from tignn_jax import api
     from tignn_jax.cli.demo import FEM_NEWTON
 
-    if model == FEM_NEWTON or model in api.shipped_models():
+    if model == FEM_NEWTON:
+        return model
+    if not api.responds_from_rest(model):
+        raise ValueError(f"model {model!r}: {api.NOT_FROM_REST}")
+    if model in api.shipped_models():
         return model
     path = Path(model)
     if path.is_dir():
