@@ -24,7 +24,7 @@ def test_the_shipped_models_are_the_documented_ones():
     assert not any(T.api.responds_from_rest(name) for name in REPRODUCTIONS)
 
 
-def test_a_model_that_does_not_respond_from_rest_is_refused_by_the_demo_and_the_viewer(capsys):
+def test_a_model_that_does_not_respond_from_rest_is_refused_by_the_demo_and_the_viewer_and_warned_of(capsys):
     from tignn_jax.cli import main
     from tignn_jax.view.scenes import resolve_model
 
@@ -33,6 +33,11 @@ def test_a_model_that_does_not_respond_from_rest_is_refused_by_the_demo_and_the_
     assert len(err.splitlines()) == 1 and "beam-tignn" in err and "does not respond from rest" in err
     with pytest.raises(ValueError, match="does not respond from rest"):
         resolve_model("beam-tignn")
+    with pytest.warns(UserWarning, match="does not respond from rest"):
+        T.load_pretrained("beam-tignn")
+    from tignn_jax.view import models_for
+
+    assert "beam-tignn" not in models_for("beam") and "beam-corot" in models_for("beam")
 
 
 def press(name):

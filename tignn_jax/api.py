@@ -10,6 +10,8 @@ from __future__ import annotations
 import json
 import math
 import os
+import warnings
+import zipfile
 from pathlib import Path
 
 import jax
@@ -181,7 +183,9 @@ def load_pretrained(name: str = DEFAULT_MODEL):
         ``tignn train`` (its ``model/model.npz``) or a model ``.npz``.
 
     Returns:
-      (params, graph): the model and the graph of its mesh at rest (q = q0, v = 0, σ = 0).
+      (params, graph): the model and the graph of its mesh at rest (q = q0, v = 0, σ = 0). A model that does not
+      respond from rest (`responds_from_rest`: the paper's reproduction ``beam-tignn``) is returned with a
+      warning: its rest graph is not a state to step it from.
 
     Raises:
       ValueError: no such model.
@@ -196,6 +200,8 @@ def load_pretrained(name: str = DEFAULT_MODEL):
     if not path.exists():
         raise ValueError(f"no model named {name!r}; shipped models: {shipped_models()}")
     params = load_model(path)
+    if params.get("info", {}).get("from_rest") is False:
+        warnings.warn(f"model {name!r} {NOT_FROM_REST}: its rest graph is not a state to step it from", stacklevel=2)
     return params, rest_graph(params)
 
 
@@ -225,7 +231,7 @@ def responds_from_rest(model: str | Path) -> bool:
     try:
         with np.load(path, allow_pickle=False) as raw:
             info = json.loads(str(raw["info"])) if "info" in raw.files else {}
-    except (OSError, ValueError):
+    except (OSError, ValueError, EOFError, AttributeError, TypeError, zipfile.BadZipFile):   # not a model file
         return True
     return info.get("from_rest") is not False
 

@@ -125,14 +125,16 @@ def load_scene(scene: str | None = None, model: str | None = None) -> Scene:
 
 
 def models_for(scene: str | None) -> list[str]:
-    """The shipped models on ``scene``'s mesh, then ``fem-newton``, for the page's model menu (None: [])."""
+    """The shipped models on ``scene``'s mesh that respond from rest (`tignn_jax.api.responds_from_rest`), then
+    ``fem-newton``, for the page's model menu (None: [])."""
     if scene is None:
         return []
     from tignn_jax import api
     from tignn_jax.cli import demo
 
     mesh = "beam" if scene in ("beam", "two-beams") else "bunny"
-    return [m for m in api.shipped_models() if m.split("-")[0] == mesh] + [demo.FEM_NEWTON]
+    shipped = [m for m in api.shipped_models() if m.split("-")[0] == mesh and api.responds_from_rest(m)]
+    return shipped + [demo.FEM_NEWTON]
 
 
 def _scene_mesh(scene: str):
