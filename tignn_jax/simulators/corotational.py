@@ -625,7 +625,7 @@ def _isochoric(c10, c01, H, stress: bool = False):
     in H where P is, so that float32 keeps it too).
 
     Written on the nine components as separate [M] arrays, P stacked once at the end, with its four per-element
-    factors computed once (`_keep`): as [3, 3, M] tensors, XLA:CPU evaluated it 2.4 times slower."""
+    factors computed once (`_keep`): XLA:CPU evaluates the [3, 3, M] tensor form slower (docs/research_log.md)."""
     r3 = range(3)
     h = [[H[i, j] for j in r3] for i in r3]
     tr = h[0][0] + h[1][1] + h[2][2]
