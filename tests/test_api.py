@@ -54,6 +54,31 @@ def test_step_rollout_and_stepper_give_the_same_states(beam):
     assert float(np.abs(np.asarray(z)[:, :3] - params["mesh"]["q0"]).max()) > 0.05   # it moved
 
 
+def test_each_model_steps_with_its_own_arrays_and_a_gradient_reaches_them(beam):
+    # step compiles a model's arrays into its program: a model with other arrays gets its own program, and the
+    # first model still steps as before; with traced arrays (a gradient with respect to them) it takes them as
+    # arguments
+    import jax
+
+    params, graph = beam
+    f = tip_forces(params)
+    q0 = np.asarray(params["mesh"]["q0"])
+    z1 = np.asarray(T.step(params, graph, f).nodes["z"])
+
+    def scaled(s):
+        return {**params, "arrays": {**params["arrays"], "ainv": params["arrays"]["ainv"] * s}}
+
+    z2 = np.asarray(T.step(scaled(0.5), graph, f).nodes["z"])
+    assert np.abs(z2[:, :3] - q0).max() < 0.9 * np.abs(z1[:, :3] - q0).max()
+    assert np.array_equal(np.asarray(T.step(params, graph, f).nodes["z"]), z1)
+
+    def drop(s):
+        return jnp.sum(T.step(scaled(s), graph, f).nodes["z"][:, 2] - q0[:, 2])
+
+    g, fd = float(jax.grad(drop)(1.0)), float((drop(1.1) - drop(0.9)) / 0.2)
+    assert abs(g - fd) <= 1e-3 * abs(fd) and abs(fd) > 0
+
+
 def test_stepper_inside_a_callers_jit_and_scan_steps_as_at_the_top_level(beam):
     # the frame is compiled with its own compiler options only where it is called at the top level; inside a
     # user's jit or scan (where JAX refuses them) it becomes part of the user's program and steps the same

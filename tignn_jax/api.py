@@ -2,8 +2,9 @@
 
 A model (``params``) is the dict described in `tignn_jax.simulators`: a model class instance (its configuration),
 its arrays, the mesh it was trained on, its training envelope and its provenance. `step`, `rollout` and `stepper`
-run one compiled program per model class, configuration and number of bodies: `_advance`, jitted with the
-model object static and the arrays as arguments.
+compile the model's frame map once per model (`_programs`): its arrays are constants of the program, which XLA:CPU
+runs faster than the same program reading them as arguments (docs/research_log.md). Where a caller's own trace
+holds the arrays as tracers (a gradient with respect to them), `_advance` and `_rollout` take them as arguments.
 """
 from __future__ import annotations
 
@@ -58,7 +59,7 @@ def step(params: dict, graph: jraph.GraphsTuple, forces) -> jraph.GraphsTuple:
     """
     _check_graph(params, graph)
     forces, host = _forces(forces, graph.nodes["z"].shape[0], "forces")
-    z = _advance(params["model"], _nodes(params), params["arrays"], graph.nodes["z"], forces)
+    z = _programs(params)[0](graph.nodes["z"], forces)
     _finite(host, "forces")     # while the frame computes: a bad input discards it
     return G.with_state(graph, z)
 
@@ -79,7 +80,7 @@ def rollout(params: dict, graph: jraph.GraphsTuple, forces_seq) -> jax.Array:
     """
     _check_graph(params, graph)
     forces_seq, host = _forces(forces_seq, graph.nodes["z"].shape[0], "forces_seq", seq=True)
-    zs = _rollout(params["model"], _nodes(params), params["arrays"], graph.nodes["z"], forces_seq)
+    zs = _programs(params)[1](graph.nodes["z"], forces_seq)
     _finite(host, "forces_seq")
     return zs
 
@@ -101,14 +102,14 @@ def stepper(params: dict, copies: int = 1):
     """
     if not isinstance(copies, (int, np.integer)) or isinstance(copies, bool) or copies < 1:
         raise ValueError(f"copies must be a positive integer, got {copies!r}")
-    model, n, arrays = params["model"], _nodes(params), params["arrays"]
-    shape = (int(copies) * n, STATE_DIM)
+    frame = _programs(params)[0]
+    shape = (int(copies) * _nodes(params), STATE_DIM)
 
     def fn(z, forces):
         if z.shape != shape or forces.shape != shape[:1] + (3,):
             raise ValueError(f"this stepper takes z {list(shape)} and forces [{shape[0]}, 3], got "
                              f"{list(z.shape)} and {list(forces.shape)}")
-        return _advance(model, n, arrays, z, forces)
+        return frame(z, forces)
 
     return fn
 
@@ -402,6 +403,31 @@ def _scan_frames(model, n: int, arrays: dict, z0, forces_seq):
 
 _advance = _frame_program(_frame_map, static_argnums=(0, 1))
 _rollout = _frame_program(_scan_frames, static_argnums=(0, 1))
+_PROGRAMS: dict = {}   # id(arrays) → (arrays, model, array leaves, programs) of the last models stepped
+_PROGRAMS_KEPT = 8
+
+
+def _programs(params: dict) -> tuple:
+    """``(frame(z, forces), frames(z0, forces_seq))``: `_frame_map` and `_scan_frames` of the model with its arrays
+    closed over, compiled once per model and number of bodies (those of the last ``_PROGRAMS_KEPT`` models are
+    kept, and keep the models' arrays alive); where the arrays are traced (a caller differentiating with respect
+    to them), `_advance` and `_rollout`, which take them as arguments."""
+    model, n, arrays = params["model"], _nodes(params), params["arrays"]
+    leaves = jax.tree_util.tree_leaves(arrays)
+    if any(isinstance(x, jax.core.Tracer) for x in leaves):
+        return (lambda z, forces: _advance(model, n, arrays, z, forces),
+                lambda z0, forces_seq: _rollout(model, n, arrays, z0, forces_seq))
+    kept = _PROGRAMS.get(id(arrays))      # the same dict, model and array objects: the same programs
+    if (kept is not None and kept[0] is arrays and kept[1] is model and len(kept[2]) == len(leaves)
+            and all(a is b for a, b in zip(kept[2], leaves))):
+        return kept[3]
+    programs = (_frame_program(lambda z, forces: _frame_map(model, n, arrays, z, forces)),
+                _frame_program(lambda z0, forces_seq: _scan_frames(model, n, arrays, z0, forces_seq)))
+    _PROGRAMS.pop(id(arrays), None)
+    _PROGRAMS[id(arrays)] = (arrays, model, leaves, programs)
+    while len(_PROGRAMS) > _PROGRAMS_KEPT:
+        _PROGRAMS.pop(next(iter(_PROGRAMS)))
+    return programs
 
 
 def _check_graph(params, graph) -> None:
