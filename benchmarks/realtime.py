@@ -426,8 +426,8 @@ def format_md(result: dict) -> str:
                   "as one graph (`rest_graph(params, bodies)`, `stepper(params, bodies)`); the loop's program (the "
                   "demo's step functions jitted again by `tignn_jax.mr.build`) steps each body in its own branch. "
                   "Both hold the model's arrays as constants of the program. A scene of bodies in contact steps "
-                  "them with its public step `tignn_jax.contact_stepper` in both the stepper's and the step's columns (the latter with "
-                  "device and host forces).", "",
+                  "them with its public step `tignn_jax.contact_stepper` in both the stepper's and the step's "
+                  "columns (the latter with device and host forces).", "",
                   f"| scene | budget | {LOOP_STEP} | {STEPPER} | {STEP_DEVICE} | {STEP_HOST} | "
                   "stepper ÷ loop's program (p50) | step − stepper (p50): the checks | largest state difference, "
                   "step vs stepper |", "|---|---|---|---|---|---|---|---|---|"]
