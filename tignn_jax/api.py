@@ -403,14 +403,14 @@ def _scan_frames(model, n: int, arrays: dict, z0, forces_seq):
 
 _advance = _frame_program(_frame_map, static_argnums=(0, 1))
 _rollout = _frame_program(_scan_frames, static_argnums=(0, 1))
-_PROGRAMS: dict = {}   # id(arrays) → (arrays, model, array leaves, programs) of the last models stepped
+_PROGRAMS: dict = {}   # id(arrays) → (arrays, model, array leaves, programs) of the last models compiled
 _PROGRAMS_KEPT = 8
 
 
 def _programs(params: dict) -> tuple:
     """``(frame(z, forces), frames(z0, forces_seq))``: `_frame_map` and `_scan_frames` of the model with its arrays
-    closed over, compiled once per model and number of bodies (those of the last ``_PROGRAMS_KEPT`` models are
-    kept, and keep the models' arrays alive); where the arrays are traced (a caller differentiating with respect
+    closed over, compiled once per model and number of bodies (those of the last ``_PROGRAMS_KEPT`` models compiled
+    are kept, and keep the models' arrays alive); where the arrays are traced (a caller differentiating with respect
     to them), `_advance` and `_rollout`, which take them as arguments."""
     model, n, arrays = params["model"], _nodes(params), params["arrays"]
     leaves = jax.tree_util.tree_leaves(arrays)
