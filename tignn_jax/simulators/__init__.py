@@ -11,8 +11,8 @@ state and force (the demo then guards the class's bodies for finiteness only, no
 
 ``step_state`` advances the state z = (q, v, σ) [N, 12] of one body of the model's mesh by one frame Δt under the
 external nodal forces f [N, 3] (constant during the frame). It is pure and traceable, so `tignn_jax.step`,
-`tignn_jax.rollout` and `tignn_jax.stepper` jit it with the model object as a static argument and the arrays as
-arguments: one compiled program per model class, configuration and mesh size, shared by all three.
+`tignn_jax.rollout` and `tignn_jax.stepper` jit it with the model's arrays closed over: one compiled program per
+model and number of bodies (`tignn_jax.api`), and with the arrays as arguments where a caller traces them.
 
 A model (what `tignn_jax.load_pretrained` returns as ``params``) is a plain dict::
 
