@@ -118,9 +118,14 @@ def det3(a):
 
 def cofactor3(a):
     """Cofactor matrix cof(A) = det(A) A⁻ᵀ of [3, 3, ...], written out (cheap and differentiable)."""
-    c = [[a[(i + 1) % 3, (j + 1) % 3] * a[(i + 2) % 3, (j + 2) % 3]
-          - a[(i + 1) % 3, (j + 2) % 3] * a[(i + 2) % 3, (j + 1) % 3] for j in range(3)] for i in range(3)]
+    c = cofactor3_rows([[a[i, j] for j in range(3)] for i in range(3)])
     return jnp.stack([jnp.stack(row) for row in c])
+
+
+def cofactor3_rows(a):
+    """`cofactor3` of a matrix given as rows of components, a[i][j] [...] each, as the same nested lists."""
+    return [[a[(i + 1) % 3][(j + 1) % 3] * a[(i + 2) % 3][(j + 2) % 3]
+             - a[(i + 1) % 3][(j + 2) % 3] * a[(i + 2) % 3][(j + 1) % 3] for j in range(3)] for i in range(3)]
 
 
 def inv3(a):

@@ -84,7 +84,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from fem.material import cofactor3, det3, matmul3, trace3, transpose3
+from fem.material import cofactor3, cofactor3_rows, det3, matmul3, trace3, transpose3
 from fem.solver import _polar_rotation as polar
 from fem.solver import _sum_over as _sum
 from tignn_jax.simulators import contact as C
@@ -631,8 +631,7 @@ def _isochoric(c10, c01, H, stress: bool = False):
     tr = h[0][0] + h[1][1] + h[2][2]
     trhh = sum(h[i][j] * h[j][i] for i in r3 for j in r3)
     frob = sum(h[i][j] * h[i][j] for i in r3 for j in r3)
-    cof_h = [[h[(i + 1) % 3][(j + 1) % 3] * h[(i + 2) % 3][(j + 2) % 3]
-              - h[(i + 1) % 3][(j + 2) % 3] * h[(i + 2) % 3][(j + 1) % 3] for j in r3] for i in r3]
+    cof_h = cofactor3_rows(h)
     det_h = h[0][0] * cof_h[0][0] + h[0][1] * cof_h[0][1] + h[0][2] * cof_h[0][2]
     x_true = tr + 0.5 * (tr * tr - trhh) + det_h                      # J − 1, as `_volume_change`
     x = jnp.maximum(x_true, J_FLOOR - 1.0)
@@ -652,8 +651,7 @@ def _isochoric(c10, c01, H, stress: bool = False):
     if not stress:
         return psi, None
     F = [[h[i][j] + (1.0 if i == j else 0.0) for j in r3] for i in r3]
-    cof_f = [[F[(i + 1) % 3][(j + 1) % 3] * F[(i + 2) % 3][(j + 2) % 3]
-              - F[(i + 1) % 3][(j + 2) % 3] * F[(i + 2) % 3][(j + 1) % 3] for j in r3] for i in r3]
+    cof_f = cofactor3_rows(F)
     dseries = xs * (2.0 / 3.0 + xs * (-4.0 / 9.0 + xs * (28.0 / 81.0 + xs * (-70.0 / 243.0 + xs * 182.0 / 729.0))))
     dm = (2.0 / 3.0) * jnp.exp(-log_j / 3.0) * active   # below the floor J is held: of ∂x only 2 (x − x_floor)'s
     dg = jnp.where(small, dseries, 2.0 - 3.0 * dm) * active + 2.0 * (1.0 - active)
