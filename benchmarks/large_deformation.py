@@ -5,8 +5,9 @@ released. Reference: the FEM's backward Euler on the same frame step, Newton ite
 (`fem.implicit.simulate_implicit`, up to 25 iterations a frame); for the release, whose first frame the implicit
 FEM's Newton iteration does not survive, the explicit FEM (`fem.simulate`, every wave resolved: it rings where
 backward Euler damps, so part of every model's error there is the time step's). Models: the shipped learned
-linear ``beam``, the FEM's rest linearisation ``beam-linear`` and the corotational GENERIC model made from the
-FEM's element operators (`tignn_jax.simulators.corotational.from_fem`), each through `tignn_jax.stepper`.
+linear ``beam``, the FEM's rest linearisation ``beam-linear`` and the shipped corotational GENERIC ``beam-corot``
+(made from the FEM's element operators, `tignn_jax.simulators.corotational.from_fem`), each through
+`tignn_jax.stepper`.
 
 Per model and load: the mean over frames of the L2 errors of u and σ relative to the case's peak (over frames)
 of the FEM's norm; the largest volume change of the model and of the FEM (hex volumes split into tets); the
@@ -86,10 +87,10 @@ def models(cells: str = "hexahedron"):
 
     scene = beam(cells)
     linear, _ = tignn_jax.load_pretrained("beam-linear")
-    problem = scenes.setup_scene(scene._replace(n_frames=1))
-    stored = C.from_fem(problem, scene.material)
-    info = {"kind": "the FEM's energy and element operators, corotated (not learned)"}
     if cells == "tetra":
+        problem = scenes.setup_scene(scene._replace(n_frames=1))
+        stored = C.from_fem(problem, scene.material)
+        info = {"kind": "the FEM's energy and element operators, corotated (not learned)"}
         mesh = {"q0": scene.points, "senders": scene.edges[0], "receivers": scene.edges[1],
                 "node_type": scene.node_type}
         rest = LG.from_rest_linearization(implicit.rest_linearization(problem, scene.material), scene.frame_dt)
@@ -97,9 +98,8 @@ def models(cells: str = "hexahedron"):
                 "tet beam: corotational": tignn_jax.make_params(C.CorotationalGeneric(), stored, mesh,
                                                                 linear["envelope"], info)}
     beam_model, _ = tignn_jax.load_pretrained("beam")
-    corot = tignn_jax.make_params(C.CorotationalGeneric(), stored, linear["mesh"], linear["envelope"], info)
     return {BASE["hexahedron"]: beam_model, "beam-linear (FEM rest linearisation)": linear,
-            "corotational (FEM element operators)": corot}
+            "beam-corot (FEM element operators)": tignn_jax.load_pretrained("beam-corot")[0]}
 
 
 def reference(forces, explicit: bool = False, cells: str = "hexahedron"):

@@ -5,4 +5,4 @@ operators (not learned). Its envelope is the Abaqus train split's.
 """
 from tignn_jax.train.corotational import CorotationalConfig, TrainConfig
 
-CONFIG = TrainConfig(model=CorotationalConfig(cg_iterations=9, cg_max_iterations=9, cg_tolerance=1e-2, modes=32))
+CONFIG = TrainConfig(model=CorotationalConfig(cg_iterations=3, cg_max_iterations=12, cg_tolerance=1e-2, modes=32))

@@ -98,3 +98,14 @@ def test_shipped_model_has_a_one_screen_card(name):
     assert len(lines) <= 45 and max(map(len, lines)) <= 120
     for section in ("What it is", "Data", "Recipe", "Test errors", "Step time", "Limits"):
         assert f"## {section}" in card
+
+
+@pytest.mark.parametrize("name, recipe", [("beam-corot", "beam_corot.py"), ("bunny-corot", "bunny_corot.py")])
+def test_the_corotational_models_step_with_their_recipes_options(name, recipe):
+    # nothing is fitted in these models: their recipe's options (CG iterations, preconditioner) are the model
+    from pathlib import Path
+
+    from tignn_jax.train import load_recipe
+
+    config = load_recipe(Path(__file__).resolve().parents[1] / "configs" / recipe)[0].model
+    assert T.load_pretrained(name)[0]["model"].config == config

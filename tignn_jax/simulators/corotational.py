@@ -109,10 +109,8 @@ class CorotationalConfig(NamedTuple):
       cg_max_iterations: the most iterations a frame may make: past ``cg_iterations`` the solve goes on while the
         preconditioned residual rᵀP r is above ``cg_tolerance``² times the right-hand side's bᵀA⁻¹b (a state far
         from the rest operator's, e.g. a noisy or fast-turning one, needs more than the few iterations a smooth
-        frame does). Equal to ``cg_iterations``, every frame makes the same iterations: the same work each frame,
-        at the cost of the iterations an easy frame would not need (`beam-corot`'s recipe, whose frames in the
-        demo would otherwise take 3 to 12 with the fingertip's motion: docs/research_log.md).
-      cg_tolerance: that relative residual (unused where ``cg_max_iterations`` = ``cg_iterations``).
+        frame does).
+      cg_tolerance: that relative residual.
       schur_limit: the most volume constraints C (hex elements, or tet nodes) for which the preconditioner
         eliminates the volumetric stiffness through its dense Schur complement, S⁻¹ [C, C] (`schur_preconditioner`:
         C² numbers, and C² products an iteration); a larger mesh gets A₀'s node blocks there (`rest_preconditioner`).
