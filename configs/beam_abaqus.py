@@ -8,8 +8,9 @@ train split with state noise 0.2 and the degeneracy penalties, each case weighte
 This is the last phase of the recipe that beat the published network's test errors (docs/research_log.md): the
 earlier phases were the same at lr 3e-3 (set ``init_from`` to the previous phase's run folder to continue one).
 The width-64, 2-pass variant: ``model=GNNConfig(hidden=64, passes=2)``, 60 epochs, warm-started from the 3-pass
-network with its second pass removed; shipped as ``beam-tignn``, which runs only from the data's first state (its
-MODEL_CARD.md).
+network with its second pass removed; shipped as ``beam-tignn``, a `RestStartGNN` with ``beam-linear``'s rest
+stiffness (`tignn_jax.simulators.rest_start.with_rest_start`), which starts from rest at the quasi-static rate of its
+load (its MODEL_CARD.md).
 """
 from tignn_jax.train.gnn import GNNConfig, TrainConfig
 

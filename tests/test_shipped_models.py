@@ -12,29 +12,27 @@ SHIPPED = {"beam": (0.10, 0.15), "beam-linear": (0.10, 0.15), "beam-corot": (0.0
            "bunny-linear": (0.05, 0.25), "bunny-corot": (0.05, 0.25)}
 
 
-# the paper's network, reproduced: it runs only from the Abaqus data's first state, not from rest
-# (tests/test_reference_errors.py), and its file says so
+# the paper's network, reproduced: it follows a load ramped from rest (tests/test_reference_errors.py, which also
+# checks it from rest), not a fingertip's presses, and its file says so
 REPRODUCTIONS = ("beam-tignn",)
 
 
 def test_the_shipped_models_are_the_documented_ones():
     assert sorted(T.shipped_models()) == sorted([*SHIPPED, *REPRODUCTIONS])
     assert T.api.DEFAULT_MODEL == "beam-corot"
-    assert all(T.api.responds_from_rest(name) for name in SHIPPED)
-    assert not any(T.api.responds_from_rest(name) for name in REPRODUCTIONS)
+    assert all(T.api.for_interaction(name) for name in SHIPPED)
+    assert not any(T.api.for_interaction(name) for name in REPRODUCTIONS)
 
 
-def test_a_model_that_does_not_respond_from_rest_is_refused_by_the_demo_and_the_viewer_and_warned_of(capsys):
+def test_a_model_not_for_interaction_is_refused_by_the_demo_and_the_viewer(capsys):
     from tignn_jax.cli import main
     from tignn_jax.view.scenes import resolve_model
 
     assert main(["demo", "--model", "beam-tignn", "--out", "unused"]) == 2
     err = capsys.readouterr().err.strip()
-    assert len(err.splitlines()) == 1 and "beam-tignn" in err and "does not respond from rest" in err
-    with pytest.raises(ValueError, match="does not respond from rest"):
+    assert len(err.splitlines()) == 1 and "beam-tignn" in err and "not a model for interaction" in err
+    with pytest.raises(ValueError, match="not a model for interaction"):
         resolve_model("beam-tignn")
-    with pytest.warns(UserWarning, match="does not respond from rest"):
-        T.load_pretrained("beam-tignn")
     from tignn_jax.view import models_for
 
     assert "beam-tignn" not in models_for("beam") and "beam-corot" in models_for("beam")

@@ -8,8 +8,9 @@ The public API::
     fn = tignn_jax.contact_stepper(params, poses, radius, stiffness)   # bodies that touch: zs = fn(zs, forces)
 
 Model classes (`tignn_jax.simulators`): `GenericGNN`, the paper's thermodynamics-informed graph network,
-`LinearGeneric`, the learned linear GENERIC model, and `CorotationalGeneric`, the corotational GENERIC model for
-large deformations. Training: `train`, with a recipe from ``configs/``.
+`RestStartGNN`, that network started from rest at the quasi-static rate of its load, `LinearGeneric`, the learned
+linear GENERIC model, and `CorotationalGeneric`, the corotational GENERIC model for large deformations.
+Training: `train`, with a recipe from ``configs/``.
 """
 from tignn_jax.api import (contact_stepper, load_model, load_pretrained, make_params, rest_graph, rollout,
                            save_model, shipped_models, step, stepper)
@@ -18,7 +19,7 @@ from tignn_jax.guards import (fallback_step, fallback_stepper, force_check, guar
                               state_guard)
 from tignn_jax.newton import fem_stepper
 from tignn_jax.simulators import (CorotationalConfig, CorotationalGeneric, GenericGNN, GNNConfig, LinearConfig,
-                                  LinearGeneric)
+                                  LinearGeneric, RestStartGNN)
 from tignn_jax.train import train
 
 __version__ = "0.2.0"
@@ -28,6 +29,7 @@ __all__ = [
     "step", "rollout", "stepper", "contact_stepper",
     "force_check", "state_check", "state_guard", "guarded_stepper", "fallback_step", "fallback_stepper",
     "fem_stepper",
-    "GenericGNN", "GNNConfig", "LinearGeneric", "LinearConfig", "CorotationalGeneric", "CorotationalConfig",
+    "GenericGNN", "GNNConfig", "RestStartGNN", "LinearGeneric", "LinearConfig", "CorotationalGeneric",
+    "CorotationalConfig",
     "train", "evaluate",
 ]

@@ -11,7 +11,6 @@ from __future__ import annotations
 import json
 import math
 import os
-import warnings
 import zipfile
 from pathlib import Path
 
@@ -184,9 +183,7 @@ def load_pretrained(name: str = DEFAULT_MODEL):
         ``tignn train`` (its ``model/model.npz``) or a model ``.npz``.
 
     Returns:
-      (params, graph): the model and the graph of its mesh at rest (q = q0, v = 0, σ = 0). A model that does not
-      respond from rest (`responds_from_rest`: the paper's reproduction ``beam-tignn``) is returned with a
-      warning: its rest graph is not a state to step it from.
+      (params, graph): the model and the graph of its mesh at rest (q = q0, v = 0, σ = 0).
 
     Raises:
       ValueError: no such model.
@@ -201,8 +198,6 @@ def load_pretrained(name: str = DEFAULT_MODEL):
     if not path.exists():
         raise ValueError(f"no model named {name!r}; shipped models: {shipped_models()}")
     params = load_model(path)
-    if params.get("info", {}).get("from_rest") is False:
-        warnings.warn(f"model {name!r} {NOT_FROM_REST}: its rest graph is not a state to step it from", stacklevel=2)
     return params, rest_graph(params)
 
 
@@ -211,14 +206,14 @@ def shipped_models() -> list[str]:
     return sorted(p.name for p in PRETRAINED_DIR.iterdir() if (p / "model.npz").exists())
 
 
-NOT_FROM_REST = ("runs only from its training data's first state and does not respond from rest (its "
-                 "MODEL_CARD.md)")
+NOT_INTERACTIVE = ("is the paper's network reproduced, which follows a load ramped from rest as its training data "
+                   "do, not a model for interaction (its MODEL_CARD.md)")
 
 
-def responds_from_rest(model: str | Path) -> bool:
-    """Whether a model may be stepped from rest, as the demo and the viewer start: False where its file's ``info``
-    says ``"from_rest": false``. The paper's reproduction ``beam-tignn`` does: it reads the Abaqus data's first
-    velocity, a finite difference of the positions to come, and at rest does not move. Read with numpy alone.
+def for_interaction(model: str | Path) -> bool:
+    """Whether a model is meant to be pushed around, as the demo and the viewer do: False where its file's ``info``
+    says ``"interactive": false``. The paper's reproduction ``beam-tignn`` does: it follows a load ramped from rest,
+    as the Abaqus data do, and a load held, released or moved is outside what it learned. Read with numpy alone.
 
     Args:
       model: a shipped model's name, a model file, or a folder holding ``model.npz`` or ``model/model.npz``.
@@ -234,7 +229,7 @@ def responds_from_rest(model: str | Path) -> bool:
             info = json.loads(str(raw["info"])) if "info" in raw.files else {}
     except (OSError, ValueError, EOFError, AttributeError, TypeError, zipfile.BadZipFile):   # not a model file
         return True
-    return info.get("from_rest") is not False
+    return info.get("interactive") is not False
 
 
 def rest_graph(params: dict, copies: int = 1) -> jraph.GraphsTuple:

@@ -459,8 +459,8 @@ def _parse_size(text: str) -> tuple:
 
 def _check_model(model: str | None, stand_in: bool) -> None:
     """Refuse an unknown ``--model`` before JAX starts (a shipped name, an existing path or ``FEM_NEWTON``), and a
-    model whose file says it does not respond from rest (``info["from_rest"]`` false: the paper's reproduction
-    ``beam-tignn``), since every scene starts at rest."""
+    model whose file says it is not for interaction (``info["interactive"]`` false: the paper's reproduction
+    ``beam-tignn``), since every scene is pushed by a fingertip."""
     if stand_in:
         if model is not None:
             raise UsageError(f"--stand-in runs the placeholder dynamics instead of a model; drop --model {model}")
@@ -473,8 +473,8 @@ def _check_model(model: str | None, stand_in: bool) -> None:
     if model not in shipped and not Path(model).exists():
         raise UsageError(f"--model {model!r}: no such model; shipped models: {', '.join(shipped)} (or a model "
                          f"folder or .npz file, or {FEM_NEWTON!r})")
-    if not api.responds_from_rest(model):
-        raise UsageError(f"--model {model}: {api.NOT_FROM_REST}; the demo's models: "
+    if not api.for_interaction(model):
+        raise UsageError(f"--model {model}: {api.NOT_INTERACTIVE}; the demo's models: "
                          f"{', '.join(sorted(set(DEFAULT_MODELS.values())))}")
 
 

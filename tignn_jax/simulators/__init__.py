@@ -30,8 +30,9 @@ from __future__ import annotations
 from tignn_jax.simulators.corotational import CorotationalConfig, CorotationalGeneric
 from tignn_jax.simulators.generic_gnn import GenericGNN, GNNConfig
 from tignn_jax.simulators.linear import LinearConfig, LinearGeneric
+from tignn_jax.simulators.rest_start import RestStartGNN
 
-CLASSES = {cls.name: cls for cls in (GenericGNN, LinearGeneric, CorotationalGeneric)}
+CLASSES = {cls.name: cls for cls in (GenericGNN, RestStartGNN, LinearGeneric, CorotationalGeneric)}
 
 __all__ = ["CLASSES", "CorotationalConfig", "CorotationalGeneric", "GenericGNN", "GNNConfig", "LinearConfig",
-           "LinearGeneric"]
+           "LinearGeneric", "RestStartGNN"]

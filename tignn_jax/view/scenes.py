@@ -34,15 +34,15 @@ def resolve_model(model: str) -> str:
 
     Raises:
       ValueError: neither a shipped model, nor ``fem-newton``, nor an existing model file or folder; or a model
-        that does not respond from rest (`tignn_jax.api.responds_from_rest`), since the viewer starts at rest.
+        that is not for interaction (`tignn_jax.api.for_interaction`), since the viewer's user pushes the body.
     """
     from tignn_jax import api
     from tignn_jax.cli.demo import FEM_NEWTON
 
     if model == FEM_NEWTON:
         return model
-    if not api.responds_from_rest(model):
-        raise ValueError(f"model {model!r}: {api.NOT_FROM_REST}")
+    if not api.for_interaction(model):
+        raise ValueError(f"model {model!r}: {api.NOT_INTERACTIVE}")
     if model in api.shipped_models():
         return model
     path = Path(model)
@@ -125,7 +125,7 @@ def load_scene(scene: str | None = None, model: str | None = None) -> Scene:
 
 
 def models_for(scene: str | None) -> list[str]:
-    """The shipped models on ``scene``'s mesh that respond from rest (`tignn_jax.api.responds_from_rest`), then
+    """The shipped models on ``scene``'s mesh that are for interaction (`tignn_jax.api.for_interaction`), then
     ``fem-newton``, for the page's model menu (None: [])."""
     if scene is None:
         return []
@@ -133,7 +133,7 @@ def models_for(scene: str | None) -> list[str]:
     from tignn_jax.cli import demo
 
     mesh = "beam" if scene in ("beam", "two-beams") else "bunny"
-    shipped = [m for m in api.shipped_models() if m.split("-")[0] == mesh and api.responds_from_rest(m)]
+    shipped = [m for m in api.shipped_models() if m.split("-")[0] == mesh and api.for_interaction(m)]
     return shipped + [demo.FEM_NEWTON]
 
 
