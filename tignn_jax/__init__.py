@@ -19,7 +19,7 @@ from tignn_jax.guards import (fallback_step, fallback_stepper, force_check, guar
                               state_guard)
 from tignn_jax.newton import fem_stepper
 from tignn_jax.simulators import (CorotationalConfig, CorotationalGeneric, GenericGNN, GNNConfig, LinearConfig,
-                                  LinearGeneric, RestStartGNN)
+                                  LinearGeneric)
 from tignn_jax.train import train
 
 __version__ = "0.2.0"
@@ -29,7 +29,6 @@ __all__ = [
     "step", "rollout", "stepper", "contact_stepper",
     "force_check", "state_check", "state_guard", "guarded_stepper", "fallback_step", "fallback_stepper",
     "fem_stepper",
-    "GenericGNN", "GNNConfig", "RestStartGNN", "LinearGeneric", "LinearConfig", "CorotationalGeneric",
-    "CorotationalConfig",
+    "GenericGNN", "GNNConfig", "LinearGeneric", "LinearConfig", "CorotationalGeneric", "CorotationalConfig",
     "train", "evaluate",
 ]
