@@ -8,6 +8,7 @@ graph optimisations, fusion included, stay on): they run once or a few times eac
 running (`docs/research_log.md`), except in the tests marked ``optimized``, whose programs run long; set
 ``TIGNN_OPTIMIZE_TESTS=1`` to compile every test's programs as a user's programs are.
 """
+import contextlib
 import os
 from pathlib import Path
 
@@ -37,12 +38,9 @@ def pytest_collection_modifyitems(config, items):
             item.add_marker(skip)
 
 
-@pytest.fixture(autouse=True)
-def _optimized_compilation(request):
-    """Compile an ``optimized`` test's programs with all of LLVM's optimisations (see the module docstring)."""
-    if request.node.get_closest_marker("optimized") is None:
-        yield
-        return
+@contextlib.contextmanager
+def _llvm_optimisations():
+    """Programs compiled inside are compiled with all of LLVM's optimisations (see the module docstring)."""
     import jax
 
     was = jax.config.values["jax_disable_most_optimizations"]
@@ -51,3 +49,20 @@ def _optimized_compilation(request):
         yield
     finally:
         jax.config.update("jax_disable_most_optimizations", was)
+
+
+@pytest.fixture(autouse=True)
+def _optimized_compilation(request):
+    """Compile an ``optimized`` test's programs with all of LLVM's optimisations (see the module docstring)."""
+    if request.node.get_closest_marker("optimized") is None:
+        yield
+        return
+    with _llvm_optimisations():
+        yield
+
+
+@pytest.fixture(scope="session")
+def optimized():
+    """A context manager: the programs compiled inside it are compiled with LLVM's optimisations, for a part of a
+    test (a reference computed over many steps) whose programs run longer than they compile."""
+    return _llvm_optimisations

@@ -50,8 +50,9 @@ def press(name):
 
 
 @pytest.fixture(scope="module")
-def fem_reference():
-    """The FEM's states under `press` from rest, per scene (computed once: the Newton step compiles slowly)."""
+def fem_reference(optimized):
+    """The FEM's states under `press` from rest, per scene (computed once: the Newton step compiles slowly; with
+    LLVM's optimisations, since its 20 steps take longer than their compilation)."""
     out = {}
 
     def get(name):
@@ -60,8 +61,9 @@ def fem_reference():
             linear, graph = T.load_pretrained(f"{scene}-linear")
             fem = T.fem_stepper(linear)
             z = [graph.nodes["z"]]
-            for f in press(name):
-                z.append(fem(z[-1], jnp.asarray(f)))
+            with optimized():
+                for f in press(name):
+                    z.append(fem(z[-1], jnp.asarray(f)))
             out[scene] = np.stack([np.asarray(x) for x in z])
         return out[scene]
 
