@@ -14,7 +14,7 @@ linearly from zero, whose first frame reaches f::
     v₀ = K₀⁻¹ f / Δt,
 
 K₀ the FEM's stiffness at rest on the model's mesh (clamped degrees of freedom removed) and Δt the data's frame
-step: for such a ramp q₂ − q₀ = 2 (q₁ − q₀), so the central difference is (q₁ − q₀)/Δt = K₀⁻¹ f/Δt. Every other
+step: for such a ramp q₂ − q₀ = 2 (q₁ − q₀), so that difference is (q₁ − q₀)/Δt = K₀⁻¹ f/Δt. Every other
 state is stepped as the paper's network steps it (`GenericGNN.step_state`); so is the first frame, from
 (q₀, v₀, 0). The network, its weights and its GENERIC step are unchanged.
 
