@@ -3,13 +3,11 @@
 Scene: the FEM's two beams (`fem.scenes.two_beams_scene`): B turned 90° over A's free half, 10 above it, B's
 reference load line at its free end (test case 14: x = 40, top face, downwards) ramped over 20 frames to 1×, 2×
 and 3× the reference maximum, then held; B bends onto A, which bends under it. Contact: the FEM's
-(`fem.scenes.TWO_BEAMS_CONTACT`: penalty springs between surface nodes closer than r0 = 2, k = 2.5e5, their
-stiffness growing from zero over the first 1.0 of overlap: `fem.solver.contact_penalty`).
+(`fem.scenes.TWO_BEAMS_CONTACT`: penalty springs between surface nodes closer than r0 = 2, k = 2.5e5).
 
 Reference: the explicit FEM (`fem.simulate_batch`, every wave resolved, the contact in every sub-step), the three
 loads as one batch; it takes long (tens of minutes on one core), so it is kept in ``--cache`` and reused.
-Models, both beams the shipped ``beam-corot``, same radius and stiffness (and onset, where the contact is implicit;
-the explicit penalty between frames is the plain one):
+Models, both beams the shipped ``beam-corot``, same radius and stiffness:
 
 * contact in the implicit step: `tignn_jax.contact_stepper` (both beams in one backward-Euler solve, the penalty's
   energy in it);
@@ -63,17 +61,15 @@ def loads(frames: int, scales) -> np.ndarray:
 
 def reference(forces, cache: Path | None):
     """The explicit FEM's (q [C, T, N, 3], σ [C, T, N, 6]) for forces [C, T, N, 3], from ``cache`` when it holds
-    these forces under this contact law (r0, stiffness, onset)."""
+    these forces."""
     import jax.numpy as jnp
 
     from fem import scenes
     from fem import solver as sv
 
-    law = np.array([scenes.TWO_BEAMS_CONTACT[key] for key in ("r0", "stiffness", "onset")])
     if cache is not None and cache.exists():
         kept = np.load(cache)
-        if (kept["forces"].shape == forces.shape and np.array_equal(kept["forces"], forces) and "law" in kept
-                and np.array_equal(kept["law"], law)):
+        if kept["forces"].shape == forces.shape and np.array_equal(kept["forces"], forces):
             return kept["q"], kept["sigma"]
     scene = scenes.two_beams_scene()
     problem = scenes.setup_scene(scene._replace(n_frames=forces.shape[1]), contact=scenes.two_beams_contact(scene))
@@ -81,7 +77,7 @@ def reference(forces, cache: Path | None):
     q, sigma = np.asarray(res.q)[:, 1:], np.asarray(res.sigma)[:, 1:]
     if cache is not None:
         cache.parent.mkdir(parents=True, exist_ok=True)
-        np.savez(cache, forces=forces, q=q, sigma=sigma, law=law)
+        np.savez(cache, forces=forces, q=q, sigma=sigma)
     return q, sigma
 
 
@@ -109,7 +105,7 @@ def surface(params) -> np.ndarray:
     return surface_nodes(surface_triangles(np.asarray(cells), q0))
 
 
-def stepper(coupling: str, params, r0: float, k: float, onset: float = 0.0):
+def stepper(coupling: str, params, r0: float, k: float):
     """``fn((z_a, z_b), (f_a, f_b)) -> (z_a, z_b)`` in the beams' model frames."""
     import jax
     import jax.numpy as jnp
@@ -118,7 +114,7 @@ def stepper(coupling: str, params, r0: float, k: float, onset: float = 0.0):
     from tignn_jax.mr.forcing import contact_forces
 
     if coupling == "implicit":
-        return tignn_jax.contact_stepper(params, [np.eye(4), POSE_B], r0, k, onset=onset)
+        return tignn_jax.contact_stepper(params, [np.eye(4), POSE_B], r0, k)
     step = tignn_jax.stepper(params, 2)
     s = jnp.asarray(surface(params))
     rot, shift = jnp.asarray(POSE_B[:3, :3], jnp.float32), jnp.asarray(POSE_B[:3, 3], jnp.float32)
@@ -143,16 +139,13 @@ def rotate_voigt(sigma, rot):
     return np.stack([full[..., a, b] for a, b in zip(i, j)], axis=-1)
 
 
-def run_model(coupling: str, params, forces, r0: float, k: float, onset: float = 0.0):
+def run_model(coupling: str, params, forces, r0: float, k: float):
     """(world states [T, 1512, 12] (q, v, σ), energy-creating frames, whether all are finite, the milliseconds of
-    each frame after the first) over forces [T, 1512, 3] (world axes) from rest; the energy's contact term by the
-    FEM's law (`fem.solver.contact_penalty`, with ``onset``)."""
+    each frame after the first) over forces [T, 1512, 3] (world axes) from rest."""
     import jax
     import jax.numpy as jnp
 
-    from fem.solver import contact_penalty
-
-    fn = stepper(coupling, params, r0, k, onset)
+    fn = stepper(coupling, params, r0, k)
     model, arrays = params["model"], params["arrays"]
     energy = jax.jit(lambda z: model.diagnostics(arrays, z, jnp.zeros_like(z[:, :3]), z)["energy"])
     q0 = np.asarray(params["mesh"]["q0"], np.float32)
@@ -167,7 +160,7 @@ def run_model(coupling: str, params, forces, r0: float, k: float, onset: float =
         world = world_states(nxt)
         work = float(jnp.sum(fs[1] * (nxt[1][:, :3] - zs[1][:, :3])))
         d = np.linalg.norm(world[:n][s, None, :3] - world[n:][None, s, :3], axis=-1)
-        e_next = sum(float(energy(z)) for z in nxt) + float(np.sum(contact_penalty(r0 - d, k, onset)[0]))
+        e_next = sum(float(energy(z)) for z in nxt) + 0.5 * k * float(np.sum(np.maximum(r0 - d, 0.0) ** 2))
         if np.isfinite(e_next):
             created += int(e_next - e > work + 1e-4 * max(abs(e), abs(e_next), abs(work)) + 1e-2)
         zs, e = nxt, e_next
@@ -270,13 +263,13 @@ def main(argv=None) -> int:
     two = scenes.two_beams_scene()
     q_rest, cells = np.asarray(two.points, np.float64), np.asarray(two.cells[: len(two.cells) // 2])
     line = centre_line(q_rest[: len(q_rest) // 2])
-    r0, k, onset = (scenes.TWO_BEAMS_CONTACT[key] for key in ("r0", "stiffness", "onset"))
+    r0, k = scenes.TWO_BEAMS_CONTACT["r0"], scenes.TWO_BEAMS_CONTACT["stiffness"]
     rows, pick = [], models()
     s = surface(pick["beam-corot, contact in the implicit step"][1])
     frame_ms = {name: [] for name in pick}
     for c, (label, _) in enumerate(cases):
         for name, (coupling, params) in pick.items():
-            states, created, finite, ms = run_model(coupling, params, forces[c], r0, k, onset)
+            states, created, finite, ms = run_model(coupling, params, forces[c], r0, k)
             frame_ms[name] += ms
             row = {"model": name, "load": label, "finite": finite, "energy_creating_frames": created}
             if finite:

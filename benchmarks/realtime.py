@@ -140,9 +140,8 @@ def step_programs(scene, name: str, model: str | None, public: bool = True):
     if public and model != FEM_NEWTON and scene.step is not None:
         # bodies in contact: their public step is tignn_jax.contact_stepper (one frame of all of them); the
         # stepper column is its function called directly, the step columns it with device and host forces
-        from tignn_jax.cli.demo import IMPLICIT_CONTACT, IMPLICIT_CONTACT_ONSET
-        contact = tignn_jax.contact_stepper(params, [np.asarray(b.model) for b in scene.bodies], *IMPLICIT_CONTACT,
-                                            onset=IMPLICIT_CONTACT_ONSET)
+        from tignn_jax.cli.demo import IMPLICIT_CONTACT
+        contact = tignn_jax.contact_stepper(params, [np.asarray(b.model) for b in scene.bodies], *IMPLICIT_CONTACT)
         host = tuple(np.asarray(f) for f in forces)
         fns[STEPPER] = lambda: contact(zs, forces)
         fns[STEP_DEVICE] = lambda: contact(zs, forces)

@@ -153,9 +153,7 @@ def setup_scene(scene: Scene, **kwargs):
 
 
 TWO_BEAMS_GAP = 10.0
-# the two beams' contact law (`fem.solver.contact_penalty`): radius r0, stiffness, its onset (the overlap over which a
-# pair's stiffness grows from zero: half the radius), and the candidate search's skin and capacity
-TWO_BEAMS_CONTACT = {"r0": 2.0, "stiffness": 2.5e5, "onset": 1.0, "skin": 1.5, "capacity": 4096}
+TWO_BEAMS_CONTACT = {"r0": 2.0, "stiffness": 2.5e5, "skin": 1.5, "capacity": 4096}
 
 
 def two_beams_scene(density: float = BEAM_DENSITY, damping: float = BEAM_DAMPING, prony: bool = BEAM_PRONY) -> Scene:

@@ -18,10 +18,9 @@ states and the backward pass recomputes one frame's sub-steps at a time: memory 
 O(n_frames · n_sub), for about one extra forward pass of compute.
 
 Contact between bodies (optional): node-to-node penalty between the surface nodes of body A and body B. A pair
-closer than r0 (the contact thickness, about one element size) repels with f = ψ′(r0 − d) n_AB on the A node and
-−f on the B node: equal and opposite, so momentum is conserved; the force derives from the potential ψ(r0 − d)
-(`contact_penalty`: ½ k (r0 − d)² past the onset δ, its stiffness growing from zero over the first δ of overlap;
-δ = 0 by default), which is counted in the stored energy, so the energy balance still closes. Candidate pairs closer
+closer than r0 (the contact thickness, about one element size) repels with f = k (r0 − d) n_AB on the A node and
+−f on the B node: equal and opposite, so momentum is conserved; the force derives from the potential
+½ k (r0 − d)², which is counted in the stored energy, so the energy balance still closes. Candidate pairs closer
 than r0 + skin are searched once per frame over all A×B surface pairs (dense, inside `jit`, fixed capacity) and
 only those are evaluated in the sub-steps; the run reports if the capacity overflowed or a pair moved more than
 the skin (``Result.contact_overflow``).
@@ -74,7 +73,7 @@ class Arrays(NamedTuple):
     damping_alpha: jnp.ndarray
     contact_a: Optional[jnp.ndarray] = None   # [Sa] surface node ids of body A
     contact_b: Optional[jnp.ndarray] = None   # [Sb] surface node ids of body B
-    contact_params: Optional[jnp.ndarray] = None  # [r0, k, skin, onset]
+    contact_params: Optional[jnp.ndarray] = None  # [r0, k, skin]
 
 
 class Problem(NamedTuple):
@@ -158,8 +157,7 @@ def setup(points, cells, *, material: Material, frame_dt: float, n_frames: int, 
     safety: fraction of the element-size stability limit; n_sub: sub-steps per frame (overrides the automatic
     choice); damping: Rayleigh mass-damping coefficient α [1/time]; pressure_faces [P, 4|3] node ids of loaded
     faces (outward orientation); contact: optional dict(a=node ids, b=node ids, r0=contact thickness,
-    stiffness=k [force/length], onset=δ [length, 0 ≤ δ ≤ r0; default 0] (`contact_penalty`), skin=search margin,
-    capacity=max candidate pairs) for body–body contact;
+    stiffness=k [force/length], skin=search margin, capacity=max candidate pairs) for body–body contact;
     tet_formulation: tet4 element, 'nodal' (stabilised averaged-nodal deformation gradient) or 'anp' (average
     nodal pressure, the formulation before 2026-11-21); tet_blend: α ∈ [0, 1], the weight of the element-wise
     isochoric energy in 'nodal' (see `fem.elements`).
@@ -224,13 +222,13 @@ def setup(points, cells, *, material: Material, frame_dt: float, n_frames: int, 
             if ids.size == 0 or ids.min() < 0 or ids.max() >= len(pts):
                 raise ValueError(f"{name} must be non-empty node ids in [0, {len(pts) - 1}]")
         r0, k_c = float(contact["r0"]), float(contact["stiffness"])
-        skin, onset = float(contact.get("skin", r0)), float(contact.get("onset", 0.0))
-        if r0 <= 0 or k_c <= 0 or skin < 0 or not 0 <= onset <= r0:
-            raise ValueError("contact needs r0 > 0, stiffness > 0, skin >= 0, 0 <= onset <= r0; "
-                             f"got r0={r0}, stiffness={k_c}, skin={skin}, onset={onset}")
+        skin = float(contact.get("skin", r0))
+        if r0 <= 0 or k_c <= 0 or skin < 0:
+            raise ValueError("contact needs r0 > 0, stiffness > 0, skin >= 0; "
+                             f"got r0={r0}, stiffness={k_c}, skin={skin}")
         capacity = int(contact.get("capacity", 4096))
         arrays = arrays._replace(contact_a=jnp.asarray(ca, jnp.int32), contact_b=jnp.asarray(cb, jnp.int32),
-                                 contact_params=jnp.asarray([r0, k_c, skin, onset]))
+                                 contact_params=jnp.asarray([r0, k_c, skin]))
     config = Config(kind, int(n_frames), int(n_sub), float(frame_dt), material.n_prony, damping > 0.0,
                     pf is not None, load_interp, bool(checkpoint), capacity,
                     tet_formulation if kind == "tetra" else "anp", float(tet_blend) if kind == "tetra" else 1.0)
@@ -687,42 +685,23 @@ def _pairs_missed(arr: Arrays, pairs, x):
     return inside > counted
 
 
-def contact_penalty(gap, stiffness, onset):
-    """(ψ, ψ′, ψ″) of the contact penalty of a pair at the overlap g = r0 − d (length; none where g ≤ 0), with
-    k = ``stiffness`` (force per length) and δ = ``onset`` (length, 0 ≤ δ ≤ r0)::
-
-        ψ = k g³ / 6δ,                   ψ′ = k g² / 2δ,     ψ″ = k g / δ      (0 < g ≤ δ)
-        ψ = k (g²/2 − δ g/2 + δ²/6),     ψ′ = k (g − δ/2),   ψ″ = k            (g > δ)
-
-    Twice continuously differentiable: the pair's stiffness grows from zero where it starts to touch to k at δ
-    past it, so a pair that comes into contact within an implicit step adds its energy cubically, not as a jump of
-    stiffness. δ = 0 is the plain penalty ½ k g². Arrays of any shape (broadcast)."""
-    g = jnp.maximum(gap, 0.0)
-    soft = g < onset
-    width = jnp.where(soft, onset, 1.0)
-    psi = jnp.where(soft, stiffness * g ** 3 / (6.0 * width), stiffness * (0.5 * g * g - 0.5 * onset * g + onset ** 2 / 6.0))
-    dpsi = jnp.where(soft, stiffness * g * g / (2.0 * width), stiffness * (g - 0.5 * onset))
-    ddpsi = jnp.where(g > 0, jnp.where(soft, stiffness * g / width, stiffness), 0.0)
-    return psi, dpsi, ddpsi
-
-
 def _contact_force(arr: Arrays, pairs, x):
-    """Penalty forces [N, 3]: ψ′(r0 − d) (`contact_penalty`) along the B→A direction on A, the opposite on B."""
-    r0, k, onset = arr.contact_params[0], arr.contact_params[1], arr.contact_params[3]
+    """Penalty forces [N, 3]: k (r0 − d) along the B→A direction on A, the opposite on B."""
+    r0, k = arr.contact_params[0], arr.contact_params[1]
     valid = pairs[:, 0] >= 0
     ia, ib = jnp.where(valid, pairs[:, 0], 0), jnp.where(valid, pairs[:, 1], 0)
     dx = x[ia] - x[ib]
     d = jnp.sqrt(jnp.sum(dx ** 2, axis=-1) + 1e-30)
-    mag = jnp.where(valid, contact_penalty(r0 - d, k, onset)[1], 0.0)
+    mag = jnp.where(valid & (d < r0), k * (r0 - d), 0.0)
     f = (mag / d)[:, None] * dx
     return jnp.zeros_like(x).at[ia].add(f).at[ib].add(-f)
 
 
 def _contact_energy(arr: Arrays, x):
-    r0, k, onset = arr.contact_params[0], arr.contact_params[1], arr.contact_params[3]
+    r0, k = arr.contact_params[0], arr.contact_params[1]
     xa, xb = x[arr.contact_a], x[arr.contact_b]
     d = jnp.sqrt(jnp.sum((xa[:, None] - xb[None]) ** 2, axis=-1) + 1e-30)
-    return jnp.sum(contact_penalty(r0 - d, k, onset)[0])
+    return 0.5 * k * jnp.sum(jnp.where(d < r0, (r0 - d) ** 2, 0.0))
 
 
 def _external_force(arr: Arrays, loads: Loads, cfg: Config, frame, frac, x):

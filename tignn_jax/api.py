@@ -113,12 +113,11 @@ def stepper(params: dict, copies: int = 1):
     return fn
 
 
-def contact_stepper(params, poses, radius: float, stiffness: float, capacity: int = 128, onset: float = 0.0):
+def contact_stepper(params, poses, radius: float, stiffness: float, capacity: int = 128):
     """One frame of several bodies that touch one another: ``zs_next = fn(zs, forces)``.
 
     Each body has a pose in a common world frame; where surface nodes of two bodies come closer than ``radius``
-    they repel by the penalty energy E_c = Σ_ij ψ(r − d_ij) (d_ij the world distance of the pair; ψ(g) = ½ k g²,
-    its stiffness growing from zero over the first ``onset`` of overlap: `fem.solver.contact_penalty`). The
+    they repel by the penalty energy E_c = Σ_ij ½ k max(r − d_ij, 0)² (d_ij the world distance of the pair). The
     contact is inside the bodies' implicit frame: all bodies are solved together, E_c in their potential and its
     stiffness in their one linear solve, so they never end a frame with more energy than their external forces
     put in, however stiff the contact (`tignn_jax.simulators.contact`). For models whose class steps bodies
@@ -132,8 +131,6 @@ def contact_stepper(params, poses, radius: float, stiffness: float, capacity: in
       stiffness: the penalty stiffness k (force per world length; forces in the models' units).
       capacity: the most surface nodes of a body, and of the others, taking part in its contact (those nearest to
         the other bodies' surface nodes; `tignn_jax.simulators.contact.candidate_pairs`).
-      onset: the overlap δ over which a touching pair's stiffness grows from zero to k (world length, 0 ≤ δ ≤ r):
-        a pair that starts to touch within a frame then adds its energy smoothly.
 
     Returns:
       ``fn(zs, forces) -> zs``, tuples over the bodies of z [N_b, 12] and forces [N_b, 3] (each in its body's
@@ -142,8 +139,8 @@ def contact_stepper(params, poses, radius: float, stiffness: float, capacity: in
     Raises:
       ValueError: fewer than two poses, a model list of another length, models of a class that cannot step
         bodies together or of different configurations, a pose that is not a finite [4, 4] similarity of one
-        common scale, a non-positive radius, stiffness or capacity, or an onset outside [0, radius] (and ``fn`` on
-        tuples of other lengths or shapes).
+        common scale, or a non-positive radius, stiffness or capacity (and ``fn`` on tuples of other lengths or
+        shapes).
     """
     from tignn_jax.mr.surface import surface_nodes, surface_triangles
     from tignn_jax.simulators.contact import contact
@@ -162,7 +159,7 @@ def contact_stepper(params, poses, radius: float, stiffness: float, capacity: in
                              f"and {first}")
     surfaces = [surface_nodes(surface_triangles(np.asarray(m["arrays"]["cells"]), np.asarray(m["mesh"]["q0"])))
                 for m in models]
-    spec = contact(poses, surfaces, radius, stiffness, capacity, onset=onset)
+    spec = contact(poses, surfaces, radius, stiffness, capacity)
     shapes = [_nodes(m) for m in models]
     arrays = tuple(m["arrays"] for m in models)
     frame = _frame_program(lambda zs, fs: first.step_together(arrays, zs, fs, spec))

@@ -61,9 +61,6 @@ BUNNY_STRESS_MAX = 0.25
 # that step bodies together (`tignn_jax.contact_stepper`): stiff enough that B bends A; otherwise explicit
 # between the frames (`tignn_jax.mr.forcing.contact_forces`), where a stiffer one rings (docs/research_log.md)
 IMPLICIT_CONTACT = (0.015, 2e7)
-# the overlap over which a touching pair's stiffness grows from zero (m; `fem.solver.contact_penalty`): half the
-# radius, so pairs that start to touch inside a frame add their energy smoothly (docs/research_log.md)
-IMPLICIT_CONTACT_ONSET = 0.0075
 BEAM_CONTACT = (0.015, 1e5)
 # ``--model fem-newton``: the FEM's own backward-Euler frame step (`tignn_jax.newton.fem_stepper`, 2 Newton
 # iterations of 3 CG each), not learned, on the mesh of the scene's rest-linearised model
@@ -281,7 +278,7 @@ def build_scene(name: str, frames: int, model: str | None = None, stand_in: bool
     implicit = getattr(step_fn, "params", None)
     if len(bodies) > 1 and implicit is not None and hasattr(implicit["model"], "step_together"):
         # the contact inside the bodies' one implicit frame (one solve, so not on several cores)
-        contact = api.contact_stepper(implicit, poses, *IMPLICIT_CONTACT, onset=IMPLICIT_CONTACT_ONSET)
+        contact = api.contact_stepper(implicit, poses, *IMPLICIT_CONTACT)
         scene = scene._replace(step=contact, contact_radius=0.0)
         return scene, dynamics + " (contact in the implicit step)"
     if len(devices) > 1 and len(bodies) > 1:

@@ -5,13 +5,11 @@ bodies' energies share their units). Two bodies touch where nodes of their surfa
 r; the pairs (i of body a, j of body b) at distance d_ij = |y_a,i − y_b,j| / s (model length) store the penalty
 energy::
 
-    E_c = Σ_ij ψ(r − d_ij),   ψ(g) = k g³/6δ (0 < g ≤ δ),  k (g²/2 − δg/2 + δ²/6) (g > δ),  0 (g ≤ 0)
+    E_c = Σ_ij ½ k max(r − d_ij, 0)²
 
-(`fem.solver.contact_penalty`, the FEM's own contact law: twice continuously differentiable, the pair's
-stiffness ψ″ growing from zero where it starts to touch to k at the onset δ past it; δ = 0 is ½ k max(r − d, 0)²;
-r, δ and k in model units: a world length ρ is ρ / s, a world stiffness κ is κ s). It is part of the bodies'
+(r and k in model units: a world radius ρ is ρ / s, a world stiffness κ is κ s). It is part of the bodies'
 potential in their frame (`tignn_jax.simulators.corotational.joint_frame`): its gradient among the internal
-forces, its Gauss–Newton stiffness H_c (ψ″ n_ij n_ijᵀ on the pair's relative displacement, n_ij the unit vector
+forces, its Gauss–Newton stiffness H_c (k n_ij n_ijᵀ on the pair's relative displacement, n_ij the unit vector
 from j to i: symmetric positive semi-definite, coupling the bodies) in the operator of the one CG solve of all the
 bodies' velocities, and E_c in the frame's energy budget, so the bodies together never end a frame with more
 energy than their external forces put in, however stiff the contact. Stepped explicitly instead, a penalty is
@@ -34,8 +32,6 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from fem.solver import contact_penalty as penalty
-
 FAR = 1e7   # where unused candidate slots sit (model length): never within a radius of anything real
 
 
@@ -50,7 +46,6 @@ class Contact(NamedTuple):
       stiffness: k (force per model length).
       capacity: the most candidate nodes of a body per pair of bodies (a Python int).
       reach: how near to the other body's surface nodes a node is a candidate (model length, ≥ r).
-      onset: δ, the overlap past which a pair's stiffness is the whole k (model length, 0 ≤ δ ≤ r).
     """
     rotations: tuple
     offsets: tuple
@@ -59,7 +54,6 @@ class Contact(NamedTuple):
     stiffness: float
     capacity: int
     reach: float
-    onset: float = 0.0
 
 
 class Linearised(NamedTuple):
@@ -68,8 +62,7 @@ class Linearised(NamedTuple):
     Attributes:
       gradient: per body ∂E_c/∂q [N_b, 3] (work per model length).
       normals: per pair of bodies, n_ij [C_a, C_b, 3] (world directions).
-      active: per pair of bodies, [C_a, C_b]: ψ″ / k, the pair's share of the stiffness (0 where it is not closer
-        than r, 1 past the onset).
+      active: per pair of bodies, [C_a, C_b]: 1 where the pair is closer than r.
       listed: per pair of bodies, its active pairs listed (`Listed`: up to ``SLOTS_PER_CANDIDATE`` × capacity).
     """
     gradient: tuple
@@ -84,7 +77,7 @@ class Listed(NamedTuple):
     Attributes:
       nodes: (i [P], j [P]) int32, the pairs' nodes of a and of b.
       normals: (n_ij in a's model directions [P, 3], in b's [P, 3]).
-      weight: [P], the pair's stiffness ψ″ on a used slot, else 0.
+      weight: [P], k on a used slot, else 0.
       overflow: [] bool, True where more pairs are active than the list holds (it then holds some of them).
     """
     nodes: tuple
@@ -97,7 +90,7 @@ SLOTS_PER_CANDIDATE = 4   # the active pairs listed per pair of bodies, per cand
 
 
 def contact(poses, surfaces, radius: float, stiffness: float, capacity: int = 128,
-            reach: float | None = None, onset: float = 0.0) -> Contact:
+            reach: float | None = None) -> Contact:
     """The penalty contact of bodies with these poses (module docstring).
 
     Args:
@@ -109,16 +102,13 @@ def contact(poses, surfaces, radius: float, stiffness: float, capacity: int = 12
       capacity: the most candidate nodes of a body per pair of bodies.
       reach: a node within this distance of a surface node of the other body is a candidate (world length;
         default 2 × radius).
-      onset: δ, the overlap over which a touching pair's stiffness grows from zero to ``stiffness`` (world length,
-        0 ≤ δ ≤ radius; 0: the plain penalty).
 
     Returns:
       A `Contact` in model units.
 
     Raises:
       ValueError: fewer than two bodies, a pose that is not a finite [4, 4] similarity of the common scale, a
-        non-positive radius or stiffness, a reach below the radius, an onset outside [0, radius], or a capacity
-        that is not a positive integer.
+        non-positive radius or stiffness, a reach below the radius, or a capacity that is not a positive integer.
     """
     poses = [np.asarray(p, np.float64) for p in poses]
     if len(poses) < 2 or len(surfaces) != len(poses):
@@ -141,15 +131,13 @@ def contact(poses, surfaces, radius: float, stiffness: float, capacity: int = 12
             raise ValueError(f"{name} must be a positive number, got {value!r}")
     if reach < radius:
         raise ValueError(f"reach must be at least the radius {radius!r}, got {reach!r}")
-    if not (isinstance(onset, (int, float, np.number)) and 0.0 <= onset <= radius):
-        raise ValueError(f"onset must be a number in [0, radius = {radius!r}], got {onset!r}")
     if not isinstance(capacity, (int, np.integer)) or isinstance(capacity, bool) or capacity < 1:
         raise ValueError(f"capacity must be a positive integer, got {capacity!r}")
     s = scales[0]
     return Contact(tuple(jnp.asarray(p[:3, :3] / s, jnp.float32) for p in poses),
                    tuple(jnp.asarray(p[:3, 3] / s, jnp.float32) for p in poses),
                    tuple(jnp.asarray(np.asarray(x), jnp.int32) for x in surfaces),
-                   float(radius / s), float(stiffness * s), int(capacity), float(reach / s), float(onset / s))
+                   float(radius / s), float(stiffness * s), int(capacity), float(reach / s))
 
 
 def candidate_pairs(contact: Contact, zs) -> tuple:
@@ -189,7 +177,7 @@ def energy(contact: Contact, pairs, qs) -> jax.Array:
     total = 0.0
     for (a, b), (ia, ib) in zip(_pairs(contact), pairs):
         d = jnp.linalg.norm(_differences(contact, a, b, ia, ib, qs), axis=-1)
-        total = total + jnp.sum(penalty(contact.radius - d, contact.stiffness, contact.onset)[0])
+        total = total + 0.5 * contact.stiffness * jnp.sum(jnp.maximum(contact.radius - d, 0.0) ** 2)
     return total
 
 
@@ -200,13 +188,13 @@ def linearise(contact: Contact, pairs, qs) -> Linearised:
     for (a, b), (ia, ib) in zip(_pairs(contact), pairs):
         diff = _differences(contact, a, b, ia, ib, qs)
         d = jnp.sqrt(jnp.maximum(jnp.sum(diff * diff, axis=-1), 1e-30))
-        _, force, stiffness = penalty(contact.radius - d, contact.stiffness, contact.onset)
+        gap = jnp.maximum(contact.radius - d, 0.0)
         n = diff / d[..., None]
-        g = -force[..., None] * n                                                    # ∂E_c/∂y_a,i per pair
+        g = -contact.stiffness * gap[..., None] * n                                  # ∂E_c/∂y_a,i per pair
         gradient[a] = gradient[a].at[ia].add(jnp.sum(g, axis=1) @ contact.rotations[a], mode="drop")
         gradient[b] = gradient[b].at[ib].add(-jnp.sum(g, axis=0) @ contact.rotations[b], mode="drop")
         normals.append(n)
-        active.append((stiffness / contact.stiffness).astype(qs[a].dtype))
+        active.append((gap > 0).astype(qs[a].dtype))
         listed.append(_listed(contact, a, b, ia, ib, n, active[-1]))
     return Linearised(tuple(gradient), tuple(normals), tuple(active), tuple(listed))
 
@@ -216,9 +204,8 @@ def _listed(contact: Contact, a: int, b: int, ia, ib, n, act) -> Listed:
     flat = jnp.nonzero(act.reshape(-1) > 0, size=SLOTS_PER_CANDIDATE * contact.capacity, fill_value=act.size)[0]
     i, j = jnp.minimum(flat // cb, act.shape[0] - 1), jnp.minimum(flat % cb, cb - 1)
     normal = n[i, j]
-    share = jnp.where(flat < act.size, act.reshape(-1)[jnp.minimum(flat, act.size - 1)], 0.0)
     return Listed((ia[i], ib[j]), (normal @ contact.rotations[a], normal @ contact.rotations[b]),
-                  contact.stiffness * share, jnp.sum(act > 0) > len(flat))
+                  contact.stiffness * (flat < act.size).astype(n.dtype), jnp.sum(act) > len(flat))
 
 
 def apply_stiffness(contact: Contact, pairs, lin: Linearised, ws) -> tuple:

@@ -25,7 +25,6 @@ TWO_BEAMS_B = (np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]]), n
 # inside the implicit frame of a corotational model (benchmarks/contact_beams.py), else the explicit penalty's
 TWO_BEAMS_CONTACT = (1.2, 2.5e5)
 TWO_BEAMS_IMPLICIT_CONTACT = (2.0, 2.5e5)
-TWO_BEAMS_IMPLICIT_ONSET = 1.0   # the overlap over which a pair's stiffness grows from zero: the FEM's
 LEGEND_FRACTION = 0.5   # the legend spans this fraction of the training envelope's extreme
 
 
@@ -119,7 +118,7 @@ def load_scene(scene: str | None = None, model: str | None = None) -> Scene:
     if len(bodies) > 1 and hasattr(params["model"], "step_together"):
         contact = TWO_BEAMS_IMPLICIT_CONTACT
         poses = [np.block([[b.rotation, b.offset[:, None]], [np.zeros((1, 3)), np.ones((1, 1))]]) for b in bodies]
-        joint = api.contact_stepper(params, poses, *contact, onset=TWO_BEAMS_IMPLICIT_ONSET)
+        joint = api.contact_stepper(params, poses, *contact)
         dynamics += " (contact in the implicit step)"
     return Scene(name=name, bodies=bodies, step=step, guard=jax.jit(step.guard), dynamics=dynamics,
                  f_max=f_max, u_max=u_max, ranges=_ranges(envelope), contact=contact, joint=joint)
