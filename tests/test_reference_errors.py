@@ -79,7 +79,7 @@ def test_the_corotational_beam_beats_the_published_network_from_rest(reference):
 
 def test_the_reproduction_beats_the_published_network_from_the_data_first_state(reference):
     # the paper's network, reproduced (`beam-tignn`): from each case's first state, as the published errors were
-    # measured; the data's first velocity there is a central difference of the next two frames' positions
+    # measured; the data's first velocity there is a finite difference of the next two frames' positions
     params, _ = T.load_pretrained("beam-tignn")
     assert isinstance(params["model"], RestStartGNN) and params["model"].config.passes == 2
     report, _ = EV.evaluate(params, reference, ("test",), structure=False)
