@@ -58,7 +58,7 @@ class RestStartGNN(GenericGNN):
         """
         blocks = stored.get("rest_stiffness")
         if not isinstance(blocks, dict) or any(k not in blocks for k in STIFFNESS_KEYS):
-            raise ValueError(f"a {self.name} model needs the stored arrays rest_stiffness/" + "{k_rows, k_cols, k}")
+            raise ValueError(f"a {self.name} model needs the stored arrays rest_stiffness/{list(STIFFNESS_KEYS)}")
         if "dt" not in stored.get("norm", {}):
             raise ValueError(f"a {self.name} model needs the data's frame step as norm/dt")
         arrays = super().prepare({k: stored[k] for k in ("weights", "norm")}, mesh)
@@ -73,16 +73,8 @@ class RestStartGNN(GenericGNN):
         return {**super().stored(arrays), "rest_stiffness": dict(arrays["rest_stiffness"])}
 
     def step_state(self, arrays: dict, z, f):
-        """One frame (`GenericGNN.step_state`) from `start_from_rest`'s state.
-
-        Args:
-          arrays: from ``prepare``.
-          z: [N, 12] state (q, v, σ) in the data's units.
-          f: [N, 3] external nodal forces, constant during the frame.
-
-        Returns:
-          [N, 12] the state one frame later.
-        """
+        """`GenericGNN.step_state` (its arguments and shapes, ``arrays`` from ``prepare``) from `start_from_rest`'s
+        state: z [N, 12] → the state one frame later."""
         return super().step_state(arrays, start_from_rest(arrays, z, f), f)
 
 
