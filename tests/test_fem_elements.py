@@ -192,7 +192,8 @@ def timoshenko_reference(E, G, nu, rho, L, B, P, n_el=400):
 
 
 def sparse_tangent(force, pts, spacing, reach):
-    """Tangent stiffness ∂f/∂u as a scipy CSR matrix from a few batched jvps (structured-grid colouring).
+    """u ↦ the tangent stiffness ∂f/∂u at u as a scipy CSR matrix, from a few batched jvps (structured-grid
+    colouring); the sparsity pattern and the jitted jvps are built once, for every u.
 
     Nodes whose grid indices differ by more than ``reach`` in some direction do not interact (hex8: 1;
     tet4: 2, through the nodal averages of J and F over the surrounding elements), so the nodes of one colour
@@ -206,18 +207,20 @@ def sparse_tangent(force, pts, spacing, reach):
     for c in range(colour.max() + 1):
         for d in range(3):
             seeds[3 * c + d, colour == c, d] = 1.0
-    cols = np.asarray(jax.jit(jax.vmap(lambda s: jax.jvp(force, (jnp.zeros(3 * n),), (s,))[1]))(
-        jnp.asarray(seeds.reshape(len(seeds), -1))))
-    rows, columns, values = [], [], []
-    for a in range(n):
-        near = np.where(np.all(np.abs(ijk - ijk[a]) <= reach, axis=1))[0]
-        for b in near:
-            for d in range(3):
-                rows.append(np.arange(3 * a, 3 * a + 3))
-                columns.append(np.full(3, 3 * b + d))
-                values.append(cols[3 * colour[b] + d, 3 * a:3 * a + 3])
-    rows, columns, values = (np.concatenate(v) for v in (rows, columns, values))
-    return scipy.sparse.csr_matrix((values, (rows, columns)), shape=(3 * n, 3 * n))
+    seeds = jnp.asarray(seeds.reshape(len(seeds), -1))
+    columns_at = jax.jit(jax.vmap(lambda u, s: jax.jvp(force, (u,), (s,))[1], in_axes=(None, 0)))
+    # entry (3a + i, 3b + d) of an interacting node pair (a, b) is entry 3a + i of the jvp of seed 3·colour(b) + d
+    a, b = np.nonzero(np.all(np.abs(ijk[:, None] - ijk[None]) <= reach, axis=-1))
+    i, d = np.meshgrid(np.arange(3), np.arange(3), indexing="ij")
+    rows = (3 * a[:, None, None] + i).ravel()
+    cols = (3 * b[:, None, None] + d).ravel()
+    seed_of = (3 * colour[b][:, None, None] + d).ravel()
+
+    def tangent(u):
+        jvps = np.asarray(columns_at(jnp.asarray(u), seeds))
+        return scipy.sparse.csr_matrix((jvps[seed_of, rows], (rows, cols)), shape=(3 * n, 3 * n))
+
+    return tangent
 
 
 def cantilever_fe(cell_type, divisions, material, P, formulation="nodal"):
@@ -234,8 +237,8 @@ def cantilever_fe(cell_type, divisions, material, P, formulation="nodal"):
     spacing = np.array([BEAM_L, BEAM_B, BEAM_B]) / np.array(divisions)
     reach = 1 if cell_type == "hexahedron" else 2
     force = jax.jit(lambda u: fem.internal_force(prob, material, X + u.reshape(-1, 3)).ravel())
-    tangent = lambda u: sparse_tangent(lambda du: force(jnp.asarray(u) + du), pts, spacing,
-                                       reach)[dofs][:, dofs].tocsc()
+    full_tangent = sparse_tangent(force, pts, spacing, reach)
+    tangent = lambda u: full_tangent(u)[dofs][:, dofs].tocsc()
     K = tangent(np.zeros(X.size))
     # tip load P in y, lumped on the tip-face nodes with the bilinear tributary areas of the grid
     tip = np.where(pts[:, 0] > BEAM_L - 1e-9)[0]
