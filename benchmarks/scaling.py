@@ -7,8 +7,8 @@ hex edge (``fem.meshes.mesh_edges``), as for the paper's beam.
 * `LinearGeneric` (the class of the shipped ``beam`` and ``bunny``) with real operators: the FEM's rest
   linearisation of the mesh with the beam scene's material and damping (``fem.implicit.rest_linearization``, packed
   by ``tignn_jax.simulators.linear.from_rest_linearization``). Its step multiplies by the dense A⁻¹ [3N, 3N], so
-  its time and memory grow as N² for large meshes; the linearisation itself is dense Jacobian columns (its build
-  time is reported), which limits the meshes (``--linear``) to a few thousand nodes.
+  its time and memory grow as N² for large meshes (the build time, the linearisation and the inverse, is reported),
+  which limits the meshes (``--linear``) to a few thousand nodes.
 * `CorotationalGeneric` (the class of the shipped ``beam-corot``) with the FEM's element operators of the mesh
   (``tignn_jax.simulators.corotational.from_fem``): its element work grows as N, and so does its preconditioner
   past ``schur_limit`` (2048) elements (the rest operator's 32 lowest eigenmodes and its 3 × 3 node blocks,
@@ -129,8 +129,7 @@ def linear_params(divisions) -> tuple:
     mesh, scene = beam_scene_of(divisions)
     t0 = time.perf_counter()
     problem = scenes.setup_scene(scene)
-    n = len(mesh["q0"])
-    lin = implicit.rest_linearization(problem, scene.material, chunk=_chunk(3 * n))
+    lin = implicit.rest_linearization(problem, scene.material)
     stored = LG.from_rest_linearization(lin, scene.frame_dt)
     norm = statistics(mesh)
     params = tignn_jax.make_params(tignn_jax.LinearGeneric(), stored, mesh, envelope_of(norm),
@@ -163,12 +162,6 @@ def gnn_params(divisions, config) -> tuple:
     stored = model.init(jax.random.PRNGKey(0), norm, mesh)
     params = tignn_jax.make_params(model, stored, mesh, envelope_of(norm), {"kind": "random weights"})
     return params, time.perf_counter() - t0
-
-
-def _chunk(columns: int, cap: int = 384) -> int:
-    """The largest divisor of ``columns`` up to ``cap``: Jacobian columns per call, all calls of one shape (one
-    compilation)."""
-    return max(c for c in range(1, min(columns, cap) + 1) if columns % c == 0)
 
 
 def sample_state(params: dict, seed: int = 0):
