@@ -65,16 +65,19 @@ def _force_fn(arr: sv.Arrays, m: Material, cfg: sv.Config, hg):
     return lambda u: sv._internal(arr, m, hg, u, (), cfg, 1.0)[0]
 
 
-def rest_operator(problem: sv.Problem, material: Material, h: float | None = None, chunk: int = 256) -> np.ndarray:
+def rest_operator(problem: sv.Problem, material: Material, h: float | None = None, chunk: int = 128) -> np.ndarray:
     """Dense (1 + αh) M/h² + K₀ on the free degrees of freedom, identity on the clamped ones: [3N, 3N] float64
-    (node-major: row 3a + i is node a, component i). K₀ = ∂f_int/∂u at u = 0 by `jax.jvp` in the problem's
-    precision, ``chunk`` columns at a time. h defaults to the problem's frame step over n_sub = 1."""
+    (node-major: row 3a + i is node a, component i). K₀ = ∂f_int/∂u at u = 0 from `coloured_jacobian` in the
+    problem's precision, ``chunk`` products per call. h defaults to the problem's frame step over n_sub = 1."""
     arr, cfg = problem.arrays, problem.config
     h = cfg.frame_dt if h is None else h
     n = arr.points.shape[0]
     force = _force_fn(arr, material, cfg, sv._hourglass_for(arr, material, cfg))
-    (K,) = _jvp_columns(lambda u: (force(u),), n, arr.points.dtype, chunk)
-    K = K.reshape(3 * n, 3 * n)   # row 3b + j: ∂f/∂u_bj, i.e. Kᵀ = K
+    rows, cols, (blocks,) = coloured_jacobian(lambda u: (force(u),), np.asarray(arr.cells), n, _reach(cfg),
+                                              arr.points.dtype, chunk)
+    K = np.zeros((n, 3, n, 3))
+    K[rows, :, cols, :] = blocks
+    K = K.reshape(3 * n, 3 * n)
     K = 0.5 * (K + K.T)   # K is a Hessian; symmetrise float32 rounding
     mass = np.repeat(np.asarray(sv.lumped_mass(problem, material), np.float64), 3)
     c = (1.0 + float(arr.damping_alpha) * h) / h ** 2
@@ -84,6 +87,12 @@ def rest_operator(problem: sv.Problem, material: Material, h: float | None = Non
     A[:, ~free] = 0.0
     A[~free, ~free] = 1.0
     return A
+
+
+def _reach(cfg: sv.Config) -> int:
+    """Rings of nodes a displacement reaches in the internal force and nodal stress: hexes their cells' nodes; tets
+    also through the nodal averages over the cells around a node."""
+    return 1 if cfg.cell_type == "hexahedron" else 2
 
 
 def preconditioner(problem: sv.Problem, material: Material, n_sub: int = 1) -> jnp.ndarray:
@@ -247,9 +256,8 @@ def rest_linearization(problem: sv.Problem, material: Material, chunk: int = 128
     """
     arr = problem.arrays
     force, stress = force_and_stress(problem, material)
-    reach = 1 if problem.config.cell_type == "hexahedron" else 2
     rows, cols, (K, S) = coloured_jacobian(lambda u: (force(u), stress(u)), np.asarray(arr.cells),
-                                           arr.points.shape[0], reach, arr.points.dtype, chunk)
+                                           arr.points.shape[0], _reach(problem.config), arr.points.dtype, chunk)
     K = 0.5 * (K + K[_transposed(rows, cols)].transpose(0, 2, 1))   # a Hessian: symmetrise the float32 rounding
     k_rows, k_cols, k_blocks = _kept(rows, cols, K)
     s_rows, s_cols, s_blocks = _kept(rows, cols, S)
@@ -344,16 +352,3 @@ def _kept(rows, cols, blocks, rtol: float = 1e-9):
     size = np.abs(blocks).max(axis=(1, 2))
     keep = size > rtol * size.max()
     return rows[keep], cols[keep], blocks[keep]
-
-
-def _jvp_columns(fn, n: int, dtype, chunk: int):
-    """The Jacobian columns at u = 0 of ``fn``: u [N,3] ↦ tuple of [N, k] arrays, one `jax.jvp` per degree of
-    freedom (``chunk`` at a time): a tuple of float64 arrays [3N, N, k], entry [3b + j, a, i] = ∂out_ai/∂u_bj.
-    Dense, so meant for meshes of a few thousand nodes."""
-    u0 = jnp.zeros((n, 3), dtype)
-    cols = jax.jit(jax.vmap(lambda d: jax.jvp(fn, (u0,), (d.reshape(n, 3),))[1]))
-    m = 3 * n
-    chunk = min(chunk, m)
-    eye = np.eye(-(-m // chunk) * chunk, m, dtype=np.asarray(u0).dtype)   # padded: every call one shape, one compile
-    parts = [cols(jnp.asarray(eye[s:s + chunk])) for s in range(0, m, chunk)]
-    return tuple(np.concatenate([np.asarray(p[i], np.float64) for p in parts])[:m] for i in range(len(parts[0])))

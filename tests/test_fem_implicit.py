@@ -145,12 +145,11 @@ def test_batch_matches_single_runs_and_generation_keeps_residuals(tmp_path):
 
 
 def _dense_blocks(problem, m):
-    """K₀ [N, N, 3, 3] (symmetrised) and S₀ [N, N, 6, 3] from one jvp per degree of freedom."""
-    n = problem.arrays.points.shape[0]
+    """K₀ [N, N, 3, 3] (symmetrised) and S₀ [N, N, 6, 3]: the whole Jacobian by `jax.jacfwd`."""
     force, stress = implicit.force_and_stress(problem, m)
-    kc, sc = implicit._jvp_columns(lambda u: (force(u), stress(u)), n, problem.arrays.points.dtype, 64)
-    K = kc.reshape(n, 3, n, 3).transpose(2, 0, 3, 1)
-    return 0.5 * (K + K.transpose(1, 0, 3, 2)), sc.reshape(n, 3, n, 6).transpose(2, 0, 3, 1)
+    k, s = jax.jacfwd(lambda u: (force(u), stress(u)))(jnp.zeros_like(problem.arrays.points))
+    K = np.asarray(k, np.float64).transpose(0, 2, 1, 3)
+    return 0.5 * (K + K.transpose(1, 0, 3, 2)), np.asarray(s, np.float64).transpose(0, 2, 1, 3)
 
 
 @pytest.mark.parametrize("cell_type, formulation", [("hexahedron", "anp"), ("tetra", "nodal"),
