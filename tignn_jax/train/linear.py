@@ -531,7 +531,8 @@ def targets(z, f, q0, rows):
 def init(config: LinearConfig, geo: Geometry, seed: int = 0) -> dict:
     """Initial parameters: the coefficient networks (zero heads: the least-squares gradient and uniform moduli
     at the config's scales) and the log-scales of density and damping."""
-    weights = _coefficients(config).init(jax.random.PRNGKey(seed), geometry_arrays(geo))
+    # jitted: one compiled program instead of each layer's initialisers and first call run (and compiled) op by op
+    weights = jax.jit(_coefficients(config).init)(jax.random.PRNGKey(seed), geometry_arrays(geo))
     out = {"net": weights, "log_density": jnp.zeros(()), "log_alpha": jnp.zeros(())}
     if config.prior:
         out.update(log_k0=jnp.zeros(()), log_s0=jnp.zeros(()))
@@ -650,9 +651,9 @@ def to_rest_linearization(params, geo: Geometry, config: LinearConfig):
     from fem.implicit import RestLinearization
 
     ga = geometry_arrays(geo)
-    ops = operators(params["net"], ga, geo.h, config, params)
     n = geo.nbr.shape[0]
-    h = geo.h      # compiled: op by op, K's assembly and S's forward columns take seconds even on small meshes
+    h = geo.h      # compiled: op by op, the coefficients, K's assembly and S's forward columns take seconds
+    ops = jax.jit(lambda w, g, extra: operators(w, g, h, config, extra))(params["net"], ga, params)
     K = np.asarray(jax.jit(lambda o, g: stiffness(o, g, h))(ops, ga), np.float64)
     K = K.reshape(n, 3, n, 3).transpose(0, 2, 1, 3)
     K = 0.5 * (K + K.transpose(1, 0, 3, 2))
