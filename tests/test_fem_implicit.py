@@ -144,33 +144,34 @@ def test_batch_matches_single_runs_and_generation_keeps_residuals(tmp_path):
         run_cases(sc, prob, forces, tmp_path / "e.npz", integrator="rk4")
 
 
-def _dense_blocks(problem, m):
-    """K₀ [N, N, 3, 3] (symmetrised) and S₀ [N, N, 6, 3]: the whole Jacobian by `jax.jacfwd`."""
+def _columns(problem, m, reach=None):
+    """(rows, cols, (K₀, S₀) blocks) of `implicit.coloured_jacobian`, 32 products per call (one compiled program
+    for every reach); by default every node its own colour: one jvp per degree of freedom."""
     force, stress = implicit.force_and_stress(problem, m)
-    k, s = jax.jacfwd(lambda u: (force(u), stress(u)))(jnp.zeros_like(problem.arrays.points))
-    K = np.asarray(k, np.float64).transpose(0, 2, 1, 3)
-    return 0.5 * (K + K.transpose(1, 0, 3, 2)), np.asarray(s, np.float64).transpose(0, 2, 1, 3)
+    n = problem.arrays.points.shape[0]
+    return implicit.coloured_jacobian(lambda u: (force(u), stress(u)), np.asarray(problem.arrays.cells), n,
+                                      n if reach is None else reach, problem.arrays.points.dtype, chunk=32)
 
 
 @pytest.mark.parametrize("cell_type, formulation", [("hexahedron", "anp"), ("tetra", "nodal"),
                                                     pytest.param("tetra", "anp", marks=pytest.mark.long)])
-def test_rest_linearization_is_the_dense_jacobian_in_node_blocks(cell_type, formulation):
+def test_rest_linearization_is_the_uncoloured_jacobian_in_node_blocks(cell_type, formulation):
     # the coloured products (many nodes' columns per jvp) give the blocks of one jvp per degree of freedom
     pts, cells = fem.box_hex_mesh((4.0, 1.0, 1.0), (6, 2, 1))
     cells = fem.hex_to_tet(cells) if cell_type == "tetra" else cells
     m = fem.mooney_rivlin(**ELASTIC)
     prob = fem.setup(pts, cells, material=m, frame_dt=0.05, n_frames=1, clamped=np.where(pts[:, 0] < 1e-9)[0],
                      tet_formulation=formulation)
-    lin = implicit.rest_linearization(prob, m)
-    K, S = _dense_blocks(prob, m)
-    assert len(lin.k_rows) < len(pts) ** 2 / 2                      # sparse: only the pairs that interact
-    for rows, cols, blocks, dense in ((lin.k_rows, lin.k_cols, lin.k_blocks, K),
-                                      (lin.s_rows, lin.s_cols, lin.s_blocks, S)):
-        assembled = np.zeros_like(dense)
-        assembled[rows, cols] = blocks
-        np.testing.assert_allclose(assembled, dense, rtol=0, atol=1e-12 * np.abs(dense).max())
-    # the tets' nodal averages reach two rings: colouring them as one ring is caught by the random-direction check
+    lin = implicit.rest_linearization(prob, m, chunk=32)
+    rows, cols, (k, s) = _columns(prob, m)
+    assert len(rows) == len(pts) ** 2 and len(lin.k_rows) < len(pts) ** 2 / 2    # sparse: the pairs that interact
+    K, S = np.zeros((2, len(pts), len(pts), 3, 3)), np.zeros((2, len(pts), len(pts), 6, 3))
+    K[0][rows, cols], S[0][rows, cols] = 0.5 * (k + k.reshape(len(pts), len(pts), 3, 3).transpose(
+        1, 0, 3, 2).reshape(-1, 3, 3)), s
+    K[1][lin.k_rows, lin.k_cols], S[1][lin.s_rows, lin.s_cols] = lin.k_blocks, lin.s_blocks
+    np.testing.assert_allclose(K[1], K[0], rtol=0, atol=1e-12 * np.abs(K[0]).max())
+    np.testing.assert_allclose(S[1], S[0], rtol=0, atol=1e-12 * np.abs(S[0]).max())
+    # the tets' nodal averages reach two rings: coloured as if one, the random-direction check catches it
     if formulation == "nodal":
-        force, stress = implicit.force_and_stress(prob, m)
         with pytest.raises(RuntimeError, match="reach = 1"):
-            implicit.coloured_jacobian(lambda u: (force(u), stress(u)), cells, len(pts), 1, jnp.float64)
+            _columns(prob, m, reach=1)
