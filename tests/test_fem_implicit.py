@@ -163,14 +163,15 @@ def test_rest_linearization_is_the_uncoloured_jacobian_in_node_blocks(cell_type,
     prob = fem.setup(pts, cells, material=m, frame_dt=0.05, n_frames=1, clamped=np.where(pts[:, 0] < 1e-9)[0],
                      tet_formulation=formulation)
     lin = implicit.rest_linearization(prob, m, chunk=32)
+    n = len(pts)
     rows, cols, (k, s) = _columns(prob, m)
-    assert len(rows) == len(pts) ** 2 and len(lin.k_rows) < len(pts) ** 2 / 2    # sparse: the pairs that interact
-    K, S = np.zeros((2, len(pts), len(pts), 3, 3)), np.zeros((2, len(pts), len(pts), 6, 3))
-    K[0][rows, cols], S[0][rows, cols] = 0.5 * (k + k.reshape(len(pts), len(pts), 3, 3).transpose(
-        1, 0, 3, 2).reshape(-1, 3, 3)), s
-    K[1][lin.k_rows, lin.k_cols], S[1][lin.s_rows, lin.s_cols] = lin.k_blocks, lin.s_blocks
-    np.testing.assert_allclose(K[1], K[0], rtol=0, atol=1e-12 * np.abs(K[0]).max())
-    np.testing.assert_allclose(S[1], S[0], rtol=0, atol=1e-12 * np.abs(S[0]).max())
+    assert len(rows) == n ** 2 and len(lin.k_rows) < n ** 2 / 2    # sparse: the pairs that interact
+    k = k.reshape(n, n, 3, 3)                                        # every pair, sorted by (a, b)
+    for rows, cols, blocks, ref in ((lin.k_rows, lin.k_cols, lin.k_blocks, 0.5 * (k + k.transpose(1, 0, 3, 2))),
+                                    (lin.s_rows, lin.s_cols, lin.s_blocks, s.reshape(n, n, 6, 3))):
+        got = np.zeros_like(ref)
+        got[rows, cols] = blocks
+        np.testing.assert_allclose(got, ref, rtol=0, atol=1e-12 * np.abs(ref).max())
     # the tets' nodal averages reach two rings: coloured as if one, the random-direction check catches it
     if formulation == "nodal":
         with pytest.raises(RuntimeError, match="reach = 1"):
