@@ -32,7 +32,7 @@ contact (each raises `ValueError`).
 """
 from __future__ import annotations
 
-from typing import NamedTuple
+from typing import Callable, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -266,15 +266,27 @@ def rest_linearization(problem: sv.Problem, material: Material, chunk: int = 128
                              float(arr.damping_alpha), np.asarray(arr.free[:, 0]) > 0)
 
 
-def coloured_jacobian(fn, cells: np.ndarray, n: int, reach: int, dtype=jnp.float32, chunk: int = 128,
-                      seed: int = 0) -> tuple:
-    """The Jacobian at u = 0 of a mesh function ``fn``: u [N,3] ↦ tuple of [N, k] arrays whose node a depends only on
-    the nodes within ``reach`` rings of a (two nodes are one ring apart when they share a cell), as node blocks.
+class JacobianBlocks(NamedTuple):
+    """A mesh function's Jacobian as node blocks over a fixed sparsity pattern (`jacobian_blocks`).
+
+    Attributes:
+      rows, cols: [P] int32, the node pairs (a, b) within ``reach`` rings of each other, sorted by (a, b).
+      at: u [N, 3] ↦ one float64 array [P, k_t, 3] per output, whose block p is ∂out_{rows[p]}/∂u_{cols[p]} at u.
+    """
+    rows: np.ndarray
+    cols: np.ndarray
+    at: Callable
+
+
+def jacobian_blocks(fn, cells: np.ndarray, n: int, reach: int, dtype=jnp.float32,
+                    chunk: int = 128) -> JacobianBlocks:
+    """The Jacobian of a mesh function ``fn``: u [N,3] ↦ tuple of [N, k] arrays whose node a depends only on the
+    nodes within ``reach`` rings of a (two nodes are one ring apart when they share a cell), as node blocks at any u.
 
     Two nodes more than 2·reach rings apart touch no common output node, so they share a colour (greedy colouring of
     that distance graph) and one `jax.jvp` per colour and component reads all their columns: a few dozen (hexes,
-    reach 1) to a few hundred (tets, reach 2) products instead of 3N. Checked by one product along a random
-    direction against the assembled blocks.
+    reach 1) to a few hundred (tets, reach 2) products instead of 3N. The pattern and the compiled products are built
+    once; each call of ``at`` runs them at its u. Nothing checks ``reach`` here (`coloured_jacobian` does).
 
     Args:
       fn: u [N, 3] ↦ tuple of [N, k_t] arrays.
@@ -283,16 +295,17 @@ def coloured_jacobian(fn, cells: np.ndarray, n: int, reach: int, dtype=jnp.float
       reach: how many rings away a displacement can change an output node.
       dtype: the displacements' dtype.
       chunk: products per compiled call (every call one shape: one compilation).
-      seed: the random check direction's seed.
 
     Returns:
-      (rows [P], cols [P], blocks): the node pairs (a, b) within ``reach`` rings, sorted by (a, b), and per output a
-      float64 array [P, k_t, 3] whose block (a, b) is ∂out_a/∂u_b.
-
-    Raises:
-      RuntimeError: if the check's product and the blocks' differ by more than 1e-3 of its norm (``fn`` reaches
-        further than ``reach``).
+      `JacobianBlocks`.
     """
+    rows, cols, evaluate = _coloured(fn, cells, n, reach, dtype, chunk)
+    return JacobianBlocks(rows, cols, lambda u: evaluate(u)[0])
+
+
+def _coloured(fn, cells: np.ndarray, n: int, reach: int, dtype, chunk: int):
+    """(rows, cols, evaluate) of `jacobian_blocks`: ``evaluate(u, extra)`` gives the node blocks at u and the
+    products along the directions ``extra`` [E, N, 3] from the same compiled calls."""
     import scipy.sparse as sp
 
     cells = np.asarray(cells)
@@ -316,22 +329,53 @@ def coloured_jacobian(fn, cells: np.ndarray, n: int, reach: int, dtype=jnp.float
     seeds = np.zeros((3 * colours, n, 3), np.dtype(dtype))
     for d in range(3):
         seeds[3 * colour + d, np.arange(n), d] = 1.0
-    w = np.random.default_rng(seed).standard_normal((1, n, 3)).astype(seeds.dtype)   # the check's direction, last
-    seeds = np.concatenate([seeds, w])
-    u0 = jnp.zeros((n, 3), dtype)
-    products = jax.jit(jax.vmap(lambda d: jax.jvp(fn, (u0,), (d,))[1]))
-    chunk = min(chunk, len(seeds))
-    padded = np.concatenate([seeds, np.zeros((-len(seeds) % chunk, n, 3), seeds.dtype)])
-    parts = [products(jnp.asarray(padded[s:s + chunk])) for s in range(0, len(padded), chunk)]
-    outs = [np.concatenate([np.asarray(p[t], np.float64) for p in parts])[:len(seeds)] for t in range(len(parts[0]))]
-    direct = [out[-1] for out in outs]
+    products = jax.jit(jax.vmap(lambda u, d: jax.jvp(fn, (u,), (d,))[1], in_axes=(None, 0)))
     coo = near.tocoo()
     order = np.lexsort((coo.col, coo.row))
     rows, cols = coo.row[order].astype(np.int32), coo.col[order].astype(np.int32)
     # block (a, b)[i, d] = entry (a, i) of the product along the seed of b's colour and component d
     which = 3 * colour[cols][:, None] + np.arange(3)
-    blocks = tuple(out[which, rows[:, None]].transpose(0, 2, 1) for out in outs)
+
+    def evaluate(u, extra=np.zeros((0, n, 3))):
+        every = np.concatenate([seeds, np.asarray(extra, seeds.dtype)])
+        size = min(chunk, len(every))
+        padded = jnp.asarray(np.concatenate([every, np.zeros((-len(every) % size, n, 3), seeds.dtype)]))
+        u = jnp.asarray(u, dtype)
+        parts = [products(u, padded[s:s + size]) for s in range(0, len(padded), size)]
+        outs = [np.concatenate([np.asarray(p[t], np.float64) for p in parts]) for t in range(len(parts[0]))]
+        blocks = tuple(out[which, rows[:, None]].transpose(0, 2, 1) for out in outs)
+        return blocks, tuple(out[len(seeds):len(every)] for out in outs)
+
+    return rows, cols, evaluate
+
+
+def coloured_jacobian(fn, cells: np.ndarray, n: int, reach: int, dtype=jnp.float32, chunk: int = 128,
+                      seed: int = 0) -> tuple:
+    """The Jacobian at u = 0 of a mesh function ``fn`` as node blocks (`jacobian_blocks`), checked by one product
+    along a random direction against the assembled blocks.
+
+    Args:
+      fn: u [N, 3] ↦ tuple of [N, k_t] arrays.
+      cells: [C, n_per] node ids of the mesh's cells.
+      n: the number of nodes N.
+      reach: how many rings away a displacement can change an output node.
+      dtype: the displacements' dtype.
+      chunk: products per compiled call (every call one shape: one compilation).
+      seed: the random check direction's seed.
+
+    Returns:
+      (rows [P], cols [P], blocks): the node pairs (a, b) within ``reach`` rings, sorted by (a, b), and per output a
+      float64 array [P, k_t, 3] whose block (a, b) is ∂out_a/∂u_b.
+
+    Raises:
+      RuntimeError: if the check's product and the blocks' differ by more than 1e-3 of its norm (``fn`` reaches
+        further than ``reach``).
+    """
+    w = np.random.default_rng(seed).standard_normal((1, n, 3)).astype(np.dtype(dtype))   # the check's direction
+    rows, cols, evaluate = _coloured(fn, cells, n, reach, dtype, chunk)
+    blocks, direct = evaluate(jnp.zeros((n, 3), dtype), w)
     for t, (b, x) in enumerate(zip(blocks, direct)):
+        x = x[0]
         assembled = np.zeros((n, b.shape[1]))
         np.add.at(assembled, rows, np.einsum("pij,pj->pi", b, w[0, cols].astype(np.float64)))
         if np.linalg.norm(assembled - x) > 1e-3 * np.linalg.norm(x):

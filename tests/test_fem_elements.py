@@ -10,7 +10,7 @@ import scipy.sparse
 import scipy.sparse.linalg
 
 import fem
-from fem import solver
+from fem import implicit, solver
 
 CELL_TYPES = ["hexahedron", "tetra"]
 # (cell type, tet4 formulation): every element variant the solver offers
@@ -191,36 +191,14 @@ def timoshenko_reference(E, G, nu, rho, L, B, P, n_el=400):
     return tip, omega
 
 
-def sparse_tangent(force, pts, spacing, reach):
-    """u ↦ the tangent stiffness ∂f/∂u at u as a scipy CSR matrix, from a few batched jvps (structured-grid
-    colouring); the sparsity pattern and the jitted jvps are built once, for every u.
-
-    Nodes whose grid indices differ by more than ``reach`` in some direction do not interact (hex8: 1;
-    tet4: 2, through the nodal averages of J and F over the surrounding elements), so the nodes of one colour
-    (i, j, k mod 2·reach + 1) can be perturbed together and each column read back without overlap."""
-    ijk = np.rint((pts - pts.min(0)) / spacing).astype(int)
-    period = 2 * reach + 1
-    _, colour = np.unique(ijk % period, axis=0, return_inverse=True)
-    colour = colour.ravel()
-    n = len(pts)
-    seeds = np.zeros((3 * (colour.max() + 1), n, 3))
-    for c in range(colour.max() + 1):
-        for d in range(3):
-            seeds[3 * c + d, colour == c, d] = 1.0
-    seeds = jnp.asarray(seeds.reshape(len(seeds), -1))
-    columns_at = jax.jit(jax.vmap(lambda u, s: jax.jvp(force, (u,), (s,))[1], in_axes=(None, 0)))
-    # entry (3a + i, 3b + d) of an interacting node pair (a, b) is entry 3a + i of the jvp of seed 3·colour(b) + d
-    a, b = np.nonzero(np.all(np.abs(ijk[:, None] - ijk[None]) <= reach, axis=-1))
+def sparse_tangent(force, cells, n, reach):
+    """u [3N] ↦ the tangent stiffness ∂f/∂u at u as a scipy CSR matrix [3N, 3N], from the node blocks of
+    `fem.implicit.jacobian_blocks` (coloured jvps; the pattern and the compiled products are built once, for every
+    u). A displacement reaches one ring of nodes in hex8's force, two in tet4's (the nodal averages of J and F)."""
+    rows, cols, at = implicit.jacobian_blocks(lambda u: (force(u),), cells, n, reach, jnp.float64)
     i, d = np.meshgrid(np.arange(3), np.arange(3), indexing="ij")
-    rows = (3 * a[:, None, None] + i).ravel()
-    cols = (3 * b[:, None, None] + d).ravel()
-    seed_of = (3 * colour[b][:, None, None] + d).ravel()
-
-    def tangent(u):
-        jvps = np.asarray(columns_at(jnp.asarray(u), seeds))
-        return scipy.sparse.csr_matrix((jvps[seed_of, rows], (rows, cols)), shape=(3 * n, 3 * n))
-
-    return tangent
+    r, c = (3 * rows[:, None, None] + i).ravel(), (3 * cols[:, None, None] + d).ravel()
+    return lambda u: scipy.sparse.csr_matrix((at(u.reshape(n, 3))[0].ravel(), (r, c)), shape=(3 * n, 3 * n))
 
 
 def cantilever_fe(cell_type, divisions, material, P, formulation="nodal"):
@@ -234,10 +212,9 @@ def cantilever_fe(cell_type, divisions, material, P, formulation="nodal"):
     X = prob.arrays.points
     free = np.setdiff1d(np.arange(len(pts)), clamped)
     dofs = (3 * free[:, None] + np.arange(3)).ravel()
-    spacing = np.array([BEAM_L, BEAM_B, BEAM_B]) / np.array(divisions)
     reach = 1 if cell_type == "hexahedron" else 2
-    force = jax.jit(lambda u: fem.internal_force(prob, material, X + u.reshape(-1, 3)).ravel())
-    full_tangent = sparse_tangent(force, pts, spacing, reach)
+    force = jax.jit(lambda u: fem.internal_force(prob, material, X + u.reshape(-1, 3)))
+    full_tangent = sparse_tangent(force, cells, len(pts), reach)
     tangent = lambda u: full_tangent(u)[dofs][:, dofs].tocsc()
     K = tangent(np.zeros(X.size))
     # tip load P in y, lumped on the tip-face nodes with the bilinear tributary areas of the grid
@@ -251,7 +228,7 @@ def cantilever_fe(cell_type, divisions, material, P, formulation="nodal"):
     # predictor larger than P, so the tangent is updated every iteration (quadratic convergence)
     u, K_t = np.zeros(X.size), K
     for _ in range(10):
-        r = f_ext.ravel()[dofs] - np.asarray(force(jnp.asarray(u)))[dofs]
+        r = f_ext.ravel()[dofs] - np.asarray(force(jnp.asarray(u))).ravel()[dofs]
         if np.linalg.norm(r) < 1e-5 * abs(P):   # round-off floor ≈ 1e-7 P at K0 = 2e7
             break
         u[dofs] += scipy.sparse.linalg.spsolve(K_t, r)

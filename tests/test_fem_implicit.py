@@ -60,6 +60,7 @@ def test_small_loads_follow_the_linear_backward_euler_recurrence(cell_type):
     assert np.all(np.asarray(diag.residual) <= 1e-6)   # float64 floor ~1e-8 here: J − 1 ~ 1e-7 loses digits
 
 
+@pytest.mark.optimized   # 60 frames of ~10 Newton iterations each: the run takes longer than its compilation
 @pytest.mark.parametrize("cell_type", ["hexahedron", pytest.param("tetra", marks=pytest.mark.long)])
 def test_held_load_settles_to_static_equilibrium(cell_type):
     """A held tip load with damping: the run comes to rest at f_int(u) = f_ext (a finite-strain static
