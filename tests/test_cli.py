@@ -115,6 +115,20 @@ def test_a_model_of_another_mesh_is_refused(tiny_data, capsys):
     assert "another mesh" in capsys.readouterr().err
 
 
+def test_help_and_usage_errors_do_not_load_jax():
+    # `tignn --help`, a subcommand's help and argparse's usage errors answer before JAX is imported (it takes
+    # seconds to load); the package's public names load on first use
+    code = ("import sys\nfrom tignn_jax.cli import main\nimport tignn_jax\n"
+            "for argv in (['--help'], ['demo', '--help'], ['demo', '--frames', 'x']):\n"
+            "    try:\n        main(argv)\n    except SystemExit as e:\n        assert e.code in (0, 2), e.code\n"
+            "print('jax' in sys.modules, tignn_jax.DEFAULT_MODEL)\n"
+            "tignn_jax.step\nprint('jax' in sys.modules)\n")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT)
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.split("\n")[-3:] == ["False beam-corot", "True", ""], out.stdout
+    assert "invalid int value: 'x'" in out.stderr
+
+
 def test_debug_shows_the_traceback():
     out = subprocess.run([sys.executable, "-m", "tignn_jax.cli", "--debug", "evaluate", "--data", "no-such.npz"],
                          capture_output=True, text=True)

@@ -20,12 +20,12 @@ import jraph
 import numpy as np
 from flax import traverse_util
 
+from tignn_jax import DEFAULT_MODEL  # noqa: F401 (the package defines it: the CLI reads it without JAX)
 from tignn_jax import graph as G
 from tignn_jax.data import STATE_DIM
 from tignn_jax.simulators import CLASSES
 
 PRETRAINED_DIR = Path(__file__).resolve().parent / "pretrained"
-DEFAULT_MODEL = "beam-corot"
 ENVELOPE = ("z_mean", "z_std", "z_dev_max", "u_max", "f_max")
 FORMAT = 2   # the model file's layout version (`save_model`)
 # The frame programs are compiled without XLA:CPU's YNNPACK fusions, as `tignn_jax.mr.real_time_xla_flags` sets for

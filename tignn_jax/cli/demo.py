@@ -39,7 +39,7 @@ import json
 import time
 from pathlib import Path
 
-from tignn_jax.api import DEFAULT_MODEL
+from tignn_jax import DEFAULT_MODEL
 from tignn_jax.cli import UsageError
 
 BUNNY_PRESS_NODE = 917

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from tignn_jax.api import DEFAULT_MODEL
+from tignn_jax import DEFAULT_MODEL
 from tignn_jax.cli import UsageError
 
 
