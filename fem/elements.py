@@ -195,7 +195,7 @@ def _incompatible_mode_parts(xe, J0, J0inv):
         w = detJ[:, None, None]
         Bv = np.einsum("i,kij->kj", vol_m, Bk)
         A += w * np.einsum("ki,kj->kij", Bv, Bv)
-        Bm += w * np.einsum("kai,ab,kbj->kij", Bk, dev_m, Bk)
+        Bm += w * (Bk.transpose(0, 2, 1) @ (np.diag(dev_m)[:, None] * Bk))      # Bᵀ D B, D diagonal
     H = np.zeros((24, 12))
     for m in range(4):
         for i in range(3):
@@ -203,7 +203,7 @@ def _incompatible_mode_parts(xe, J0, J0inv):
 
     def project(K33):
         Kuu, Kua, Kaa = K33[:, :24, :24], K33[:, :24, 24:], K33[:, 24:, 24:]
-        return (np.einsum("ai,kab,bj->kij", H, Kuu, H), np.einsum("ai,kab->kib", H, Kua), Kaa)
+        return H.T @ Kuu @ H, H.T @ Kua, Kaa
 
     return project(A), project(Bm)
 
