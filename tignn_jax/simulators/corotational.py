@@ -197,7 +197,7 @@ class CorotationalGeneric:
         out.update(element_last(out))
         out.update(node_stars(out["cells"], out["wnode"], out["b"], out["volume"], n))
         out["q0"] = q0.astype(np.float32)
-        out.update(rest_preconditioner(rest_operator(out, node_type), node_type, int(c.modes)))
+        out.update(rest_preconditioner(rest_operator(out, node_type), node_type, int(c.modes), q0))
         if (n if per == 4 else k) <= c.schur_limit:
             out.update(schur_preconditioner(out, node_type))
         out["free"] = (node_type == 0)[:, None].astype(np.float32)
@@ -384,24 +384,28 @@ def rest_operator(stored: dict, node_type):
     return (keep @ (K + sparse.diags((1.0 + alpha * h) / h ** 2 * mass)) @ keep + sparse.diags(1.0 - free)).tocsr()
 
 
-def rest_preconditioner(A, node_type, modes: int) -> dict:
+def rest_preconditioner(A, node_type, modes: int, points=None) -> dict:
     """The arrays of P₀ = Φ Λ⁻¹ Φᵀ + (I − ΦΦᵀ) B⁻¹ (I − ΦΦᵀ) (module docstring) for the rest operator A
     (`rest_operator`): its ``modes`` lowest eigenpairs on the free degrees of freedom, by shift-invert Lanczos
-    (`scipy.sparse.linalg.eigsh` about 0; dense on small meshes), and the inverses of its 3 × 3 node blocks.
+    (`scipy.sparse.linalg.eigsh` about 0, with a sparse LU factor of A ordered by `nested_dissection` where the
+    node positions are given; dense on small meshes), and the inverses of its 3 × 3 node blocks.
 
     Args:
       A: the rest operator [3N, 3N] (sparse or dense, symmetric positive definite on the free nodes).
       node_type: [N] (0 free; the clamped nodes' rows of every array are 0).
       modes: m, at most the number of free degrees of freedom used.
+      points: [N, 3] the nodes' rest positions, for the factor's ordering (None: SuperLU's column ordering, whose
+        factor of a large mesh fills several times more).
 
     Returns:
       {"modes": Φ [3N, m], "mode_inv": 1/λ [m], "block_inv": B⁻¹ [N, 3, 3]}, float32.
     """
     import scipy.sparse as sparse
-    from scipy.sparse.linalg import eigsh
+    from scipy.sparse.linalg import LinearOperator, eigsh, splu
 
     A = sparse.csr_matrix(A)
     n = len(np.asarray(node_type))
+    free_nodes = np.flatnonzero(np.asarray(node_type) == 0)
     free = np.repeat(np.asarray(node_type) == 0, 3)
     af = A[free][:, free]
     m = min(int(modes), af.shape[0])
@@ -409,13 +413,63 @@ def rest_preconditioner(A, node_type, modes: int) -> dict:
         lam, vec = np.linalg.eigh(af.toarray())
         lam, vec = lam[:m], vec[:, :m]
     else:
-        lam, vec = eigsh(af.tocsc(), k=m, sigma=0.0, which="LM", v0=np.ones(af.shape[0]))
+        inverse = None
+        if points is not None:     # A⁻¹ by an LU factor in nested-dissection order, for the shift-invert
+            coo = af.tocoo()
+            graph = sparse.csr_matrix((np.ones(coo.nnz), (coo.row // 3, coo.col // 3)), shape=(len(free_nodes),) * 2)
+            order = nested_dissection(np.asarray(points, np.float64)[free_nodes], graph)
+            perm = (3 * order[:, None] + np.arange(3)).ravel()
+            back = np.argsort(perm)
+            lu = splu(sparse.csc_matrix(af[perm][:, perm]), permc_spec="NATURAL", options={"SymmetricMode": True})
+            inverse = LinearOperator(af.shape, matvec=lambda b: lu.solve(np.ascontiguousarray(b[perm]))[back],
+                                     dtype=af.dtype)
+        lam, vec = eigsh(af.tocsc(), k=m, sigma=0.0, which="LM", v0=np.ones(af.shape[0]), OPinv=inverse)
         order = np.argsort(lam)
         lam, vec = lam[order], vec[:, order]
     phi = np.zeros((3 * n, m))
     phi[free] = vec
     return {"modes": phi.astype(np.float32), "mode_inv": (1.0 / lam).astype(np.float32),
             "block_inv": block_inverse(A, node_type).astype(np.float32)}
+
+
+def nested_dissection(points, graph, leaf: int = 64) -> np.ndarray:
+    """A fill-reducing elimination order of a mesh's nodes: the nodes split at the median of their longest extent,
+    each half ordered the same way, recursively, and the separator (the nodes of the upper half joined by an edge
+    to the lower half) last, so a sparse factor's fill stays within the separators' dense blocks.
+
+    Args:
+      points: [N, 3] node positions.
+      graph: [N, N] sparse matrix whose non-zeros are the node pairs that share an entry (the operator's pattern).
+      leaf: parts of at most this many nodes are kept in their order.
+
+    Returns:
+      [N] int, a permutation of the nodes.
+    """
+    import scipy.sparse as sparse
+
+    graph = sparse.csr_matrix(graph)
+    points = np.asarray(points, np.float64)
+    parts = []
+
+    def split(nodes):
+        x = points[nodes]
+        axis = int(np.argmax(x.max(axis=0) - x.min(axis=0))) if len(nodes) else 0
+        lower = x[:, axis] < np.median(x[:, axis]) if len(nodes) else np.zeros(0, bool)
+        if len(nodes) <= leaf or lower.all() or not lower.any():
+            parts.append(nodes)
+            return
+        below = np.zeros(graph.shape[0], bool)
+        below[nodes[lower]] = True
+        upper = nodes[~lower]
+        rows = graph[upper]
+        touches = np.zeros(len(upper), bool)
+        np.logical_or.at(touches, np.repeat(np.arange(len(upper)), np.diff(rows.indptr)), below[rows.indices])
+        split(nodes[lower])
+        split(upper[~touches])
+        parts.append(upper[touches])
+
+    split(np.arange(graph.shape[0]))
+    return np.concatenate(parts).astype(np.int64)
 
 
 def block_inverse(A, node_type):
