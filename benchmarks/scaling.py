@@ -300,10 +300,11 @@ def format_md(result: dict) -> str:
         lines += ["", f"Fitted exponent a of time ∝ nodes^a: {_exp(f[f'{kind}_ms'], result['fit_from_nodes'])}; from "
                   f"the {'wall' if cpu else 'CPU'}-time medians "
                   f"{_exp(f[f'{kind}_wall_ms' if cpu else f'{kind}_ms'], result['fit_from_nodes'])}.", ""]
-    lines += ["Build: for LinearGeneric the FEM's rest linearisation (dense Jacobian columns by `jax.jvp`, "
-              "compilation included) and the dense inverse of A = K + (1 + αΔt)/Δt² M; for CorotationalGeneric the "
-              "FEM's element stiffness and stress columns (`jax.jvp`), the sparse rest operator and its lowest "
-              "eigenmodes (shift-invert Lanczos, `scipy.sparse.linalg.eigsh`); for "
+    lines += ["Build: for LinearGeneric the FEM's rest linearisation (node blocks by coloured `jax.jvp` products, "
+              "`fem.implicit.coloured_jacobian`, compilation included) and the dense inverse of A = K + "
+              "(1 + αΔt)/Δt² M; for CorotationalGeneric the FEM's element stiffness columns (`jax.jvp`), the sparse "
+              "rest operator and its lowest eigenmodes (shift-invert Lanczos, `scipy.sparse.linalg.eigsh`, on an LU "
+              "factor in nested-dissection order); for "
               "GenericGNN the weights' initialisation and the mesh's slot topology. LinearGeneric keeps A⁻¹ whole "
               "below 32 MB and as the upper blocks of a 4 × 4 split above "
               "(`tignn_jax.simulators.linear.ainv_blocks`).", ""]
