@@ -355,12 +355,7 @@ def coloured_jacobian(fn, cells: np.ndarray, n: int, reach: int, dtype=jnp.float
     along a random direction against the assembled blocks.
 
     Args:
-      fn: u [N, 3] ↦ tuple of [N, k_t] arrays.
-      cells: [C, n_per] node ids of the mesh's cells.
-      n: the number of nodes N.
-      reach: how many rings away a displacement can change an output node.
-      dtype: the displacements' dtype.
-      chunk: products per compiled call (every call one shape: one compilation).
+      fn, cells, n, reach, dtype, chunk: as `jacobian_blocks`.
       seed: the random check direction's seed.
 
     Returns:

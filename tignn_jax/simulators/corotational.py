@@ -395,7 +395,7 @@ def rest_preconditioner(A, node_type, modes: int, points=None) -> dict:
       node_type: [N] (0 free; the clamped nodes' rows of every array are 0).
       modes: m, at most the number of free degrees of freedom used.
       points: [N, 3] the nodes' rest positions, for the factor's ordering (None: SuperLU's column ordering, whose
-        factor of a large mesh fills several times more).
+        factor of a large mesh fills more: docs/research_log.md, "Building the corotational model of a large mesh").
 
     Returns:
       {"modes": Φ [3N, m], "mode_inv": 1/λ [m], "block_inv": B⁻¹ [N, 3, 3]}, float32.
