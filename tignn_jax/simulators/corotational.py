@@ -417,8 +417,8 @@ def rest_preconditioner(A, node_type, modes: int, points=None) -> dict:
         if points is not None:     # A⁻¹ by an LU factor in nested-dissection order, for the shift-invert
             coo = af.tocoo()
             graph = sparse.csr_matrix((np.ones(coo.nnz), (coo.row // 3, coo.col // 3)), shape=(len(free_nodes),) * 2)
-            order = nested_dissection(np.asarray(points, np.float64)[free_nodes], graph)
-            perm = (3 * order[:, None] + np.arange(3)).ravel()
+            nodes = nested_dissection(np.asarray(points, np.float64)[free_nodes], graph)
+            perm = (3 * nodes[:, None] + np.arange(3)).ravel()
             back = np.argsort(perm)
             lu = splu(sparse.csc_matrix(af[perm][:, perm]), permc_spec="NATURAL", options={"SymmetricMode": True})
             inverse = LinearOperator(af.shape, matvec=lambda b: lu.solve(np.ascontiguousarray(b[perm]))[back],
