@@ -364,6 +364,9 @@ def test_step_does_not_depend_on_the_slot_layout(toy):
     layouts = [GG.topology(s, r, n, q0, slots=k) for k in (3, int(np.bincount(r).max()))]
     assert layouts[0].nbr.shape[0] > n and layouts[1].nbr.shape[0] == n
     outs = [step(model, {**arrays, "topo": t}, z, f) for t in layouts]
+    # the layouts sum the messages in different orders: float32 round-off of the O(1) sums, a few ulps of the
+    # largest entry (a layout-dependent scaling would differ by O(1))
+    scale = float(jnp.max(jnp.abs(outs[0])))
     for out in outs[1:]:
-        np.testing.assert_allclose(out, outs[0], rtol=1e-5, atol=1e-6)
+        np.testing.assert_allclose(out, outs[0], rtol=1e-5, atol=1e-5 * scale)
     assert float(layouts[0].degree_max) == np.bincount(r).max()
