@@ -29,7 +29,7 @@ the nodes, Σ_a V_a U(J_a) with J_a = Σ_{e∋a} (V_e/4) J_e / V_a the nodal Jac
 V_a = Σ_{e∋a} V_e/4 (average nodal pressure, Bonet & Burton 1998): one volume constraint per node instead of
 per element, which removes volumetric locking. They differ in the isochoric (deviatoric) part:
 
-"anp" (the formulation until 2026-11-21): the element's constant F_e. A constant-strain tetrahedron still locks
+"anp": the element's constant F_e. A constant-strain tetrahedron still locks
     in bending on coarse meshes (parasitic shear: a linear field cannot bend an element): the 40 × 2 × 2
     cantilever of tests/test_fem_elements.py, six tets per hex of an 80 × 2 × 2 grid, is 31.8 % too stiff at
     the tip (first frequency +14.7 %); at ν = 0.36 it is still −34 % on the 40 × 2 × 2 grid, so this is not
@@ -56,25 +56,11 @@ per element, which removes volumetric locking. They differ in the isochoric (dev
       convex ψ), so the stiffness is bounded by that of the constant-strain element and the element-size
       stable time step below still holds (measured on the paper's beam mesh split into tets: h ω_max / 2 =
       0.776 with "nodal", 0.777 with "anp"; tests/test_fem_dynamics.py checks h < 2/ω_max).
-    * α = 0.3, measured on the cantilever (tip deflection vs Timoshenko; stiffness is linear in α):
-
-          grid (six tets per hex)   α = 0 (NS)   α = 0.3    α = 0.35   α = 1 (ANP)   α for exact tip
-          40 × 2 × 2  (cubes)         +32.8 %     −5.4 %     −9.4 %     −40.6 %       0.25
-          80 × 2 × 2  (the test)      +35.4 %     +2.3 %     −1.4 %     −31.8 %       0.33
-          80 × 4 × 4                  +9.7 %      +0.3 %     −1.1 %     −15.3 %       0.31
-
-      (first bending frequency at α = 0.3: +3.0 %, −1.1 %, −0.7 %.) The α for an exact tip deflection depends
-      on the mesh (0.25 … 0.33); α = 0.3 roughly minimises the largest of the three errors. It was measured
-      here for a bending-dominated solid a few elements thick, not taken from the αFEM literature (whose
-      recommended values target general elasticity and use their own definition of α).
-    * On the bunny scene (1330 nodes, 4698 tets, K/μ ≈ 78) the two differ as much: linear static response to a
-      sideways uniform body force, compliance f·u = 0.918e8 ("anp"), 1.274e8 ("nodal"), 2.25e8 (α = 0, CG
-      not converged). The same geometry refined 1 → 8 tets (37 584 tets) gives "anp" ≥ 1.365e8 and "nodal"
-      ≥ 1.913e8 (CG stopped at residual 1e-2; CG approaches the compliance from below): the scene mesh is far
-      from converged for this load with either formulation (thin ears, few elements across), both grow by
-      ≥ 49 % under refinement, and "nodal" is the closer to every refined value. In the dynamic scene (unit
-      point loads, three cases) the peak displacement is 1.0–2.1× that of "anp"; runs are stable (no
-      inversion, energy balance within 5e-4 of the external work).
+    * α = 0.3: the cantilever's tip deflection against Timoshenko's is linear in α, and the α that makes it exact
+      depends on the mesh (0.25–0.33 on three grids); 0.3 roughly minimises the largest error. It was chosen for
+      a bending-dominated solid a few elements thick, not taken from the αFEM literature (whose values target
+      general elasticity with their own definition of α). On the bunny scene "nodal" is the closer of the two to
+      the refined meshes' response. The measurements: docs/research_log.md ("The nodal tet4's α").
     * Viscoelasticity: each term keeps its own Prony history (elements: [n_prony, 3, 3, K], nodes:
       [n_prony, 3, 3, N]), weighted α and 1 − α in the stress, the stored energy and the dissipation.
     * Reported stress: the element Cauchy stress is α σ_iso(F_e) + (1 − α) × the mean of σ_iso(F_a) over the
@@ -82,9 +68,7 @@ per element, which removes volumetric locking. They differ in the isochoric (dev
       the element forces); the solver's nodal output is, as for every element, the volume average of the
       adjacent elements' stresses.
     Cost: one more isochoric stress evaluation per node (N ≈ K/4 … K/6), one gather of F to the nodes and one
-    of the nodal stresses back to the elements (and nodal Prony histories): on the bunny, single-threaded CPU,
-    float32, interleaved runs on a loaded machine, 1.45–1.5× the "anp" time per sub-step without Prony terms
-    and 1.3–1.4× with two.
+    of the nodal stresses back to the elements (and nodal Prony histories).
 """
 from __future__ import annotations
 

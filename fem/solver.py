@@ -159,7 +159,7 @@ def setup(points, cells, *, material: Material, frame_dt: float, n_frames: int, 
     faces (outward orientation); contact: optional dict(a=node ids, b=node ids, r0=contact thickness,
     stiffness=k [force/length], skin=search margin, capacity=max candidate pairs) for body–body contact;
     tet_formulation: tet4 element, 'nodal' (stabilised averaged-nodal deformation gradient) or 'anp' (average
-    nodal pressure, the formulation before 2026-11-21); tet_blend: α ∈ [0, 1], the weight of the element-wise
+    nodal pressure); tet_blend: α ∈ [0, 1], the weight of the element-wise
     isochoric energy in 'nodal' (see `fem.elements`).
     """
     pts = np.asarray(points, dtype=float)
@@ -386,8 +386,7 @@ def _deformation_gradient(ue, b):
     Displacements, not positions: Σ_a x_a ⊗ b_a adds terms of the size of the coordinates (~ the body's size
     over the element size) that cancel to ~1, which in float32 leaves F − I with an absolute error ~1e-5;
     times the bulk modulus of a nearly incompressible solid (K = 2e7 for the paper's beam) that is a pressure
-    noise of ~200. On the paper's beam in float32 the position form gave nodal σ 5.5 % from Abaqus (free
-    nodes, test cases 9, 10, 12, 13), against 2.1 % in float64; the displacement form is exact for the same
+    noise of ~200 (docs/research_log.md, "F from displacements"). The displacement form is exact for the same
     reason (Σ_a X_a ⊗ b_a = I for the uniform gradients)."""
     grad_u = _sum_over(lambda a: ue[:, None, a] * b[None, :, a], b.shape[1])
     return grad_u + jnp.eye(3, dtype=grad_u.dtype).reshape((3, 3) + (1,) * (grad_u.ndim - 2))

@@ -14,8 +14,8 @@ Backward Euler with step h, lumped mass M and mass damping α, on the free degre
 
 by ``newton`` Newton iterations Δv ← Δv + A⁻¹ r(Δv), A = (1 + αh) M + h² K(ũ) with K(ũ) the exact tangent at the
 iterate ũ (applied matrix-free as Kᵀw by ``jax.vjp`` of f_int: K is symmetric but for the hourglass forces'
-co-rotation, 7e-4 apart on a random beam state, and the reverse pass costs a fifth of ``jax.linearize``'s forward
-one here, 0.5 against 3.1 ms per product), each solved by ``iterations`` conjugate-gradient
+co-rotation, 7e-4 apart on a random beam state, and the reverse pass is the cheaper product; docs/research_log.md),
+each solved by ``iterations`` conjugate-gradient
 iterations preconditioned with R A₀⁻¹ Rᵀ / h², where A₀ = (1 + αh) M / h² + K₀ is the rest operator (its dense
 inverse is the linear model's A⁻¹) and R block-diagonal with each node's rotation (`rotations`: the polar
 factor of the node's least-squares deformation gradient). The iteration starts from v' = 0 (``predictor="zero"``,
@@ -43,7 +43,7 @@ def rotations(x0, senders, receivers, iterations: int = 6):
     """x [N,3] → [N,3,3], the rotation of each node's neighbourhood: the polar factor R of the least-squares
     deformation gradient F_i = (Σ_j dx dXᵀ)(Σ_j dX dXᵀ)⁻¹ over the node's edges (dx = x_j − x_i, dX = X_j − X_i),
     by Higham's iteration R ← (R + R⁻ᵀ)/2 from R = F (``iterations`` of it: quadratic convergence, exact at once for
-    a rigid motion; element-wise, where a batched SVD was 1.4 ms of the beam's step). The rest factor
+    a rigid motion; element-wise, cheaper than a batched SVD). The rest factor
     (Σ_j dX dXᵀ)⁻¹ is computed here, once per mesh."""
     x0 = jnp.asarray(x0, jnp.float32)
     senders, receivers = jnp.asarray(senders, jnp.int32), jnp.asarray(receivers, jnp.int32)

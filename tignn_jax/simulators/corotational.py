@@ -114,7 +114,7 @@ class CorotationalConfig(NamedTuple):
       schur_limit: the most volume constraints C (hex elements, or tet nodes) for which the preconditioner
         eliminates the volumetric stiffness through its dense Schur complement, S⁻¹ [C, C] (`schur_preconditioner`:
         C² numbers, and C² products an iteration); a larger mesh gets A₀'s node blocks there (`rest_preconditioner`).
-        At 4000 the dense products made a refined beam's frame 2.5 times slower (docs/research_log.md).
+        Past it the dense products outweigh the rest of the frame (docs/research_log.md).
       modes: m, the rest operator's lowest eigenmodes the two-level preconditioner inverts exactly (all of them on a
         mesh with at most m free degrees of freedom, where it is A₀⁻¹).
     """
@@ -286,7 +286,7 @@ def from_fem(problem, material, frame_dt: float | None = None) -> dict:
 def element_last(stored: dict) -> dict:
     """The step's layouts of the element arrays, components first and elements last: ``cells_t`` [n_e, K],
     ``b_t`` and ``x0e_t`` [3, n_e, K], the stiffness as ``ke_f`` [K, 24, 24] for hexes (elements first: applied by
-    one batched product, three times faster on a CPU than element-last multiply-adds) or ``ke_t`` [12, 12, K] for
+    one batched product, faster on a CPU than element-last multiply-adds) or ``ke_t`` [12, 12, K] for
     tets (element-last multiply-adds, faster than the batched product at that size), with rows and columns n_e i + a
     (component i of node a), the hexes' hourglass part ``khg`` as ``khg_f`` [K, 24, 24] likewise, and ``wnode_t``
     [n_e, K]."""

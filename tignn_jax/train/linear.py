@@ -285,7 +285,7 @@ def operators(weights, geo: dict, h: float, config: LinearConfig, extra) -> Oper
     if config.cell_pressure and not config.element_channels:
         raise ValueError("cell_pressure needs element_channels")
     if config.prior and geo["k0"].shape[0] == 0:
-        raise ValueError("LinearConfig(prior=True) needs a geometry with a prior (linear_generic.with_prior)")
+        raise ValueError("LinearConfig(prior=True) needs a geometry with a prior (tignn_jax.train.linear.with_prior)")
     node_out, edge_out, scales, cell_out = _coefficients(config).apply(weights, geo)
     share = 0.5 if config.element_channels else 1.0
     share_k = 0.5 if config.cell_pressure else 1.0
@@ -645,9 +645,9 @@ def train(data_path, train_rows, val_rows, run_dir, config: LinearConfig = Linea
 
 
 def to_rest_linearization(params, geo: Geometry, config: LinearConfig):
-    """The trained operators as a `fem.implicit.RestLinearization` (numpy float64 node blocks), the format the
-    ``frame_solve`` + ``linear_prior`` step of `tignn_jax.framesolve` carries: K's non-zero node blocks, S's
-    one-ring blocks, the masses and α."""
+    """The trained operators as a `fem.implicit.RestLinearization` (numpy float64 node blocks), the format a
+    `LinearGeneric` model is made from (`tignn_jax.simulators.linear.from_rest_linearization`): K's non-zero node
+    blocks, S's one-ring blocks, the masses and α."""
     from fem.implicit import RestLinearization
 
     ga = geometry_arrays(geo)
