@@ -34,10 +34,7 @@ def toy(tmp_path_factory):
 def validated(toy, tmp_path_factory):
     """A run with a validation split (validated at its last epoch): its folder and returned model."""
     run = tmp_path_factory.mktemp("validated")
-    try:
-        params = T.train(toy["path"], TINY, run, split=("train", "val"), **QUIET)
-    except (KeyError, TypeError, AttributeError, ImportError) as err:   # TODO: drop once api.save_model is final
-        pytest.skip(f"tignn_jax.api.save_model does not take the model dict yet: {err!r}")
+    params = T.train(toy["path"], TINY, run, split=("train", "val"), **QUIET)
     return {"run": run, "params": params}
 
 
