@@ -98,18 +98,27 @@ def test_clamp_expressions():
 
 
 def test_pressure_loads_sum_to_pressure_times_area():
-    """A pressure patch's nodal forces add up to −p Σ A n of its faces (a flat face: p × its area, inwards)."""
+    """A pressure patch's nodal forces add up to −p Σ A n over the faces it loads, less the clamped nodes' shares (a
+    face's force is spread equally over its four nodes), with the box's boundary faces enumerated here from its
+    geometry: unit squares on top (four free nodes), on the clamped bottom (none) and on the sides (two of four)."""
     from fem.material import mooney_rivlin
 
     p, c = box_hex_mesh((4.0, 4.0, 1.0), (4, 4, 1))
     mesh = um.VolumeMesh(p, c, "hexahedron", np.arange(len(p)))
     scene = um.mesh_scene(mesh, mooney_rivlin(1.0, 0.0, 0.1), um.clamp_nodes(p, "z=min"), n_frames=4)
+    faces = []                                                     # (centroid, outward normal, free share)
+    for i in range(4):
+        for j in range(4):
+            faces += [((i + 0.5, j + 0.5, 1.0), (0, 0, 1), 1.0), ((i + 0.5, j + 0.5, 0.0), (0, 0, -1), 0.0)]
+        for side, n in ((0.0, -1), (4.0, 1)):
+            faces += [((side, i + 0.5, 0.5), (n, 0, 0), 0.5), ((i + 0.5, side, 0.5), (0, n, 0), 0.5)]
     f, info = um.mesh_forces(scene, ["pressure"], 3, 0, pressure=2.0, radius=0.8, rise_frames=2)
     for c_, case in enumerate(info):
-        total = f[c_, -1].sum(axis=0)
         assert case["kind"] == "pressure" and 0.2 <= case["peak_pressure"] <= 2.0
-        # every loaded face is on the top (z = 1: the bottom is clamped and takes no force) or a side
-        assert np.linalg.norm(total) > 0
+        loaded = [(n, w) for x, n, w in faces if np.linalg.norm(np.subtract(x, p[case["centre"]])) <= case["radius"]]
+        assert len(loaded) == case["faces"] >= 2
+        expected = -case["peak_pressure"] * sum(w * np.asarray(n, float) for n, w in loaded)
+        np.testing.assert_allclose(f[c_, -1].sum(axis=0), expected, atol=1e-9)
         np.testing.assert_allclose(f[c_, 1], f[c_, -1], rtol=1e-6)     # risen by frame 2, then held
     top = um.mesh_forces(scene, ["pressure"], 1, 3, pressure=1.0, radius=10.0, rise_frames=0)[0][0, -1]
     # radius 10 loads every boundary face: the closed surface's Σ A n = 0, less the clamped bottom's share
