@@ -443,10 +443,21 @@ def test_untouched_bodies_at_rest_are_not_stepped():
 
 
 def test_colour_by_displacement_draws_without_stress():
+    # coloured by |q − q0|, the frames do not depend on the state's σ (the same run with σ × 100 draws the same
+    # pixels); coloured by stress, that run draws other colours
     scene, _ = _demo_scene(frames=3)
-    frames = []
-    mr.run(scene._replace(colour_by="displacement"), write=lambda i, rgb: frames.append(rgb))
-    assert len(frames) == 3 and frames[-1].shape == (120, 160, 3)
+    body = scene.bodies[0]
+    loud = body._replace(step_fn=lambda z, f: body.step_fn(z, f) * jnp.repeat(jnp.array([1.0, 100.0]), 6))
+
+    def last_frame(colour_by, b):
+        frames = []
+        mr.run(scene._replace(colour_by=colour_by, bodies=(b,)), write=lambda i, rgb: frames.append(rgb))
+        assert len(frames) == 3 and frames[-1].shape == (120, 160, 3)
+        return frames[-1].astype(int)
+
+    by_u = last_frame("displacement", loud)
+    np.testing.assert_array_equal(last_frame("displacement", body), by_u)
+    assert np.abs(last_frame("stress", loud) - by_u).sum(-1).astype(bool).sum() > 100
     with pytest.raises(ValueError, match="colour_by"):
         mr.run(scene._replace(colour_by="temperature"))
 
