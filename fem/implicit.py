@@ -184,12 +184,14 @@ def _run_impl(arr: sv.Arrays, m: Material, loads: sv.Loads, pinv, cfg: sv.Config
         kin = 0.5 * jnp.sum(mass * v ** 2)
         stored = sv._stored_energy(arr, m, u, (), hg, cfg)
         return arr.points.astype(dtype) + u, v, sig, sv.Energies(kin, stored, jnp.zeros((), dtype),
-                                                                 w_ext - kin - stored, w_ext)
+                                                                 w_ext + e_start - kin - stored, w_ext)
 
     zero = jnp.zeros((n, 3), dtype)
+    u0 = zero if loads.u0 is None else loads.u0.astype(dtype)
+    e_start = 0.5 * jnp.sum(mass * v0 ** 2) + sv._stored_energy(arr, m, u0, (), hg, cfg)   # the balance's start
     f0 = zero if cfg.load_interp == "linear" else nodal[0]
-    _, (outs, rel, its) = jax.lax.scan(frame_fn, (zero, v0, f0, jnp.zeros((), dtype)), jnp.arange(cfg.n_frames))
-    first = outputs(zero, v0, jnp.zeros((), dtype))
+    _, (outs, rel, its) = jax.lax.scan(frame_fn, (u0, v0, f0, jnp.zeros((), dtype)), jnp.arange(cfg.n_frames))
+    first = outputs(u0, v0, jnp.zeros((), dtype))
     q, v, sig, en = jax.tree_util.tree_map(lambda a, b: jnp.concatenate([a[None], b]), first, outs)
     t = jnp.arange(cfg.n_frames + 1) * cfg.frame_dt
     u_all = q - arr.points.astype(dtype)

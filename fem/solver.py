@@ -87,6 +87,9 @@ class Loads(NamedTuple):
     nodal: [n_frames, N, 3] nodal forces [force]; entry k acts during frame k (t_k → t_k+1).
     pressure: [n_frames, P] pressure on each pressure face [force/area], positive into the body (follower).
     v0: [N, 3] initial velocity [length/time] (zero if None).
+    u0: [N, 3] initial displacement from the reference positions [length] (zero if None); a clamped node keeps
+    its u0 throughout (a prescribed displacement), and the viscous branches start unrelaxed, so a stretch held
+    from t = 0 relaxes as the Prony series says. The energies' balance then holds for their changes from t = 0.
     With ``load_interp='step'`` the value is held within a frame; with 'linear' it ramps linearly from the
     previous frame's value (zero before the first) to entry k at the end of frame k.
     """
@@ -94,6 +97,7 @@ class Loads(NamedTuple):
     nodal: Optional[jnp.ndarray] = None
     pressure: Optional[jnp.ndarray] = None
     v0: Optional[jnp.ndarray] = None
+    u0: Optional[jnp.ndarray] = None
 
 
 class Energies(NamedTuple):
@@ -347,10 +351,15 @@ def _validate_loads(problem: Problem, loads: Loads, batched: bool = False):
         if shp != (cfg.n_frames, p):
             raise ValueError(f"loads.pressure must have shape {lead}{cfg.n_frames}, {p}], "
                              f"got {np.shape(loads.pressure)}")
-    if loads.v0 is not None:
-        shp = np.shape(loads.v0)[1:] if batched else np.shape(loads.v0)
+    for name in ("v0", "u0"):
+        value = getattr(loads, name)
+        if value is None:
+            continue
+        shp = np.shape(value)[1:] if batched else np.shape(value)
         if shp != (n, 3):
-            raise ValueError(f"loads.v0 must have shape {lead}{n}, 3], got {np.shape(loads.v0)}")
+            raise ValueError(f"loads.{name} must have shape {lead}{n}, 3], got {np.shape(value)}")
+        if not isinstance(value, jax.core.Tracer) and not np.all(np.isfinite(value)):
+            raise ValueError(f"loads.{name} contains NaN or Inf")
 
 
 def _element_last(geo):
@@ -766,7 +775,7 @@ def _simulate_impl(arr: Arrays, m: Material, loads: Loads, cfg: Config, batched:
         loads = Loads(*(None if a is None else jnp.moveaxis(a, 0, -1) for a in loads))
         bx = lambda a: a[..., None]
     X = bx(arr.points.astype(mass.dtype))     # reference positions; the state carries u = x − X
-    u0 = jnp.zeros(arr.points.shape + bshape, mass.dtype)
+    u0 = jnp.zeros(arr.points.shape + bshape, mass.dtype) if loads.u0 is None else loads.u0.astype(mass.dtype)
     free = bx(arr.free)
     inv_mass = bx(arr.free / mass[:, None])
     mass_x = bx(mass[:, None])

@@ -233,3 +233,31 @@ def test_simulate_batch_needs_a_batched_load():
     prob = fem.setup(pts, cells, material=mat, frame_dt=0.01, n_frames=1)
     with pytest.raises(ValueError, match="at least one batched entry"):
         fem.simulate_batch(prob, mat, fem.Loads())
+
+
+@pytest.mark.parametrize("integrator", ["explicit", "implicit"])
+def test_an_initial_displacement_held_by_clamps_keeps_its_closed_form_stress(integrator):
+    # Loads.u0: a unit hex8 stretched homogeneously (F = diag(1.2, 0.95, 0.9)) at t = 0, every node clamped there:
+    # positions stay at X + u0 and the nodal stress is the material's Cauchy stress of F in every frame, with
+    # nothing dissipated; a u0 of the wrong shape or with NaN is named
+    from fem import implicit
+    from fem.mesh import box_hex_mesh
+
+    with jax.enable_x64(True):
+        m = fem.mooney_rivlin(1.5e5, 5e3, 1e-4)
+        X, cells = box_hex_mesh((1.0, 1.0, 1.0), (1, 1, 1))
+        prob = fem.setup(X, cells, material=m, frame_dt=0.01, n_frames=5, clamped=np.arange(len(X)))
+        F = np.diag([1.2, 0.95, 0.9])
+        u0 = jnp.asarray(X @ F.T - X)
+        loads = fem.Loads(u0=u0)
+        res = fem.simulate(prob, m, loads) if integrator == "explicit" else implicit.simulate_implicit(
+            prob, m, loads)[0]
+        np.testing.assert_allclose(np.asarray(res.q), np.broadcast_to(X @ F.T, res.q.shape), atol=1e-12)
+        s = np.asarray(fem.cauchy_stress(m, jnp.asarray(F)))
+        voigt = np.array([s[0, 0], s[1, 1], s[2, 2], s[0, 1], s[0, 2], s[1, 2]])
+        np.testing.assert_allclose(np.asarray(res.sigma), np.broadcast_to(voigt, res.sigma.shape), rtol=1e-9,
+                                   atol=1e-9 * np.abs(voigt).max())
+        assert np.abs(np.asarray(res.energies.damping)).max() < 1e-9 * float(res.energies.strain[0])
+        for bad, said in ((u0[:4], r"loads.u0 must have shape \[8, 3\]"), (u0.at[0, 0].set(jnp.nan), "NaN")):
+            with pytest.raises(ValueError, match=said):
+                fem.simulate(prob, m, fem.Loads(u0=bad))
