@@ -105,9 +105,12 @@ def test_several_bodies_step_each_as_alone(beam):
     out = np.asarray(T.step(params, two, np.concatenate([f, 0.5 * f])).nodes["z"])
     one = np.asarray(T.step(params, graph, f).nodes["z"])
     half = np.asarray(T.step(params, graph, 0.5 * f).nodes["z"])
-    assert np.allclose(out[:756], one, atol=1e-5) and np.allclose(out[756:], half, atol=1e-5)
+    # other programs than the single body's: float32 round-off of their summation order, within 1e-4 of each
+    # column's largest value (as in test_stepper_inside_a_callers_jit_and_scan_steps_as_at_the_top_level)
+    tol = 1e-4 * np.abs(one).max(axis=0)
+    assert np.all(np.abs(out[:756] - one) <= tol) and np.all(np.abs(out[756:] - half) <= tol)
     fn = T.stepper(params, copies=2)
-    assert np.allclose(np.asarray(fn(two.nodes["z"], jnp.asarray(np.concatenate([f, 0.5 * f])))), out, atol=1e-6)
+    assert np.all(np.abs(np.asarray(fn(two.nodes["z"], jnp.asarray(np.concatenate([f, 0.5 * f])))) - out) <= tol)
 
 
 def test_a_batched_rest_graph_is_known_by_its_arrays_and_any_other_checked_by_value(beam, monkeypatch):
