@@ -3,8 +3,9 @@ r"""Run time against error on the held-out beam cases: the shipped models and th
 On the six test cases of the Abaqus beam data (sims 9, 10, 12, 13, 38, 44; ``tignn_jax.data.split_rows(data,
 "test")``) this measures, on this machine,
   * the shipped default ``beam-corot`` (the corotational GENERIC model, the FEM's element operators turned with
-    each element), ``beam`` (the learned linear GENERIC model trained on the data's train split) and
-    ``beam-linear`` (the FEM's rest linearisation as a linear model): one compiled step of each (its class's
+    each element), ``beam`` (the learned linear GENERIC model trained on the data's train split),
+    ``beam-linear`` (the FEM's rest linearisation as a linear model) and ``beam-tignn`` (the paper's network,
+    reproduced on the train split): one compiled step of each (its class's
     ``step_state``, what `tignn_jax.stepper` runs), rolled out from each case's first state on its forces
     (`tignn_jax.evaluation.rollout_cases`);
   * the FEM at decreasing cost: its own stable sub-step on the 20×5×5 reference mesh, mass scaling (density ×4,
@@ -14,8 +15,8 @@ On the six test cases of the Abaqus beam data (sims 9, 10, 12, 13, 38, 44; ``tig
     case;
   * the FEM's own backward-Euler frame step by a fixed count of Newton iterations of a few conjugate-gradient
     iterations each (`tignn_jax.fem_stepper(beam-linear, iterations, newton)`, `tignn_jax.newton`), from rest;
-  * the published TIGNN's test errors (`tignn_jax.evaluation.PUBLISHED_TEST`; its run time on this machine is not
-    measured: its weights are not shipped) as a reference line.
+  * the published TIGNN's test errors (`tignn_jax.evaluation.PUBLISHED_TEST`; its authors' weights, whose run time
+    is not measured here) as a reference line.
 Errors: per snapshot relative L2 over all 756 nodes, mean over snapshots 1..20 and the cases, of u = q − q0, v and
 σ (`tignn_jax.evaluation.relative_errors`); the FEM's v is numpy.gradient of its q over the frames, the convention
 of the reference data. Step times: median after compilation; each model step and Newton step is compiled under
@@ -50,6 +51,7 @@ RUNS = ROOT / "runs" / "pareto"
 SHIPPED = "beam-corot"        # the default model (`tignn_jax.api.DEFAULT_MODEL`): corotational GENERIC
 LEARNED = "beam"              # the learned linear GENERIC model
 LINEAR = "beam-linear"        # the FEM's rest linearisation as a linear model
+REPRODUCTION = "beam-tignn"   # the paper's network, reproduced (not a model for interaction)
 BUDGET_MS = (9.0, 11.0)       # the real-time step budget (one beam 9 ms; bunny 11 ms)
 # FEM variants: (name, elements along x, y, z, density factor)
 FEM_VARIANTS = (("FEM 20×5×5 (reference mesh)", (20, 5, 5), 1.0),
@@ -383,7 +385,8 @@ def main(argv=None) -> int:
     # the shipped models
     calls, models = {}, {}
     z, f = jnp.asarray(data.z[rows[0], 10]), jnp.asarray(data.f[rows[0], 10])
-    for name, kind in ((SHIPPED, "shipped"), (LEARNED, "shipped-learned"), (LINEAR, "shipped-linear")):
+    for name, kind in ((SHIPPED, "shipped"), (LEARNED, "shipped-learned"), (LINEAR, "shipped-linear"),
+                       (REPRODUCTION, "shipped-reproduction")):
         print(f"errors: {name}", flush=True)
         params, _ = tignn_jax.load_pretrained(name)
         models[name] = params
@@ -451,6 +454,7 @@ def write(result: dict, out: Path) -> None:
 STYLE = {"shipped": ("*", "C3", "shipped default `beam-corot`: corotational GENERIC"),
          "shipped-learned": ("D", "C0", "shipped `beam`: learned linear GENERIC"),
          "shipped-linear": ("P", "C2", "shipped `beam-linear`: the FEM's rest linearisation"),
+         "shipped-reproduction": ("X", "C1", "shipped `beam-tignn`: the paper's network, reproduced"),
          "fem": ("s", "C7", "FEM explicit (per 0.05 s frame)"),
          "fem-newton": ("v", "C4", "FEM backward Euler by Newton–CG (`fem_stepper`)")}
 
@@ -556,6 +560,11 @@ def findings(result: dict) -> list:
                    f"{learned['ms']:.2f} ms per step ({shipped['ms'] / learned['ms']:.2f}×), u {shipped['u']:.4f} / "
                    f"{learned['u']:.4f}, v {shipped['v']:.4f} / {learned['v']:.4f}, σ {shipped['sigma']:.4f} / "
                    f"{learned['sigma']:.4f}.")
+    reproduction = next((p for p in pts if p["kind"] == "shipped-reproduction"), None)
+    if reproduction is not None:
+        out.append(f"- `{REPRODUCTION}`, the paper's network reproduced: {reproduction['ms']:.2f} ms per step, u "
+                   f"{reproduction['u']:.4f}, v {reproduction['v']:.4f}, σ {reproduction['sigma']:.4f} (the published "
+                   f"network's u {published['u']:.4f}, v {published['v']:.4f}, σ {published['sigma']:.4f}).")
     fem = [p for p in pts if p["kind"].startswith("fem") and np.isfinite(p["u"])]
     as_good = [p for p in fem if p["u"] <= shipped["u"]]
     if as_good:
@@ -598,6 +607,9 @@ def report(result: dict) -> str:
             note = "learned linear GENERIC, backward Euler; trained on the data's train split"
         elif p["kind"] == "shipped-linear":
             note = "the FEM's rest linearisation, backward Euler (not learned)"
+        elif p["kind"] == "shipped-reproduction":
+            note = ("the paper's graph network, reproduced on the data's train split; explicit GENERIC step "
+                    "(not a model for interaction)")
         elif p["kind"] == "fem-newton":
             note = (f"500 hex8, backward Euler by {p['newton'][0]} Newton iteration(s) of {p['newton'][1]} CG each, "
                     "preconditioned with the rest operator turned with the body")
@@ -614,7 +626,7 @@ def report(result: dict) -> str:
                      f"{'**yes**' if p.get('on_front_uvs') else 'no'} | {note} |")
     lines.append(f"| published TIGNN (reference line) | — | {published['u']:.4f} | {published['v']:.4f} | "
                  f"{published['sigma']:.4f} | — | — | — | — | the paper's network on the test split "
-                 "(`tignn_jax.evaluation.PUBLISHED_TEST`); weights not shipped, run time not measured |")
+                 "(`tignn_jax.evaluation.PUBLISHED_TEST`), its authors' weights: run time not measured here |")
     lines += ["", "Pareto front in (time, u error; a diverged rollout is never on it): "
               + " → ".join(result["front"]) + ".", "",
               "Pareto front in (time, u, v, σ errors: not dominated in all four at once): "
