@@ -26,15 +26,21 @@ def describe() -> dict:
     except OSError:
         pass
     load = os.getloadavg() if hasattr(os, "getloadavg") else (float("nan"),) * 3
+    allowed = sorted(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else None
     return {"cpu": cpu, "cores": os.cpu_count(), "python": platform.python_version(), "jax": jax.__version__,
-            "backend": jax.default_backend(), "load_average_1m": round(load[0], 2),
+            "backend": jax.default_backend(), "load_average_1m": round(load[0], 2), "cpus_allowed": allowed,
             "note": "load_average_1m > cores means other processes shared the CPU during the run"}
 
 
 def machine_line(m: dict) -> str:
     """The report line's start that names the machine of ``describe()``: "Machine: CPU, N cores, jax V (backend)";
-    each report adds its own details (load average, flags)."""
-    return f"Machine: {m['cpu']}, {m['cores']} cores, jax {m['jax']} ({m['backend']})"
+    each report adds its own details (load average, flags). A process held to fewer CPUs than the machine has
+    (``taskset``, `tignn_jax.mr.pin_cores`) says so: "…, pinned to CPU 1"."""
+    line = f"Machine: {m['cpu']}, {m['cores']} cores, jax {m['jax']} ({m['backend']})"
+    allowed = m.get("cpus_allowed")
+    if allowed and m.get("cores") and len(allowed) < m["cores"]:
+        line += f", pinned to CPU{'s' if len(allowed) > 1 else ''} {', '.join(map(str, allowed))}"
+    return line
 
 
 def interleaved_ms(fns: dict, repeats: int, seed: int = 0) -> dict:
