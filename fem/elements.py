@@ -29,11 +29,10 @@ the nodes, Σ_a V_a U(J_a) with J_a = Σ_{e∋a} (V_e/4) J_e / V_a the nodal Jac
 V_a = Σ_{e∋a} V_e/4 (average nodal pressure, Bonet & Burton 1998): one volume constraint per node instead of
 per element, which removes volumetric locking. They differ in the isochoric (deviatoric) part:
 
-"anp": the element's constant F_e. A constant-strain tetrahedron still locks
-    in bending on coarse meshes (parasitic shear: a linear field cannot bend an element): the 40 × 2 × 2
-    cantilever of tests/test_fem_elements.py, six tets per hex of an 80 × 2 × 2 grid, is 31.8 % too stiff at
-    the tip (first frequency +14.7 %); at ν = 0.36 it is still −34 % on the 40 × 2 × 2 grid, so this is not
-    volumetric locking.
+"anp": the element's constant F_e. A constant-strain tetrahedron still locks in bending on coarse meshes
+    (parasitic shear: a linear field cannot bend an element): the 40 × 2 × 2 cantilever of
+    tests/test_fem_elements.py, six tets per hex of an 80 × 2 × 2 grid, is 31.8 % too stiff at the tip (first
+    frequency +14.7 %); at ν = 0.36 it is still −34 % on the 40 × 2 × 2 grid, so this is not volumetric locking.
 
 "nodal" (default): stabilised averaged-nodal deformation gradient, the finite-strain form of the αFEM of Liu,
     Nguyen-Thoi & Lam (CMAME 197, 2008, 3883) with a selective (nodal) volumetric part::

@@ -163,8 +163,8 @@ def setup(points, cells, *, material: Material, frame_dt: float, n_frames: int, 
     faces (outward orientation); contact: optional dict(a=node ids, b=node ids, r0=contact thickness,
     stiffness=k [force/length], skin=search margin, capacity=max candidate pairs) for body–body contact;
     tet_formulation: tet4 element, 'nodal' (stabilised averaged-nodal deformation gradient) or 'anp' (average
-    nodal pressure); tet_blend: α ∈ [0, 1], the weight of the element-wise
-    isochoric energy in 'nodal' (see `fem.elements`).
+    nodal pressure); tet_blend: α ∈ [0, 1], the weight of the element-wise isochoric energy in 'nodal' (see
+    `fem.elements`).
     """
     pts = np.asarray(points, dtype=float)
     cl = np.asarray(cells)
