@@ -98,6 +98,44 @@ def test_bad_input_is_one_line_and_exit_code_2(argv, message, capsys, tmp_path, 
     assert not Path("x.npz").exists()
 
 
+RECIPE = str(ROOT / "configs" / "tiny_gnn.py")
+
+
+@pytest.mark.parametrize("argv,message", [
+    (["track", "--mediapipe", "empty.jsonl", "--size", "64x48", "--focal", "50", "--out", "."], ".: Is a directory"),
+    (["track", "--mediapipe", "list.jsonl", "--size", "64x48", "--focal", "50", "--out", "t.jsonl"],
+     "list.jsonl:1: not a hand record (a JSON list, not an object)"),
+    (["track", "--mediapipe", "empty.jsonl", "--size", "64x48", "--focal", "inf", "--out", "t.jsonl"],
+     "--focal must be a positive number, got inf"),
+    (["demo", "--scene", "beam", "--stand-in", "--frames", "2", "--track", "list.jsonl", "--out", "o"],
+     "list.jsonl:1: not a track record (a JSON list, not an object)"),
+    (["train", "--config", "syntax.py", "--data", "d.npz", "--run-dir", "r"],
+     "cannot run the recipe (SyntaxError: '(' was never closed"),
+    (["train", "--config", RECIPE, "--data", "d.npz", "--run-dir", "r", "--set", "lr=abc"],
+     "lr must be a positive number, got 'abc'"),
+    (["train", "--config", "linear", "--data", "text.txt", "--run-dir", "r"], "--data text.txt: not a data file"),
+    (["demo", "--scene", "beam", "--model", "text.txt", "--out", "o"],
+     "text.txt is not a tignn-jax model file (not a .npz archive)"),
+    (["demo", "--scene", "beam", "--model", "noconfig.npz", "--out", "o"],
+     "noconfig.npz is not a tignn-jax model file (its 'model' entry names no class and config)"),
+    (["generate", "bunny", "--out", "x.npz", "--loads-per-case", "2", "--exclude-loads-of", "d.npz"],
+     "--exclude-loads-of d.npz: not a generated bunny data set"),
+])
+def test_bad_files_and_paths_are_one_line_and_exit_code_2(argv, message, capsys, tmp_path, monkeypatch):
+    # a file of the wrong kind or content, or a path that cannot be written, is named in one line (no traceback)
+    monkeypatch.chdir(tmp_path)
+    Path("text.txt").write_text("hello\n")
+    Path("empty.jsonl").write_text("")
+    Path("list.jsonl").write_text("[1, 2, 3]\n")
+    Path("syntax.py").write_text("CONFIG = (\n")
+    np.savez("d.npz", x=np.zeros(1))
+    np.savez("noconfig.npz", model=np.array('{"class": "linear"}'))
+    assert main(argv) == 2
+    err = capsys.readouterr().err.strip()
+    assert message in err and len(err.splitlines()) == 1 and "Traceback" not in err, err
+    assert not Path("x.npz").exists() and not Path("r").exists()
+
+
 def test_a_bunny_option_on_another_scene_is_not_an_option_there(capsys):
     # each scene's subcommand has only its own options: argparse names the stray one and exits with 2
     with pytest.raises(SystemExit) as stop:

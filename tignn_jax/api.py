@@ -336,11 +336,21 @@ def load_model(path: str | Path) -> dict:
     Raises:
       ValueError: the file is not a model file of this format, or names an unknown class or option.
     """
-    with np.load(path, allow_pickle=False) as npz:
-        flat = {k: npz[k] for k in npz.files}
+    try:
+        with np.load(path, allow_pickle=False) as npz:
+            flat = {k: npz[k] for k in npz.files}
+    except (ValueError, OSError, zipfile.BadZipFile) as err:
+        if isinstance(err, FileNotFoundError):
+            raise
+        raise ValueError(f"{path} is not a tignn-jax model file (not a .npz archive)") from err
     if "model" not in flat:
         raise ValueError(f"{path} is not a tignn-jax model file (no 'model' entry)")
-    head = json.loads(str(flat["model"]))
+    try:
+        head = json.loads(str(flat["model"]))
+    except json.JSONDecodeError as err:
+        raise ValueError(f"{path} is not a tignn-jax model file (its 'model' entry is not JSON)") from err
+    if not isinstance(head, dict) or not isinstance(head.get("config"), dict):
+        raise ValueError(f"{path} is not a tignn-jax model file (its 'model' entry names no class and config)")
     cls = CLASSES.get(head.get("class"))
     if cls is None:
         raise ValueError(f"{path}: unknown model class {head.get('class')!r}; known: {sorted(CLASSES)}")

@@ -6,6 +6,7 @@ S11,S22,S33,S12,S13,S23 6-11) and forces ``f`` [cases, frames, nodes, 3] act dur
 """
 from __future__ import annotations
 
+import zipfile
 from pathlib import Path
 from typing import NamedTuple
 
@@ -74,8 +75,11 @@ def load(path: str | Path) -> Dataset:
             if key in raw:
                 raw[key] = np.concatenate([np.atleast_1d(p[key]) if key == "sim_id" else p[key] for p in parts])
     else:
-        with np.load(path, allow_pickle=False) as npz:
-            raw = {k: npz[k] for k in npz.files}
+        try:
+            with np.load(path, allow_pickle=False) as npz:
+                raw = {k: npz[k] for k in npz.files}
+        except (ValueError, zipfile.BadZipFile) as err:
+            raise ValueError(f"data set {path} is not a .npz archive") from err
     for key in ("q0", "edges", "node_type", "z", "f", "dt"):
         if key not in raw:
             raise ValueError(f"data set {path} lacks the key {key!r}")

@@ -2,7 +2,8 @@
 
 A subcommand's ``func(args) -> int`` reports bad input by raising `UsageError` (or ``ValueError`` from the
 library's own checks): `main` prints one line naming the bad value and exits with 2, without a traceback unless
-``--debug`` is given.
+``--debug`` is given. A path that cannot be read or written (``OSError``: missing, not a folder, no permission)
+is reported the same way, naming the path.
 """
 from __future__ import annotations
 
@@ -36,10 +37,13 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     try:
         return int(args.func(args) or 0)
-    except (UsageError, ValueError, FileNotFoundError) as err:
+    except (UsageError, ValueError, OSError) as err:
         if args.debug:
             raise
-        message = str(err).splitlines()[0] if str(err) else type(err).__name__
+        if isinstance(err, OSError) and err.filename is not None and err.strerror:
+            message = f"{err.filename}: {err.strerror}"
+        else:
+            message = str(err).splitlines()[0] if str(err) else type(err).__name__
         print(f"tignn {args.command}: error: {message}", file=sys.stderr)
         return 2
 

@@ -356,11 +356,18 @@ def _held_out_load_nodes(path) -> list:
 
     import numpy as np
 
-    with np.load(path) as d:
-        meta = json.loads(str(d["metadata"]))
-        ids = np.concatenate([d[k] for k in ("split_val", "split_test") if k in d.files])
-        sims = list(d["sim_id"])
-    if "load_nodes" not in meta:
+    try:
+        with np.load(path, allow_pickle=False) as d:
+            if not {"metadata", "sim_id"} <= set(d.files):
+                raise UsageError(f"--exclude-loads-of {path}: not a generated bunny data set (no metadata or sim_id)")
+            meta = json.loads(str(d["metadata"]))
+            ids = np.concatenate([d[k] for k in ("split_val", "split_test") if k in d.files])
+            sims = list(d["sim_id"])
+    except (ValueError, OSError) as err:
+        if isinstance(err, FileNotFoundError):
+            raise
+        raise UsageError(f"--exclude-loads-of {path}: not a data file ({type(err).__name__})") from err
+    if not isinstance(meta, dict) or "load_nodes" not in meta:
         raise UsageError(f"--exclude-loads-of {path}: its metadata has no load_nodes")
     nodes = np.asarray(meta["load_nodes"])
     return sorted({int(nodes[sims.index(i)]) for i in ids})

@@ -1,6 +1,7 @@
 """``tignn track``: convert a hand tracker's output into a fingertip track (`tignn_jax.mr.track`'s format)."""
 from __future__ import annotations
 
+import math
 from pathlib import Path
 
 from tignn_jax.cli import UsageError
@@ -31,15 +32,15 @@ def run(args) -> int:
     if not Path(args.mediapipe).is_file():
         raise UsageError(f"--mediapipe {args.mediapipe}: no such file")
     width, height = _parse_size(args.size)
-    if not args.focal > 0:
-        raise UsageError(f"--focal must be positive, got {args.focal}")
+    if not (math.isfinite(args.focal) and args.focal > 0):
+        raise UsageError(f"--focal must be a positive number, got {args.focal}")
     tips = tuple(t.strip() for t in args.tips.split(",") if t.strip())
     bad = [t for t in tips if t not in hands.FINGERTIPS]
     if not tips or bad:
         raise UsageError(f"--tips {args.tips!r}: fingertips are {', '.join(hands.FINGERTIPS)}")
     palm = hands.PALM_M if args.palm is None else args.palm
-    if not palm > 0:
-        raise UsageError(f"--palm must be positive, got {args.palm}")
+    if not (math.isfinite(palm) and palm > 0):
+        raise UsageError(f"--palm must be a positive number, got {args.palm}")
     out = hands.convert(args.mediapipe, args.out, width, height, args.focal, tips=tips, palm_m=palm)
     print(f"wrote {out}")
     return 0

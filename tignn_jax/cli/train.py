@@ -2,6 +2,7 @@
 (resumable), and write its model card."""
 from __future__ import annotations
 
+import zipfile
 from pathlib import Path
 
 from tignn_jax.cli import UsageError
@@ -39,6 +40,8 @@ def run(args) -> int:
     for path in args.data:
         if not Path(path).exists():
             raise UsageError(f"--data {path}: no such file")
+        if Path(path).is_file() and not zipfile.is_zipfile(path):
+            raise UsageError(f"--data {path}: not a data file (.npz)")
     if named:
         config, trainer = defaults.default_recipe(args.config, args.data[0])
     else:

@@ -106,6 +106,8 @@ def convert(path, out, width: int, height: int, focal: float, tips=("index",), p
             continue
         try:
             record = json.loads(line)
+            if not isinstance(record, dict):
+                raise TypeError(f"a JSON {type(record).__name__}, not an object")
             rows = [hand_to_tips(h["landmarks"], width, height, focal, h.get("world_landmarks"), tips=tips,
                                  palm_m=palm_m) for h in record.get("hands", [])]
         except (ValueError, KeyError, TypeError) as err:

@@ -64,16 +64,27 @@ def load_track(path, max_tips: int = 5) -> np.ndarray:
 
     Returns:
       [F, max_tips, 3] float32, NaN-padded; F is one more than the largest frame number.
+
+    Raises:
+      ValueError: a line is not a track record ({"frame": int, "tips": [[u, v, depth], ...]}), naming its line.
     """
     frames = {}
     for n, line in enumerate(Path(path).read_text().splitlines()):
         if not line.strip():
             continue
-        record = json.loads(line)
-        tips = np.asarray(record.get("tips", []), np.float32).reshape(-1, 3)
+        try:
+            record = json.loads(line)
+            if not isinstance(record, dict):
+                raise TypeError(f"a JSON {type(record).__name__}, not an object")
+            tips = np.asarray(record.get("tips", []), np.float32).reshape(-1, 3)
+            frame = int(record.get("frame", n))
+            if frame < 0:
+                raise ValueError(f"frame {frame} is negative")
+        except (ValueError, TypeError) as err:
+            raise ValueError(f"{path}:{n + 1}: not a track record ({err})") from None
         if len(tips) > max_tips:
             warnings.warn(f"{path}:{n + 1}: {len(tips)} fingertips, keeping the first {max_tips}")
-        frames[int(record.get("frame", n))] = tips[:max_tips]
+        frames[frame] = tips[:max_tips]
     track = np.full((max(frames) + 1 if frames else 0, max_tips, 3), np.nan, np.float32)
     for i, tips in frames.items():
         track[i, : len(tips)] = tips

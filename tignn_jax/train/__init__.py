@@ -23,14 +23,17 @@ def load_recipe(path: str | Path):
     one of the trainers) and the trainer module that runs it.
 
     Raises:
-      ValueError: the file does not exist or defines no ``CONFIG`` of a known trainer.
+      ValueError: the file does not exist, fails to run, or defines no ``CONFIG`` of a known trainer.
     """
     import importlib
 
     path = Path(path)
     if not path.is_file():
         raise ValueError(f"no recipe file {str(path)!r}")
-    config = runpy.run_path(str(path)).get("CONFIG")
+    try:
+        config = runpy.run_path(str(path)).get("CONFIG")
+    except Exception as err:   # the recipe is the user's Python: any error in it is bad input, named here
+        raise ValueError(f"{path}: cannot run the recipe ({type(err).__name__}: {err})") from err
     for name in TRAINERS.values():
         module = importlib.import_module(name)
         if isinstance(config, module.TrainConfig):

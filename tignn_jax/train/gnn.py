@@ -101,13 +101,15 @@ class TrainConfig(NamedTuple):
         if isinstance(self.warmup_steps, bool) or not isinstance(self.warmup_steps, (int, np.integer)) \
                 or self.warmup_steps < 0:
             raise ValueError(f"warmup_steps must be a non-negative integer, got {self.warmup_steps!r}")
+        number = lambda v: isinstance(v, (int, float, np.integer, np.floating)) and not isinstance(v, bool) \
+            and np.isfinite(v)  # noqa: E731
         for field in ("lr", "lr_end"):
             value = getattr(self, field)
-            if not (np.isfinite(value) and value > 0):
+            if not (number(value) and value > 0):
                 raise ValueError(f"{field} must be a positive number, got {value!r}")
         for field in ("weight_decay", "noise", "deg_weight", "case_weight"):
             value = getattr(self, field)
-            if not (np.isfinite(value) and value >= 0):
+            if not (number(value) and value >= 0):
                 raise ValueError(f"{field} must be a finite number >= 0, got {value!r}")
         return self
 

@@ -721,6 +721,20 @@ def run(data_paths, config: TrainConfig, run_dir, progress: bool = True, until: 
         raise ValueError(f"steps must be a non-negative integer, got {config.steps!r}")
     if config.steps == 0 and not config.model.prior:
         raise ValueError("steps=0 (the FEM's rest linearisation, untrained) needs model.prior=True")
+    if isinstance(config.lr, bool) or not (isinstance(config.lr, (int, float)) and np.isfinite(config.lr)
+                                           and config.lr > 0):
+        raise ValueError(f"lr must be a positive number, got {config.lr!r}")
+    for field in ("val_every", "batch"):
+        value = getattr(config, field)
+        if not (field == "batch" and value is None) and (isinstance(value, bool) or not isinstance(value, int)
+                                                          or value < 1):
+            raise ValueError(f"{field} must be a positive integer{' or None' if field == 'batch' else ''}, "
+                             f"got {value!r}")
+    weights = config.weights
+    if not (isinstance(weights, (tuple, list)) and len(weights) == 3
+            and all(isinstance(w, (int, float)) and not isinstance(w, bool) and np.isfinite(w) and w >= 0
+                    for w in weights) and sum(weights) > 0):
+        raise ValueError(f"weights must be three finite numbers >= 0 (u, v, σ), not all 0, got {weights!r}")
     paths = [data_paths] if isinstance(data_paths, (str, Path)) else list(data_paths)
     previous = jax.config.jax_enable_x64
     jax.config.update("jax_enable_x64", bool(config.float64))
