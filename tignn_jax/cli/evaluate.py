@@ -29,9 +29,13 @@ def run(args) -> int:
     params, _ = api.load_pretrained(args.model)
     data = load_data(args.data)
     splits = [s for s in args.splits.split(",") if s]
+    if not splits:
+        raise UsageError(f"--splits {args.splits!r}: no split named (comma-separated names, e.g. train,val,test)")
     unknown = [s for s in splits if s not in data.splits]
     if unknown:
         raise UsageError(f"--splits: {unknown} not in the data file, which has {sorted(data.splits)}")
+    if args.out and Path(args.out).exists() and not Path(args.out).is_dir():
+        raise UsageError(f"--out {args.out}: a file, not a folder")
     report, raw = EV.evaluate(params, data, splits, structure=not args.no_structure)
     table = EV.format_table(report)
     print(table)

@@ -39,8 +39,12 @@ def run(args) -> int:
         rows = D.split_rows(data, D.parse_split(args.sims))
     except (KeyError, ValueError) as err:
         raise UsageError(f"--sims {args.sims}: {err}") from None
-    z = EV.rollout_cases(params, data, rows)
     out = Path(args.out)
+    if out.suffix != ".npz":
+        out = out.with_name(out.name + ".npz")       # as numpy.savez names it: report the file it writes
+    if out.is_dir():
+        raise UsageError(f"--out {args.out}: {out} is a folder")
+    z = EV.rollout_cases(params, data, rows)
     out.parent.mkdir(parents=True, exist_ok=True)
     np.savez_compressed(out, z=z, sim_id=data.sim_id[rows])
     print(f"wrote {out} (z {z.shape})")
