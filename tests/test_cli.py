@@ -89,6 +89,10 @@ def test_a_tiny_linear_model_trains_evaluates_and_rolls_out(tmp_path, tiny_data,
      "--newton-iterations must be positive, got 0"),
     (["generate", "beam-reference", "--out", "x.npz", "--newton-iterations", "30"],
      "--newton-iterations applies only with --integrator"),
+    (["generate", "bunny", "--out", "x.npz", "--cases", "1", "--rise-frames", "-3"],
+     "--rise-frames must be in 0..20, got -3"),
+    (["generate", "bunny", "--out", "x.npz", "--cases", "1", "--load-radius", "-1"],
+     "--load-radius must be a finite number >= 0, got -1.0"),
 ])
 def test_bad_input_is_one_line_and_exit_code_2(argv, message, capsys, tmp_path, monkeypatch):
     monkeypatch.chdir(tmp_path)
@@ -113,6 +117,8 @@ RECIPE = str(ROOT / "configs" / "tiny_gnn.py")
      "cannot run the recipe (SyntaxError: '(' was never closed"),
     (["train", "--config", RECIPE, "--data", "d.npz", "--run-dir", "r", "--set", "lr=abc"],
      "lr must be a positive number, got 'abc'"),
+    (["train", "--config", RECIPE, "--data", "d.npz", "--run-dir", "r", "--set", "epochs=0"],
+     "--set epochs=0: epochs must be a positive integer, got 0"),
     (["train", "--config", "linear", "--data", "text.txt", "--run-dir", "r"], "--data text.txt: not a data file"),
     (["demo", "--scene", "beam", "--model", "text.txt", "--out", "o"],
      "text.txt is not a tignn-jax model file (not a .npz archive)"),

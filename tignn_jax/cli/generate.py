@@ -192,6 +192,10 @@ def run(args) -> int:
                 nodes = [int(t) for t in args.load_nodes.split(",") if t.strip()]
             except ValueError:
                 raise UsageError(f"--load-nodes must be comma-separated integers, got {args.load_nodes!r}")
+        if not 0 <= args.rise_frames <= scene.n_frames:
+            raise UsageError(f"--rise-frames must be in 0..{scene.n_frames}, got {args.rise_frames}")
+        if args.load_radius is not None and not (np.isfinite(args.load_radius) and args.load_radius >= 0):
+            raise UsageError(f"--load-radius must be a finite number >= 0, got {args.load_radius}")
         try:
             if args.loads_per_case > 1:
                 held = _held_out_load_nodes(args.exclude_loads_of) if args.exclude_loads_of else []
@@ -209,7 +213,7 @@ def run(args) -> int:
                 if args.load_magnitude:
                     meta["load_magnitude"] = args.load_magnitude
         except ValueError as e:
-            raise UsageError(str(e))
+            raise UsageError(f"--load-nodes {args.load_nodes}: {e}" if nodes else str(e))
         meta["load_nodes"] = np.asarray(picked).tolist()
         meta["rise_frames"] = args.rise_frames
     if args.damping is not None:

@@ -51,8 +51,11 @@ def run(args) -> int:
             raise UsageError(f"--config {args.config}: {e}")
     try:
         config = defaults.override(config, args.set)
+        if args.set and hasattr(config, "check"):
+            config.check()
     except ValueError as e:
-        raise UsageError(str(e))
+        message = str(e)
+        raise UsageError(message if message.startswith("--set") else f"--set {' '.join(args.set)}: {message}")
     data = args.data if len(args.data) > 1 else args.data[0]
     params = trainer.run(data, config, args.run_dir, progress=not args.no_progress)
     model = Path(args.run_dir).resolve() / "model" / "model.npz"

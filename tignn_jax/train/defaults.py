@@ -81,8 +81,11 @@ def override(config, assignments):
 
 def _set(obj, path, value, key):
     fields = getattr(obj, "_fields", None)
-    if fields is None or path[0] not in fields:
-        raise ValueError(f"--set {key}: no field {path[0]!r}; fields: {', '.join(fields or ())}")
+    if fields is None:
+        raise ValueError(f"--set {key}: {path[0]!r} is inside a value of type {type(obj).__name__}, which has no "
+                         f"fields")
+    if path[0] not in fields:
+        raise ValueError(f"--set {key}: no field {path[0]!r}; fields: {', '.join(fields)}")
     if len(path) == 1:
         current = getattr(obj, path[0])
         if isinstance(current, float) and isinstance(value, int) and not isinstance(value, bool):
