@@ -93,6 +93,7 @@ def test_a_tiny_linear_model_trains_evaluates_and_rolls_out(tmp_path, tiny_data,
      "--rise-frames must be in 0..20, got -3"),
     (["generate", "bunny", "--out", "x.npz", "--cases", "1", "--load-radius", "-1"],
      "--load-radius must be a finite number >= 0, got -1.0"),
+    (["generate", "two-beams", "--out", "x.npz", "--cases", "100"], "--cases 100: the two-beams scene has 6 cases"),
 ])
 def test_bad_input_is_one_line_and_exit_code_2(argv, message, capsys, tmp_path, monkeypatch):
     monkeypatch.chdir(tmp_path)
@@ -100,6 +101,19 @@ def test_bad_input_is_one_line_and_exit_code_2(argv, message, capsys, tmp_path, 
     err = capsys.readouterr().err.strip()
     assert message in err and len(err.splitlines()) == 1 and "Traceback" not in err
     assert not Path("x.npz").exists()
+
+
+@pytest.mark.parametrize("argv,message", [
+    (["demo", "--frames", "abc"], "tignn demo: error: argument --frames: invalid int value: 'abc'"),
+    (["generate", "bunny"], "tignn generate bunny: error: the following arguments are required: --out"),
+    (["generate", "beam-reference", "--out", "x.npz", "--seed", "3"], "unrecognized arguments: --seed 3"),
+])
+def test_argument_errors_are_one_line_and_exit_code_2(argv, message, capsys):
+    # argparse's own errors too: one line naming the option and where the help is, no usage block
+    with pytest.raises(SystemExit) as stop:
+        main(argv)
+    err = capsys.readouterr().err.strip()
+    assert stop.value.code == 2 and message in err and len(err.splitlines()) == 1 and "--help" in err, err
 
 
 RECIPE = str(ROOT / "configs" / "tiny_gnn.py")

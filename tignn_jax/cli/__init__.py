@@ -19,8 +19,16 @@ class UsageError(Exception):
     """Bad input from the command line: the message names the option and the bad value."""
 
 
+class _Parser(argparse.ArgumentParser):
+    """argparse's parser whose errors (a missing, unknown or malformed option) are one line and exit code 2, as the
+    subcommands' own: "PROG: error: MESSAGE (see PROG --help)", without the usage block."""
+
+    def error(self, message):
+        self.exit(2, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
+
+
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
+    parser = _Parser(
         prog="tignn", description="Thermodynamics-informed simulators of deformable bodies, and their FEM, in JAX.")
     parser.add_argument("--debug", action="store_true", help="show the full traceback of an error")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")

@@ -153,6 +153,8 @@ def run(args) -> int:
     if args.scene == "two-beams":
         scene = two_beams_scene()
         forces = two_beams_forces(scene)
+        if args.cases and args.cases > len(forces):
+            raise UsageError(f"--cases {args.cases}: the two-beams scene has {len(forces)} cases")
         if args.cases:
             forces = forces[: args.cases]
         setup_kwargs["contact"] = two_beams_contact(scene)
