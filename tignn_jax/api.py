@@ -339,9 +339,7 @@ def load_model(path: str | Path) -> dict:
     try:
         with np.load(path, allow_pickle=False) as npz:
             flat = {k: npz[k] for k in npz.files}
-    except (ValueError, OSError, zipfile.BadZipFile) as err:
-        if isinstance(err, FileNotFoundError):
-            raise
+    except (ValueError, EOFError, zipfile.BadZipFile) as err:
         raise ValueError(f"{path} is not a tignn-jax model file (not a .npz archive)") from err
     if "model" not in flat:
         raise ValueError(f"{path} is not a tignn-jax model file (no 'model' entry)")

@@ -78,7 +78,7 @@ def load(path: str | Path) -> Dataset:
         try:
             with np.load(path, allow_pickle=False) as npz:
                 raw = {k: npz[k] for k in npz.files}
-        except (ValueError, zipfile.BadZipFile) as err:
+        except (ValueError, EOFError, zipfile.BadZipFile) as err:
             raise ValueError(f"data set {path} is not a .npz archive") from err
     for key in ("q0", "edges", "node_type", "z", "f", "dt"):
         if key not in raw:
