@@ -452,10 +452,12 @@ def nested_dissection(points, graph, leaf: int = 64) -> np.ndarray:
     parts = []
 
     def split(nodes):
-        x = points[nodes]
-        axis = int(np.argmax(x.max(axis=0) - x.min(axis=0))) if len(nodes) else 0
-        lower = x[:, axis] < np.median(x[:, axis]) if len(nodes) else np.zeros(0, bool)
-        if len(nodes) <= leaf or lower.all() or not lower.any():
+        lower = None
+        if len(nodes) > leaf:
+            x = points[nodes]
+            axis = int(np.argmax(x.max(axis=0) - x.min(axis=0)))
+            lower = x[:, axis] < np.median(x[:, axis])
+        if lower is None or lower.all() or not lower.any():   # a leaf, or no split along the longest extent
             parts.append(nodes)
             return
         below = np.zeros(graph.shape[0], bool)
