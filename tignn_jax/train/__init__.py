@@ -18,6 +18,21 @@ TRAINERS = {"generic_gnn": "tignn_jax.train.gnn", "linear": "tignn_jax.train.lin
             "corotational": "tignn_jax.train.corotational"}
 
 
+def is_number(value) -> bool:
+    """Whether a recipe's ``value`` is a finite real number (a Python or numpy int or float; a bool is not one)."""
+    import numpy as np
+
+    return (isinstance(value, (int, float, np.integer, np.floating)) and not isinstance(value, bool)
+            and bool(np.isfinite(value)))
+
+
+def is_count(value, least: int = 1) -> bool:
+    """Whether a recipe's ``value`` is an integer (Python or numpy; a bool is not one) of at least ``least``."""
+    import numpy as np
+
+    return isinstance(value, (int, np.integer)) and not isinstance(value, bool) and value >= least
+
+
 def load_recipe(path: str | Path):
     """The ``CONFIG`` of a recipe file (a Python file in ``configs/`` that defines ``CONFIG``, a `TrainConfig` of
     one of the trainers) and the trainer module that runs it.

@@ -44,6 +44,7 @@ from jax.sharding import Mesh, NamedSharding, PartitionSpec as P
 from tignn_jax import data as D
 from tignn_jax.api import ENVELOPE, make_params
 from tignn_jax.simulators.generic_gnn import STATE_DIM, GenericGNN, GNNConfig, prescribed, state_scale
+from tignn_jax.train import is_count, is_number
 
 VARIABLES = ("q", "v", "sigma", "u")
 
@@ -96,20 +97,17 @@ class TrainConfig(NamedTuple):
         self.model.check()
         for field in ("batch_size", "epochs", "eval_every", "ckpt_every"):
             value = getattr(self, field)
-            if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 1:
+            if not is_count(value):
                 raise ValueError(f"{field} must be a positive integer, got {value!r}")
-        if isinstance(self.warmup_steps, bool) or not isinstance(self.warmup_steps, (int, np.integer)) \
-                or self.warmup_steps < 0:
+        if not is_count(self.warmup_steps, 0):
             raise ValueError(f"warmup_steps must be a non-negative integer, got {self.warmup_steps!r}")
-        number = lambda v: isinstance(v, (int, float, np.integer, np.floating)) and not isinstance(v, bool) \
-            and np.isfinite(v)  # noqa: E731
         for field in ("lr", "lr_end"):
             value = getattr(self, field)
-            if not (number(value) and value > 0):
+            if not (is_number(value) and value > 0):
                 raise ValueError(f"{field} must be a positive number, got {value!r}")
         for field in ("weight_decay", "noise", "deg_weight", "case_weight"):
             value = getattr(self, field)
-            if not (number(value) and value >= 0):
+            if not (is_number(value) and value >= 0):
                 raise ValueError(f"{field} must be a finite number >= 0, got {value!r}")
         return self
 

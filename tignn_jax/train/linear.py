@@ -34,6 +34,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from tignn_jax.simulators.linear import LinearConfig
+from tignn_jax.train import is_count, is_number
 
 VOIGT = ((0, 0), (1, 1), (2, 2), (0, 1), (0, 2), (1, 2))   # S11 S22 S33 S12 S13 S23, the data's order
 
@@ -721,19 +722,15 @@ def run(data_paths, config: TrainConfig, run_dir, progress: bool = True, until: 
         raise ValueError(f"steps must be a non-negative integer, got {config.steps!r}")
     if config.steps == 0 and not config.model.prior:
         raise ValueError("steps=0 (the FEM's rest linearisation, untrained) needs model.prior=True")
-    if isinstance(config.lr, bool) or not (isinstance(config.lr, (int, float)) and np.isfinite(config.lr)
-                                           and config.lr > 0):
+    if not (is_number(config.lr) and config.lr > 0):
         raise ValueError(f"lr must be a positive number, got {config.lr!r}")
-    for field in ("val_every", "batch"):
-        value = getattr(config, field)
-        if not (field == "batch" and value is None) and (isinstance(value, bool) or not isinstance(value, int)
-                                                          or value < 1):
-            raise ValueError(f"{field} must be a positive integer{' or None' if field == 'batch' else ''}, "
-                             f"got {value!r}")
+    if not is_count(config.val_every):
+        raise ValueError(f"val_every must be a positive integer, got {config.val_every!r}")
+    if not (config.batch is None or is_count(config.batch)):
+        raise ValueError(f"batch must be a positive integer or None, got {config.batch!r}")
     weights = config.weights
     if not (isinstance(weights, (tuple, list)) and len(weights) == 3
-            and all(isinstance(w, (int, float)) and not isinstance(w, bool) and np.isfinite(w) and w >= 0
-                    for w in weights) and sum(weights) > 0):
+            and all(is_number(w) and w >= 0 for w in weights) and sum(weights) > 0):
         raise ValueError(f"weights must be three finite numbers >= 0 (u, v, σ), not all 0, got {weights!r}")
     paths = [data_paths] if isinstance(data_paths, (str, Path)) else list(data_paths)
     previous = jax.config.jax_enable_x64
