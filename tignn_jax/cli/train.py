@@ -12,12 +12,12 @@ def register(sub) -> None:
     p = sub.add_parser("train", help="train a model from a recipe (resumable), with a generated model card",
                        description="Train a model on a data file made by `tignn generate` (or the Abaqus reference "
                                    "data), from a recipe file (configs/*.py, which defines CONFIG) or a named recipe "
-                                   "whose scales come from the data: linear, corotational or tignn. Run the "
+                                   "whose scales come from the data: linear, corotational, embedded or tignn. Run the "
                                    "same command again to resume. The model is written to RUN_DIR/model/model.npz "
                                    "with its MODEL_CARD.md; `tignn evaluate`, `tignn rollout`, `tignn demo`, "
                                    "`tignn view` and tignn_jax.load_pretrained accept RUN_DIR.")
     p.add_argument("--config", required=True, metavar="RECIPE",
-                   help="linear, corotational or tignn (tignn_jax.train.defaults), or a recipe file, e.g. "
+                   help="linear, corotational, embedded or tignn (tignn_jax.train.defaults), or a recipe file, e.g. "
                         "configs/beam.py")
     p.add_argument("--data", required=True, nargs="+", metavar="FILE",
                    help="data file(s) on one mesh; several are concatenated")

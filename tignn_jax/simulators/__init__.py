@@ -28,11 +28,13 @@ recipe, errors) written to the model file as JSON.
 from __future__ import annotations
 
 from tignn_jax.simulators.corotational import CorotationalConfig, CorotationalGeneric
+from tignn_jax.simulators.embedded import EmbeddedCorotational
 from tignn_jax.simulators.generic_gnn import GenericGNN, GNNConfig
 from tignn_jax.simulators.linear import LinearConfig, LinearGeneric
 from tignn_jax.simulators.rest_start import RestStartGNN
 
-CLASSES = {cls.name: cls for cls in (GenericGNN, RestStartGNN, LinearGeneric, CorotationalGeneric)}
+CLASSES = {cls.name: cls for cls in (GenericGNN, RestStartGNN, LinearGeneric, CorotationalGeneric,
+                                      EmbeddedCorotational)}
 
-__all__ = ["CLASSES", "CorotationalConfig", "CorotationalGeneric", "GenericGNN", "GNNConfig", "LinearConfig",
-           "LinearGeneric", "RestStartGNN"]
+__all__ = ["CLASSES", "CorotationalConfig", "CorotationalGeneric", "EmbeddedCorotational", "GenericGNN", "GNNConfig",
+           "LinearConfig", "LinearGeneric", "RestStartGNN"]

@@ -6,6 +6,8 @@
   through its backward-Euler solve.
 * `tignn_jax.train.corotational`: the corotational GENERIC model
   (`tignn_jax.simulators.CorotationalGeneric`), built from the FEM of the data's scene (nothing fitted).
+* `tignn_jax.train.embedded`: the embedded corotational model (`tignn_jax.simulators.EmbeddedCorotational`),
+  the data's mesh carried by a cage built from the FEM of the data's scene (nothing fitted).
 
 `tignn train --config FILE` runs either from a recipe in ``configs/`` (`load_recipe`).
 """
@@ -15,7 +17,7 @@ import runpy
 from pathlib import Path
 
 TRAINERS = {"generic_gnn": "tignn_jax.train.gnn", "linear": "tignn_jax.train.linear",
-            "corotational": "tignn_jax.train.corotational"}
+            "corotational": "tignn_jax.train.corotational", "embedded": "tignn_jax.train.embedded"}
 
 
 def is_number(value) -> bool:

@@ -1,4 +1,4 @@
-"""Recipes made from a data file: ``tignn train --config linear|corotational|tignn`` on any mesh.
+"""Recipes made from a data file: ``tignn train --config linear|corotational|embedded|tignn`` on any mesh.
 
 A data file of ``tignn generate`` records its FEM scene (`tignn_jax.train.linear.data_metadata`): the material,
 density and mass damping. The named recipes take their scales from it:
@@ -8,6 +8,8 @@ density and mass damping. The named recipes take their scales from it:
   μ = 2 (C10 + C01) and bulk modulus κ = 2 / D1, the density and damping of the data; 100 Adam steps on whole
   rollouts, in float64.
 * ``corotational``: the corotational GENERIC model (`tignn_jax.train.corotational`; nothing fitted).
+* ``embedded``: the mesh carried by a corotational cage of cells a tenth of its longest side
+  (`tignn_jax.train.embedded`; nothing fitted): large meshes in real time.
 * ``tignn``: the paper's graph network (`tignn_jax.train.gnn`) with its default architecture and schedule.
 
 `override` changes any field of a recipe from ``KEY=VALUE`` text (``steps=20``, ``model.hidden=16``).
@@ -16,7 +18,7 @@ from __future__ import annotations
 
 import ast
 
-NAMES = ("linear", "corotational", "tignn")
+NAMES = ("linear", "corotational", "embedded", "tignn")
 
 
 def default_recipe(name: str, data_path):
@@ -35,8 +37,8 @@ def default_recipe(name: str, data_path):
 
     if name not in NAMES:
         raise ValueError(f"unknown recipe {name!r}; named recipes: {', '.join(NAMES)} (or a recipe file)")
-    if name == "corotational":
-        module = importlib.import_module(TRAINERS["corotational"])
+    if name in ("corotational", "embedded"):
+        module = importlib.import_module(TRAINERS[name])
         return module.TrainConfig(), module
     if name == "tignn":
         module = importlib.import_module(TRAINERS["generic_gnn"])
