@@ -1,4 +1,4 @@
-"""Smoke tests of the product benchmarks (benchmarks/model_step.py, stability.py, pareto.py, scaling.py,
+"""Smoke tests of the product benchmarks (benchmarks/model_step.py, stability.py, pareto.py, scaling.py, embedded.py,
 fem_implicit.py, large_deformation.py, contact_beams.py, fem_throughput.py, abaqus_agreement.py, datasets.py,
 diffrax_integrators.py): each runs in its quick or small-argument mode, in a fresh process, into a temporary
 results folder, and writes its .json and .md (and .png where it draws one) with the expected rows. Every option
@@ -15,7 +15,7 @@ ROOT = Path(__file__).resolve().parents[1]
 BENCHMARKS = ROOT / "benchmarks"
 REFERENCE = ROOT.parent / "shared" / "data" / "abaqus_beam.npz"
 QUICK = ("model_step", "stability", "pareto", "scaling", "fem_implicit", "large_deformation", "large_deformation_bunny",
-         "contact_beams")
+         "contact_beams", "embedded")
 SCRIPTS = QUICK + ("fem_throughput", "abaqus_agreement", "datasets")
 needs_reference = pytest.mark.skipif(not REFERENCE.exists(), reason="reference data ../shared/data/abaqus_beam.npz "
                                                                     "not present")
@@ -132,6 +132,17 @@ def test_scaling_quick_fits_the_growth_of_every_model_class(tmp_path):
     assert "Corotational step time over the linear one's on the same mesh" in md
     assert result["fits"]["gnn_ms"]["meshes"] == 2 and result["fits"]["linear_ms"] is None
     assert "| 5×2×2 | 54 |" in md and "| 10×3×3 | 176 |" in md and "Fitted exponent" in md
+
+
+def test_embedded_quick_compares_the_cage_with_the_fine_model_and_times_both(tmp_path):
+    _bench("embedded", "--quick", "--out", str(tmp_path))
+    result, md = _results(tmp_path, "embedded")
+    assert result["quick"] and "QUICK" in md and [r["case"] for r in result["accuracy"]] == ["patch 1x hold"]
+    row = result["accuracy"][0]    # the 756-node mesh is its own cage: the two models are one
+    assert row["u_error"] < 0.01 and row["energy_creating_frames"] == 0 and row["dent"] > 0
+    (timed,) = result["timing"]
+    assert timed["nodes"] == 756 and timed["cage_nodes"] == 756 and timed["embedded_p50"] > 0
+    assert timed["corotational_p50"] > 0
 
 
 @pytest.mark.long
