@@ -91,7 +91,7 @@ def embedded_params(mesh, problem, material):
     from tignn_jax.simulators import embedded
 
     stored = embedded.embed(problem, material, CAGE_CELL)
-    return tignn_jax.make_params(tignn_jax.EmbeddedCorotational(), stored, mesh, envelope(mesh),
+    return tignn_jax.make_params(embedded.EmbeddedCorotational(), stored, mesh, envelope(mesh),
                                  {"kind": f"the beam embedded in a cage of cell {CAGE_CELL}"})
 
 

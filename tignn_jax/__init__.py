@@ -10,7 +10,7 @@ The public API::
 Model classes (`tignn_jax.simulators`): `GenericGNN`, the paper's thermodynamics-informed graph network,
 `RestStartGNN`, that network started from rest at the quasi-static rate of its load, `LinearGeneric`, the learned
 linear GENERIC model, `CorotationalGeneric`, the corotational GENERIC model for large deformations, and
-`EmbeddedCorotational`, a fine mesh carried by a coarse corotational cage (large meshes in real time).
+`EmbeddedCorotational`, a large mesh carried by a coarse corotational cage.
 Training: `train`, with a recipe from ``configs/``.
 
 The names below are imported on first use (PEP 562), so ``import tignn_jax`` and the ``tignn`` command's ``--help``
@@ -30,8 +30,8 @@ _EXPORTS = {
     "tignn_jax.guards": ("fallback_step", "fallback_stepper", "force_check", "guarded_stepper", "state_check",
                          "state_guard"),
     "tignn_jax.newton": ("fem_stepper",),
-    "tignn_jax.simulators": ("CorotationalConfig", "CorotationalGeneric", "EmbeddedCorotational", "GenericGNN",
-                             "GNNConfig", "LinearConfig", "LinearGeneric"),
+    "tignn_jax.simulators": ("CorotationalConfig", "CorotationalGeneric", "GenericGNN", "GNNConfig", "LinearConfig",
+                             "LinearGeneric"),
 }
 _MODULE_OF = {name: module for module, names in _EXPORTS.items() for name in names}
 _SUBMODULES = ("api", "cli", "data", "evaluation", "graph", "guards", "model_card", "mr", "newton", "simulators",
@@ -75,5 +75,5 @@ __all__ = [
     "force_check", "state_check", "state_guard", "guarded_stepper", "fallback_step", "fallback_stepper",
     "fem_stepper",
     "GenericGNN", "GNNConfig", "LinearGeneric", "LinearConfig", "CorotationalGeneric", "CorotationalConfig",
-    "EmbeddedCorotational", "train", "evaluate",
+    "train", "evaluate",
 ]
