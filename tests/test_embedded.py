@@ -183,11 +183,17 @@ def test_a_model_file_round_trip_steps_the_same_through_the_public_step(tmp_path
     np.testing.assert_array_equal(np.asarray(a), np.asarray(tignn_jax.stepper(params)(rest(q0), f)))
 
 
-def test_bad_input_is_refused_naming_the_value():
+def test_bad_input_is_refused_naming_the_value(monkeypatch):
     problem, material, mesh_dict = bar((4, 1, 1))
     for cell in (0.0, -1.0, float("nan"), "2"):
         with pytest.raises(ValueError, match="cell"):
             EM.embed(problem, material, cell)
+    with pytest.raises(ValueError, match="no cage cell of size 0.01"):    # the bar's 20 nodes see no cell whole
+        EM.embed(problem, material, 0.01)
+    monkeypatch.setattr(EM, "MAX_CAGE_NODES", 12)
+    with pytest.raises(ValueError, match="cell=1.0 gives a cage of 81 nodes, more than 12"):
+        EM.embed(bar((8, 2, 2))[0], material, 1.0)
+    monkeypatch.undo()
     stored = EM.embed(problem, material, 2.0)
     model = EM.EmbeddedCorotational()
     with pytest.raises(ValueError, match="sum to 1"):

@@ -43,6 +43,7 @@ FILL_FLOOR = 0.05   # the least fill φ_e a cage cell is given: one holding only
 SEEN = 0.1          # the least weight some fine node must give each corner of a cage cell (`embed`)
 CORNERS = np.array([[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0], [0, 0, 1], [1, 0, 1], [1, 1, 1], [0, 1, 1]])  # VTK
 CONDITION_LIMIT = 1e6   # the largest condition number of WᵀW a cage may have (its least-squares read-back)
+MAX_CAGE_NODES = 4096   # the read-back (WᵀW)⁻¹ is dense: Nc² numbers, 64 MB at this size
 
 
 @dataclasses.dataclass(frozen=True)
@@ -142,8 +143,8 @@ def embed(problem, material, cell: float, frame_dt: float | None = None) -> dict
       {"cage": {..., "q0" [Nc, 3], "node_type" [Nc]}, "parents" [N, 8] int32, "weights" [N, 8] float32}.
 
     Raises:
-      ValueError: ``cell`` is not a positive number, or is so small or large for the mesh that no cage cell has
-        all its corners seen; the material is viscoelastic.
+      ValueError: ``cell`` is not a positive number, gives a cage of more than ``MAX_CAGE_NODES`` nodes, or is so
+        small or large for the mesh that no cage cell has all its corners seen; the material is viscoelastic.
     """
     from scipy.spatial import cKDTree
 
@@ -177,6 +178,9 @@ def embed(problem, material, cell: float, frame_dt: float | None = None) -> dict
         node_cell = _nearest_cells(points, kept, counts, lo, spacing, cKDTree)
     ijk = np.stack(np.unravel_index(kept, counts[::-1])[::-1], -1)
     used, cage_cells = np.unique(lattice(ijk[:, None, :] + CORNERS[None]), return_inverse=True)
+    if len(used) > MAX_CAGE_NODES:
+        raise ValueError(f"cell={cell!r} gives a cage of {len(used)} nodes, more than {MAX_CAGE_NODES} (its read-back "
+                         f"is a dense [Nc, Nc] matrix): choose a larger cell")
     cage_cells = cage_cells.reshape(-1, 8).astype(np.int32)
     cage_points = lo + np.stack(np.unravel_index(used, (counts + 1)[::-1])[::-1], -1) * spacing
     parents = np.searchsorted(used, lattice(node_cell[:, None, :] + CORNERS[None])).astype(np.int32)
