@@ -134,6 +134,7 @@ def test_scaling_quick_fits_the_growth_of_every_model_class(tmp_path):
     assert "| 5×2×2 | 54 |" in md and "| 10×3×3 | 176 |" in md and "Fitted exponent" in md
 
 
+@pytest.mark.long   # CI time (~30 s); the class itself is tested in tests/test_embedded.py
 def test_embedded_quick_compares_the_cage_with_the_fine_model_and_times_both(tmp_path):
     _bench("embedded", "--quick", "--out", str(tmp_path))
     result, md = _results(tmp_path, "embedded")
