@@ -53,16 +53,13 @@ REFERENCE_CONFIG = {"cg_tolerance": 1e-3, "cg_max_iterations": 40}
 
 
 def parse_meshes(text: str) -> list:
-    out = []
-    for item in [s.strip() for s in text.split(",") if s.strip()]:
-        try:
-            d = tuple(int(x) for x in item.split("x"))
-        except ValueError:
-            raise SystemExit(f"a mesh is NXxNYxNZ elements, e.g. 40x10x10; got {item!r}") from None
-        if len(d) != 3 or min(d) < 1:
-            raise SystemExit(f"a mesh is three positive element counts, got {item!r}")
-        out.append(d)
-    return out
+    """``"20x5x5,40x10x10"`` → [(20, 5, 5), (40, 10, 10)] (`scaling.parse_meshes`), a bad one a usage error."""
+    from scaling import parse_meshes as parse
+
+    try:
+        return parse(text)
+    except ValueError as err:
+        raise SystemExit(str(err)) from None
 
 
 def beam_problem(divisions):

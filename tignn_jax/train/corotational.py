@@ -40,19 +40,36 @@ def run(data_paths, config: TrainConfig, run_dir, progress: bool = True) -> dict
     Raises:
       ValueError: an unknown split or a viscoelastic material (`from_fem`).
     """
-    from tignn_jax import data as D
     from tignn_jax.simulators.corotational import CorotationalGeneric, from_fem
-    from tignn_jax.train.linear import _split, fem_problem, save_run
+    from tignn_jax.train.linear import fem_problem, save_run
 
-    paths = [data_paths] if isinstance(data_paths, (str, Path)) else list(data_paths)
-    data = D.concatenate(*(D.load(p) for p in paths))
-    split = _split(config.train_split)
-    rows = D.split_rows(data, split)
-    run_dir = Path(run_dir)
-    run_dir.mkdir(parents=True, exist_ok=True)
+    paths, data, split, rows = scene_data(data_paths, config.train_split)
     recipe = {"model": config.model._asdict(), "train_split": split}
-    (run_dir / "config.json").write_text(json.dumps({"recipe": recipe, "data": [str(p) for p in paths]}, indent=1))
+    write_recipe(run_dir, recipe, paths)
     problem, material = fem_problem(paths[0])
     stored = from_fem(problem, material, float(data.dt))
     return save_run(run_dir, paths, data, rows, CorotationalGeneric(config.model), stored, recipe,
                     {"kind": "the FEM's energy and element operators, corotated (not learned)"})
+
+
+def scene_data(data_paths, train_split):
+    """(the data files as a list, their concatenated data, the split's name or sim ids, its rows) for a model
+    built from the data's FEM scene.
+
+    Raises:
+      ValueError: an unknown split.
+    """
+    from tignn_jax import data as D
+    from tignn_jax.train.linear import _split
+
+    paths = [data_paths] if isinstance(data_paths, (str, Path)) else list(data_paths)
+    data = D.concatenate(*(D.load(p) for p in paths))
+    split = _split(train_split)
+    return paths, data, split, D.split_rows(data, split)
+
+
+def write_recipe(run_dir, recipe: dict, paths) -> None:
+    """Write ``run_dir``/config.json: the recipe as JSON and the data files (the folder is created)."""
+    run_dir = Path(run_dir)
+    run_dir.mkdir(parents=True, exist_ok=True)
+    (run_dir / "config.json").write_text(json.dumps({"recipe": recipe, "data": [str(p) for p in paths]}, indent=1))

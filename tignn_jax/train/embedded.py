@@ -7,8 +7,6 @@ damping). The data give the mesh, the frame step and the envelope the guards com
 """
 from __future__ import annotations
 
-import json
-from pathlib import Path
 from typing import NamedTuple
 
 from tignn_jax.simulators.corotational import CorotationalConfig
@@ -51,21 +49,16 @@ def run(data_paths, config: TrainConfig, run_dir, progress: bool = True) -> dict
     """
     import numpy as np
 
-    from tignn_jax import data as D
     from tignn_jax.simulators.embedded import EmbeddedCorotational, embed
-    from tignn_jax.train.linear import _split, fem_problem, save_run
+    from tignn_jax.train.corotational import scene_data, write_recipe
+    from tignn_jax.train.linear import fem_problem, save_run
 
     config.check()
-    paths = [data_paths] if isinstance(data_paths, (str, Path)) else list(data_paths)
-    data = D.concatenate(*(D.load(p) for p in paths))
-    split = _split(config.train_split)
-    rows = D.split_rows(data, split)
+    paths, data, split, rows = scene_data(data_paths, config.train_split)
     q0 = np.asarray(data.q0, np.float64)
     cell = float(config.cell) if config.cell is not None else float((q0.max(0) - q0.min(0)).max()) / 10.0
-    run_dir = Path(run_dir)
-    run_dir.mkdir(parents=True, exist_ok=True)
     recipe = {"cell": cell, "model": config.model._asdict(), "train_split": split}
-    (run_dir / "config.json").write_text(json.dumps({"recipe": recipe, "data": [str(p) for p in paths]}, indent=1))
+    write_recipe(run_dir, recipe, paths)
     problem, material = fem_problem(paths[0])
     stored = embed(problem, material, cell, float(data.dt))
     return save_run(run_dir, paths, data, rows, EmbeddedCorotational(config.model), stored, recipe,
