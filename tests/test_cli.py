@@ -120,13 +120,17 @@ RECIPE = str(ROOT / "configs" / "tiny_gnn.py")
 
 
 @pytest.mark.parametrize("argv,message", [
-    (["track", "--mediapipe", "empty.jsonl", "--size", "64x48", "--focal", "50", "--out", "."], ".: Is a directory"),
+    (["track", "--mediapipe", "nohand.jsonl", "--size", "64x48", "--focal", "50", "--out", "."], ".: Is a directory"),
     (["track", "--mediapipe", "list.jsonl", "--size", "64x48", "--focal", "50", "--out", "t.jsonl"],
      "list.jsonl:1: not a hand record (a JSON list, not an object)"),
     (["track", "--mediapipe", "empty.jsonl", "--size", "64x48", "--focal", "inf", "--out", "t.jsonl"],
      "--focal must be a positive number, got inf"),
     (["demo", "--scene", "beam", "--stand-in", "--frames", "2", "--track", "list.jsonl", "--out", "o"],
      "list.jsonl:1: not a track record (a JSON list, not an object)"),
+    (["demo", "--scene", "beam", "--stand-in", "--frames", "2", "--track", "empty.jsonl", "--out", "o"],
+     "empty.jsonl: no track records (an empty file)"),
+    (["track", "--mediapipe", "empty.jsonl", "--size", "64x48", "--focal", "50", "--out", "t.jsonl"],
+     "empty.jsonl: no hand records (an empty file)"),
     (["train", "--config", "syntax.py", "--data", "d.npz", "--run-dir", "r"],
      "cannot run the recipe (SyntaxError: '(' was never closed"),
     (["train", "--config", RECIPE, "--data", "d.npz", "--run-dir", "r", "--set", "lr=abc"],
@@ -146,6 +150,7 @@ def test_bad_files_and_paths_are_one_line_and_exit_code_2(argv, message, capsys,
     monkeypatch.chdir(tmp_path)
     Path("text.txt").write_text("hello\n")
     Path("empty.jsonl").write_text("")
+    Path("nohand.jsonl").write_text('{"frame": 0, "hands": []}\n')
     Path("list.jsonl").write_text("[1, 2, 3]\n")
     Path("syntax.py").write_text("CONFIG = (\n")
     np.savez("d.npz", x=np.zeros(1))

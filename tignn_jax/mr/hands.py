@@ -96,7 +96,7 @@ def convert(path, out, width: int, height: int, focal: float, tips=("index",), p
       The written track's path.
 
     Raises:
-      ValueError: a line that is not a record of this form (naming the line).
+      ValueError: a line that is not a record of this form (naming the line), or a file with no record.
     """
     from tignn_jax.mr.track import save_track
 
@@ -113,8 +113,10 @@ def convert(path, out, width: int, height: int, focal: float, tips=("index",), p
         except (ValueError, KeyError, TypeError) as err:
             raise ValueError(f"{path}:{n + 1}: not a hand record ({err})") from None
         frames[int(record.get("frame", n))] = np.concatenate(rows) if rows else np.zeros((0, 3))
-    count = max((len(r) for r in frames.values()), default=0)
-    track = np.full((max(frames) + 1 if frames else 0, max(count, 1), 3), np.nan)
+    if not frames:
+        raise ValueError(f"{path}: no hand records (an empty file)")
+    count = max(len(r) for r in frames.values())
+    track = np.full((max(frames) + 1, max(count, 1), 3), np.nan)
     for i, r in frames.items():
         track[i, : len(r)] = r
     save_track(out, track)

@@ -66,7 +66,8 @@ def load_track(path, max_tips: int = 5) -> np.ndarray:
       [F, max_tips, 3] float32, NaN-padded; F is one more than the largest frame number.
 
     Raises:
-      ValueError: a line is not a track record ({"frame": int, "tips": [[u, v, depth], ...]}), naming its line.
+      ValueError: a line is not a track record ({"frame": int, "tips": [[u, v, depth], ...]}), naming its line,
+        or the file holds no record.
     """
     frames = {}
     for n, line in enumerate(Path(path).read_text().splitlines()):
@@ -85,7 +86,9 @@ def load_track(path, max_tips: int = 5) -> np.ndarray:
         if len(tips) > max_tips:
             warnings.warn(f"{path}:{n + 1}: {len(tips)} fingertips, keeping the first {max_tips}")
         frames[frame] = tips[:max_tips]
-    track = np.full((max(frames) + 1 if frames else 0, max_tips, 3), np.nan, np.float32)
+    if not frames:
+        raise ValueError(f"{path}: no track records (an empty file)")
+    track = np.full((max(frames) + 1, max_tips, 3), np.nan, np.float32)
     for i, tips in frames.items():
         track[i, : len(tips)] = tips
     return track
