@@ -157,6 +157,7 @@ def test_the_energy_never_exceeds_the_work_of_the_forces_through_a_load_its_rele
     assert peak > 0.5      # a large deflection of the 8-long bar
 
 
+@pytest.mark.long   # CI time; in the default run tests/test_user_mesh.py checks a cage against the FEM
 def test_a_finer_mesh_follows_its_own_corotational_model_under_a_tip_load():
     # the cage is 4 × 1 × 1 elements of the 16 × 4 × 4 mesh's 256: the bending a tip load makes is smooth, so the
     # cage follows the fine model closely in displacement (a dent finer than a cell it cannot: benchmarks/embedded.py)

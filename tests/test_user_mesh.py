@@ -11,6 +11,7 @@ from fem import user_mesh as um
 from fem.mesh import box_hex_mesh, hex_to_tet
 from tignn_jax.cli import main
 
+ROOT = Path(__file__).resolve().parents[1]
 MATERIAL = ["--c10", "1e3", "--d1", "1e-4", "--density", "1e-2", "--damping", "10"]
 
 
@@ -36,7 +37,7 @@ def _error(capsys, argv):
 
 def test_whole_path_on_a_small_mesh(tmp_path, box, capsys):
     """generate (6 cases) → train linear → card; the model beats doing nothing on the held-out case against the
-    FEM, and evaluate, demo and rollout --paraview run on it."""
+    FEM, and evaluate, demo and rollout --paraview run on it; the embedded recipe carries the mesh on a cage."""
     data, run = str(tmp_path / "box.npz"), str(tmp_path / "run")
     assert main(["generate", "mesh", "--mesh", box, *MATERIAL, "--clamp", "x=min", "--load", "fingertip,point",
                  "--force", "20", "--cases", "6", "--frames", "10", "--rise-frames", "5", "--out", data,
@@ -71,30 +72,18 @@ def test_whole_path_on_a_small_mesh(tmp_path, box, capsys):
     assert main(["demo", "--model", run, "--frames", "3", "--size", "160x120", "--out", str(tmp_path / "demo")]) == 0
     out = capsys.readouterr().out
     assert "scene own" in out and (tmp_path / "demo" / "own.gif").exists()
-
-
-def test_a_mesh_carried_by_a_cage_follows_the_fem(tmp_path, box, capsys):
-    """generate (2 point presses) → train the embedded recipe (a cage of 4 × 1 × 1 cells of 6 carries the box's 208
-    nodes) → its rollout of the pressed case follows the FEM's, its clamped nodes stay; a bad cell is one line."""
-    data, run = str(tmp_path / "box.npz"), tmp_path / "run"
-    assert main(["generate", "mesh", "--mesh", box, *MATERIAL, "--clamp", "x=min", "--load", "point",
-                 "--force", "20", "--cases", "2", "--frames", "8", "--rise-frames", "4", "--out", data,
-                 "--no-progress"]) == 0
-    root = Path(__file__).resolve().parents[1]
-    assert main(["train", "--config", str(root / "configs" / "embedded.py"), "--data", data, "--run-dir", str(run),
+    # the same mesh carried by a cage of 4 × 1 × 1 cells of 6 (nothing fitted): it follows the FEM on the held-out
+    # case, coarsely (a fingertip dents finer than one cell across), and keeps its clamped nodes where they are
+    cage = str(tmp_path / "cage")
+    assert main(["train", "--config", str(ROOT / "configs" / "embedded.py"), "--data", data, "--run-dir", cage,
                  "--set", "cell=6", "--no-progress", "--no-card"]) == 0
-    import tignn_jax
-
-    params, graph = tignn_jax.load_pretrained(str(run))
+    params, graph = tignn_jax.load_pretrained(cage)
     assert params["model"].name == "embedded" and params["arrays"]["cage"]["q0"].shape == (20, 3)
-    with np.load(data) as d:
-        forces, z_fem, q0 = d["f"][1], d["z"][1], d["q0"]
     states = np.asarray(tignn_jax.rollout(params, graph, forces))
     clamped = params["mesh"]["node_type"] != 0
     assert np.abs(states[:, clamped, :3] - q0[clamped]).max() == 0.0
-    u_fem, u = z_fem[-1, :, :3] - q0, states[-1, :, :3] - q0
-    err = np.linalg.norm(u - u_fem) / np.linalg.norm(u_fem)
-    assert err < 0.2, err          # measured 0.11: a point press dents finer than one cell across
+    err = np.linalg.norm(states[-1, :, :3] - q0 - u_fem) / np.linalg.norm(u_fem)
+    assert err < 0.2, err          # measured 0.10
     capsys.readouterr()
     code, line = _error(capsys, ["train", "--config", "embedded", "--data", data, "--run-dir", str(tmp_path / "x"),
                                  "--set", "cell=-1"])
