@@ -19,7 +19,8 @@ state the model produces (those are W u_c), the nearest cage state for any other
 
 GENERIC structure, inherited from the cage: E(z) = E_c(z_c) with ½ v_cᵀ M_c v_c the kinetic energy (M_c the cage's
 lumped masses), the canonical coupling of q and v, and dissipation α v_cᵀ M_c v_c ≥ 0. The external work is the
-same on both meshes, f · W Δu_c = (Wᵀ f) · Δu_c, so the cage's budget E_c(z_c') ≤ E_c(z_c) + W is the body's.
+same on both meshes, f · W Δu_c = (Wᵀ f) · Δu_c, so the cage's budget E_c(z_c') ≤ E_c(z_c) + W is the body's (up
+to the float32 round-off of the cage's budget and of reading the state back).
 
 Clamps: a cage node is clamped when a clamped fine node has weight on it, so a clamped fine node never moves.
 What the cage cannot represent — a deformation finer than a cell, a dent under a fingertip smaller than a cell —
