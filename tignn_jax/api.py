@@ -11,7 +11,6 @@ from __future__ import annotations
 import json
 import math
 import os
-import zipfile
 from pathlib import Path
 
 import jax
@@ -22,7 +21,7 @@ from flax import traverse_util
 
 from tignn_jax import DEFAULT_MODEL  # noqa: F401 (the package defines it: the CLI reads it without JAX)
 from tignn_jax import graph as G
-from tignn_jax.data import STATE_DIM
+from tignn_jax.data import NOT_AN_ARCHIVE, STATE_DIM
 from tignn_jax.simulators import CLASSES
 
 PRETRAINED_DIR = Path(__file__).resolve().parent / "pretrained"
@@ -227,7 +226,7 @@ def for_interaction(model: str | Path) -> bool:
     try:
         with np.load(path, allow_pickle=False) as raw:
             info = json.loads(str(raw["info"])) if "info" in raw.files else {}
-    except (OSError, ValueError, EOFError, AttributeError, TypeError, zipfile.BadZipFile):   # not a model file
+    except (OSError, AttributeError, TypeError) + NOT_AN_ARCHIVE:   # not a model file
         return True
     return info.get("interactive") is not False
 
@@ -339,7 +338,7 @@ def load_model(path: str | Path) -> dict:
     try:
         with np.load(path, allow_pickle=False) as npz:
             flat = {k: npz[k] for k in npz.files}
-    except (ValueError, EOFError, zipfile.BadZipFile) as err:
+    except NOT_AN_ARCHIVE as err:
         raise ValueError(f"{path} is not a tignn-jax model file (not a .npz archive)") from err
     if "model" not in flat:
         raise ValueError(f"{path} is not a tignn-jax model file (no 'model' entry)")

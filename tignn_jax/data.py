@@ -12,6 +12,8 @@ from typing import NamedTuple
 
 import numpy as np
 
+NOT_AN_ARCHIVE = (ValueError, EOFError, zipfile.BadZipFile)   # numpy.load on a file that is not an .npz archive
+
 STATE_DIM = 12
 Q, V, SIGMA = slice(0, 3), slice(3, 6), slice(6, 12)
 SPLITS = ("train", "val", "test")
@@ -78,7 +80,7 @@ def load(path: str | Path) -> Dataset:
         try:
             with np.load(path, allow_pickle=False) as npz:
                 raw = {k: npz[k] for k in npz.files}
-        except (ValueError, EOFError, zipfile.BadZipFile) as err:
+        except NOT_AN_ARCHIVE as err:
             raise ValueError(f"data set {path} is not a .npz archive") from err
     for key in ("q0", "edges", "node_type", "z", "f", "dt"):
         if key not in raw:

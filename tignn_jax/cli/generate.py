@@ -359,9 +359,10 @@ def _worker(text: str) -> tuple:
 def _held_out_load_nodes(path) -> list:
     """The load nodes of the val and test cases of a bunny data set (its metadata's load_nodes by sim id)."""
     import json
-    import zipfile
 
     import numpy as np
+
+    from tignn_jax.data import NOT_AN_ARCHIVE
 
     try:
         with np.load(path, allow_pickle=False) as d:
@@ -370,7 +371,7 @@ def _held_out_load_nodes(path) -> list:
             meta = json.loads(str(d["metadata"]))
             ids = np.concatenate([d[k] for k in ("split_val", "split_test") if k in d.files])
             sims = list(d["sim_id"])
-    except (ValueError, EOFError, zipfile.BadZipFile) as err:
+    except NOT_AN_ARCHIVE as err:
         raise UsageError(f"--exclude-loads-of {path}: not a data file ({type(err).__name__})") from err
     if not isinstance(meta, dict) or "load_nodes" not in meta:
         raise UsageError(f"--exclude-loads-of {path}: its metadata has no load_nodes")
