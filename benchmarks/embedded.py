@@ -63,24 +63,20 @@ def parse_meshes(text: str) -> list:
 
 
 def beam_problem(divisions):
-    """(model mesh dict with cells, the FEM problem, the material) of the beam meshed by ``divisions``."""
-    import fem
+    """(model mesh dict with cells, the FEM problem, the material) of the beam meshed by ``divisions``
+    (`scaling.beam_scene_of`: the beam scene's elastic material and damping on the refined mesh)."""
     from fem import scenes
-    from fem.meshes import beam_node_type, mesh_edges
+    from scaling import beam_scene_of
 
-    points, cells = fem.box_hex_mesh(SIZE, divisions)
-    edges = mesh_edges(cells)
-    mesh = {"q0": points, "senders": edges[0], "receivers": edges[1], "node_type": beam_node_type(points),
-            "cells": cells}
-    scene = scenes.beam_scene(prony=False)._replace(name=f"beam {divisions}", points=points, cells=cells,
-                                                     edges=np.stack(edges), node_type=mesh["node_type"])
-    return mesh, scenes.setup_scene(scene._replace(n_frames=1)), scene.material
+    mesh, scene = beam_scene_of(divisions)
+    return {**mesh, "cells": scene.cells}, scenes.setup_scene(scene._replace(n_frames=1)), scene.material
 
 
 def envelope(mesh: dict) -> dict:
-    """A training envelope for models that were not trained (the step does not read it)."""
-    return {"z_mean": np.zeros(12, np.float32), "z_std": np.ones(12, np.float32),
-            "z_dev_max": np.ones(12, np.float32), "u_max": np.ones(1, np.float32), "f_max": np.ones(1, np.float32)}
+    """A training envelope for models that were not trained (`scaling.envelope_of`; the step does not read it)."""
+    from scaling import envelope_of, statistics
+
+    return envelope_of(statistics(mesh))
 
 
 def embedded_params(mesh, problem, material):
